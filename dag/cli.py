@@ -1,0 +1,190 @@
+"""The ``persona`` command: a thin layer over :mod:`persona.dag.api`."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shlex
+import sys
+from pathlib import Path
+
+from persona.plugins.manager import PluginError
+from persona.stores.errors import PersonaError
+
+
+def _cmd_run(args) -> int:
+    from .runner import run_workflow
+    from .workflow import load_workflow
+
+    wf = load_workflow(args.workflow, args.set)
+    if args.dry_run:
+        print(_plan(wf))
+        return 0
+    try:
+        report = run_workflow(wf, scheduler=args.scheduler, workers=args.workers, progress=not args.quiet)
+    except KeyboardInterrupt:
+        _resume_hint(args)
+        return 130
+    except Exception:
+        _resume_hint(args)
+        raise
+    _print_report(report)
+    return 0
+
+
+def _plan(wf) -> str:
+    from .runner import ALL_STAGES, collection_specs
+
+    lines = [f"workflow {wf.name}: store {wf.store}, output {wf.output}"]
+    for path, spec in collection_specs(wf):
+        lines.append(f"  {path}: {spec}")
+        for stage in ALL_STAGES:
+            if stage == "ingest":
+                lines.append("    ingest")
+            else:
+                backend, params = wf.stage(stage)
+                lines.append(f"    {stage:<10} {backend} {json.dumps(params)}")
+    lines.append(f"  cluster: {wf.cluster.scheduler} (workers: {wf.cluster.workers or 'one per core'})")
+    return "\n".join(lines)
+
+
+def _resume_hint(args) -> None:
+    command = ["persona", "run", args.workflow, *sum((["--set", s] for s in args.set), [])]
+    if args.scheduler:
+        command += ["--scheduler", args.scheduler]
+    if args.workers:
+        command += ["--workers", str(args.workers)]
+    print("\nThe run stopped. Finished work is kept in the store; resume with:\n  "
+          + shlex.join(command), file=sys.stderr)
+
+
+def _print_report(report: dict) -> None:
+    for path, c in report["collections"].items():
+        print(f"{path}: {c['accepted']} of {c['n_photos']} photos aligned")
+        for name, file in c["pictures"].items():
+            print(f"  {name}: {file}")
+
+
+def _cmd_demo(args) -> int:
+    from .demo import run_demo
+
+    run_demo(Path(args.folder), n_photos=args.photos, n_frames=args.frames, workers=args.workers,
+             scheduler=args.scheduler, progress=not args.quiet)
+    return 0
+
+
+def _cmd_validate(args) -> int:
+    from .workflow import load_workflow
+
+    wf = load_workflow(args.workflow, args.set)
+    print(f"{args.workflow}: valid")
+    print(_plan(wf))
+    return 0
+
+
+def _cmd_schema(args) -> int:
+    from .workflow import json_schema
+
+    print(json.dumps(json_schema(), indent=2))
+    return 0
+
+
+def _cmd_plugins(args) -> int:
+    from persona.plugins.manager import default_registry
+
+    registry = default_registry()
+    rows = [info.describe() for info in registry.all()]
+    if args.json:
+        print(json.dumps(rows, indent=2))
+        return 0
+    for kind in registry.kinds():
+        print(f"{kind}:")
+        for row in (r for r in rows if r["kind"] == kind):
+            star = "*" if row["default"] else " "
+            params = ", ".join(f"{k}={v.get('default')!r}" for k, v in row["params"].get("properties", {}).items())
+            print(f"  {star} {row['name']:<12} {row['description']}  [{row['distribution']}]")
+            if params:
+                print(f"      params: {params}")
+    for name, why in registry.broken.items():
+        print(f"broken plugin {name}: {why}")
+    print("(* = default)")
+    return 0
+
+
+def _cmd_inspect(args) -> int:
+    from persona.stores.layout import summarize
+
+    summary = summarize(args.store)
+    if args.json:
+        print(json.dumps(summary, indent=2))
+        return 0
+    print(f"store {summary['store']}")
+    for path, c in summary["collections"].items():
+        print(f"\n{path}: {c['n_photos']} photos — {c['accepted']} accepted, {c['rejected']} rejected"
+              + (f", {c['pending']} pending" if c["pending"] else ""))
+        for reason, count in c["rejected_by_reason"].items():
+            print(f"  {count:5d} × {reason}")
+        if c["attrs"]:
+            print("  " + ", ".join(f"{k}: {v}" for k, v in c["attrs"].items()))
+        for name, a in c["arrays"].items():
+            dims = ", ".join(f"{d}={s}" for d, s in zip(a["dims"], a["shape"]))
+            print(f"    {name:<24} {a['dtype']:<10} ({dims})")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="persona", description=(
+        "Build a controllable 3D face puppet from a photo collection and drive it with a video."))
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    def common_run(p):
+        p.add_argument("--scheduler", help='"local" (default), "sync" (in this process) or a Dask '
+                       "scheduler address such as tcp://HOST:8786")
+        p.add_argument("--workers", type=int, help="local Dask workers (default: one per core)")
+        p.add_argument("--quiet", action="store_true", help="no progress bars")
+
+    p = sub.add_parser("run", help="run a workflow (resumes an interrupted run)")
+    p.add_argument("workflow")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="override a workflow value, e.g. --set stages.landmarks.params.select=largest")
+    p.add_argument("--dry-run", action="store_true", help="validate and print the plan, compute nothing")
+    common_run(p)
+    p.set_defaults(func=_cmd_run)
+
+    p = sub.add_parser("demo", help="make synthetic faces and run every stage on them")
+    p.add_argument("folder", nargs="?", default="demo", help="where the demo data and results go")
+    p.add_argument("--photos", type=int, default=24, help="photos per synthetic collection")
+    p.add_argument("--frames", type=int, default=30, help="frames of the synthetic driving video")
+    common_run(p)
+    p.set_defaults(func=_cmd_demo)
+
+    p = sub.add_parser("validate", help="check a workflow without running it")
+    p.add_argument("workflow")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
+    p.set_defaults(func=_cmd_validate)
+
+    p = sub.add_parser("schema", help="print the workflow JSON schema")
+    p.set_defaults(func=_cmd_schema)
+
+    p = sub.add_parser("plugins", help="list the installed backends")
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(func=_cmd_plugins)
+
+    p = sub.add_parser("inspect", help="summarise a store: arrays, accepted and rejected photos")
+    p.add_argument("store")
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(func=_cmd_inspect)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return args.func(args)
+    except (PersonaError, PluginError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,342 @@
+"""Run a workflow: build each collection's stage graph and execute it with Dask.
+
+Stages run in order; each maps its backend over the shards of a collection that are
+not done yet. A shard is done when its status is written, which happens after its
+outputs, so an interrupted run, run again, resumes where it stopped. A stage whose
+cache key (backend, version, params, inputs) changed starts over.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import time
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from persona.plugins.face.template import CANONICAL_HEIGHT, CANONICAL_WIDTH
+from persona.plugins.hookspecs import hookimpl
+from persona.plugins.manager import get_plugin_manager
+from persona.stores import media
+from persona.stores.errors import InputError, PersonaError
+from persona.stores.layout import OK, PENDING, Collection, open_store
+from persona.stores.provenance import Provenance, cache_key
+
+from . import stages as st
+from .workflow import IngestParams, VideoRange, Workflow
+
+log = logging.getLogger(__name__)
+
+PHOTO_STAGE_ORDER = ("landmarks", "pose", "frontalize")
+ALL_STAGES = ("ingest", *PHOTO_STAGE_ORDER)
+
+
+def persona_version() -> str:
+    import importlib.metadata
+
+    try:
+        return importlib.metadata.version("persona")
+    except importlib.metadata.PackageNotFoundError:
+        return "0+unknown"
+
+
+class RunError(PersonaError, RuntimeError):
+    """A run could not finish; the message says how to resume or fix it."""
+
+
+# -- executing tasks ---------------------------------------------------------------------
+
+class Executor:
+    """Runs task functions on a Dask cluster (local or remote) or, for "sync", in-process."""
+
+    def __init__(self, scheduler: str, workers: int | None, threads_per_worker: int = 1,
+                 memory_limit: str = "auto"):
+        self.scheduler = scheduler
+        self.client = None
+        self._cluster = None
+        if scheduler == "sync":
+            return
+        from distributed import Client, LocalCluster
+
+        if scheduler == "local":
+            self._cluster = LocalCluster(
+                n_workers=workers or os.cpu_count() or 1, threads_per_worker=threads_per_worker,
+                processes=True, memory_limit=memory_limit, dashboard_address=None,
+                silence_logs=logging.ERROR)
+            self.client = Client(self._cluster)
+        else:
+            try:
+                self.client = Client(scheduler, timeout="20s")
+            except OSError as exc:
+                raise RunError(f"cannot reach the Dask scheduler at {scheduler}: {exc}. Start one with "
+                               "`dask scheduler` and `dask worker ADDRESS`, or use --scheduler local") from None
+
+    def run(self, fn, argument_lists):
+        """Run fn(*args) for each args; yield results as they complete."""
+        if self.client is None:
+            for args in argument_lists:
+                yield fn(*args)
+            return
+        from distributed import as_completed
+
+        futures = [self.client.submit(fn, *args, pure=False) for args in argument_lists]
+        for future in as_completed(futures):
+            yield future.result()
+
+    def compute(self, *collections):
+        import dask
+
+        if self.client is None:
+            return dask.compute(*collections, scheduler="synchronous")
+        return self.client.compute(list(collections), sync=True)
+
+    def close(self):
+        if self.client is not None:
+            self.client.close()
+        if self._cluster is not None:
+            self._cluster.close()
+
+
+# -- lifecycle hooks: timing ---------------------------------------------------------------
+
+@dataclass
+class StageTimer:
+    """A built-in plugin that records every stage's wall time and counts."""
+
+    records: list = field(default_factory=list)
+    _start: dict = field(default_factory=dict)
+
+    @hookimpl
+    def persona_before_stage(self, stage, collection, info):
+        self._start[(stage, collection)] = time.perf_counter()
+
+    @hookimpl
+    def persona_after_stage(self, stage, collection, summary):
+        seconds = time.perf_counter() - self._start.pop((stage, collection), time.perf_counter())
+        self.records.append({"stage": stage, "collection": collection, "seconds": round(seconds, 3),
+                             **{k: v for k, v in summary.items() if k != "seconds"}})
+
+
+# -- the run -----------------------------------------------------------------------------
+
+def collection_specs(wf: Workflow) -> list[tuple[str, object]]:
+    """(store path, photo spec) of every collection the workflow names."""
+    specs = [("puppet", wf.puppet.photos)]
+    if wf.driver is not None:
+        specs.append(("driver", wf.driver.photos))
+        if wf.driver.video is not None:
+            specs.append(("driver/frames", wf.driver.video))
+    return specs
+
+
+def _media_spec(spec):
+    return spec.model_dump() if isinstance(spec, VideoRange) else spec
+
+
+@dataclass
+class Runner:
+    wf: Workflow
+    executor: Executor
+    progress: bool = True
+    pm: object = None
+    timer: StageTimer = field(default_factory=StageTimer)
+
+    def __post_init__(self):
+        if self.pm is None:
+            self.pm = get_plugin_manager()[0]
+        self.pm.register(self.timer)
+        self.root = open_store(self.wf.store)
+        self.version = persona_version()
+
+    # one stage on one collection, with hooks, progress and resume
+    def _stage(self, stage: str, coll: Collection, backend: str, params: dict, tasks, fn, done: int):
+        info = {"backend": backend, "params": params, "n_items": coll.n}
+        self.pm.hook.persona_before_stage(stage=stage, collection=coll.path, info=info)
+        from tqdm.auto import tqdm
+
+        counts = {"n_done": 0, "n_skipped": done, "n_ok": 0, "n_rejected": 0}
+        try:
+            with tqdm(total=coll.n, initial=done, desc=f"{coll.path:>13} {stage:<10}", unit="photo",
+                      disable=not self.progress, leave=True, dynamic_ncols=True) as bar:
+                for result in self.executor.run(fn, tasks):
+                    counts["n_done"] += result["n"]
+                    bar.update(result["n"])
+        except Exception as exc:
+            self.pm.hook.persona_stage_error(stage=stage, collection=coll.path, error=exc)
+            raise
+        state = coll.state(stage)
+        counts.update(n_ok=int((state == OK).sum()), n_rejected=int((state == 2).sum()))
+        self.pm.hook.persona_after_stage(stage=stage, collection=coll.path, summary=counts)
+
+    def ingest(self, path: str, spec) -> Collection:
+        params = self.wf.stages.get("ingest")
+        params = IngestParams.model_validate(params.params if params else {}).model_dump()
+        sources = media.resolve_sources(_media_spec(spec), self.wf.base_dir)
+        video = sources[0].path if sources[0].frame is not None else None
+        if video and any(s.path != video or s.frame is None for s in sources):
+            raise InputError(f"{path}: mix of video frames and photos; give the video on its own")
+        stats = [(s.path, s.frame, *_stat(s.path)) for s in sources]
+        prov = Provenance.make(stage="ingest", backend="-", backend_version="1", params=params,
+                               inputs={"sources": cache_key(sources=stats)}, persona_version=self.version)
+        coll = Collection(self.root, path)
+        fresh = not (coll.exists() and (coll.provenance("status/ingest/state") or prov).key == prov.key
+                     and coll.has("status/ingest/state"))
+        if fresh:
+            self._create_collection(coll, sources, video, params, prov)
+        state = coll.state("ingest")
+        todo = [(s, e) for s, e in coll.shard_ranges() if (state[s:e] == PENDING).any()]
+        done = int((state != PENDING).sum())
+        if video:
+            tasks = [(self.wf.store, path, params)] if todo else []
+            self._stage("ingest", coll, "-", params, tasks, st.ingest_video, done)
+        else:
+            tasks = [(self.wf.store, path, s, e, params) for s, e in todo]
+            self._stage("ingest", coll, "-", params, tasks, st.ingest_image_shard, done)
+        return coll
+
+    def _create_collection(self, coll, sources, video, params, prov):
+        group = self.root.require_group(coll.path)
+        n = len(sources)
+        if video:
+            with media.VideoReader(video) as reader:
+                fps, size = reader.fps, (reader.height, reader.width)
+            scale = min(1.0, params["max_side"] / max(size))
+            canvas = [int(round(size[0] * scale)), int(round(size[1] * scale))]
+            frames = [s.frame for s in sources]
+            group.attrs.update({"fps": fps, "video": {"path": video, "start": min(frames),
+                                                      "stop": max(frames) + 1,
+                                                      "step": frames[1] - frames[0] if n > 1 else 1}})
+        else:
+            canvas = _canvas(sources, params)
+        group.attrs.update({"n_photos": n, "photos_per_shard": self.wf.photos_per_shard,
+                            "canvas": canvas, "stages": list(ALL_STAGES), "layout": "persona-collection-1"})
+        coll.create("photos/ids", (), str, ("photo",), prov)[:] = np.array([s.id for s in sources])
+        coll.create("photos/source", (), str, ("photo",), prov)[:] = np.array([s.path for s in sources])
+        coll.create("photos/frame", (), "int64", ("photo",), prov, fill_value=-1)[:] = np.array(
+            [-1 if s.frame is None else s.frame for s in sources], dtype=np.int64)
+        coll.create("photos/rgb", (*canvas, 3), "uint8", ("photo", "y", "x", "channel"), prov)
+        for o in st.INGEST_OUTPUTS:
+            coll.create(o.name, o.tail, str if o.dtype == "str" else o.dtype, o.dims, prov)
+        coll.create_status("ingest", prov)
+
+    def photo_stage(self, coll: Collection, stage_name: str):
+        stage = st.PHOTO_STAGES[stage_name]
+        backend, params = self.wf.stage(stage.kind)
+        cls = st.default_registry().get(stage.kind, backend)
+        upstream = coll.provenance(f"status/{stage.upstream}/state")
+        prov = Provenance.make(stage=stage_name, backend=backend, backend_version=cls.version,
+                               params=params, inputs={stage.upstream: upstream.key},
+                               persona_version=self.version)
+        current = coll.provenance(f"status/{stage_name}/state")
+        if current is None or current.key != prov.key:
+            for o in stage.outputs:
+                coll.create(o.name, o.tail, o.dtype, o.dims, prov)
+            coll.create_status(stage_name, prov)
+        state = coll.state(stage_name)
+        todo = [(s, e) for s, e in coll.shard_ranges() if (state[s:e] == PENDING).any()]
+        tasks = [(self.wf.store, coll.path, stage_name, s, e, backend, params) for s, e in todo]
+        self._stage(stage_name, coll, backend, params, tasks, st.run_photo_shard,
+                    int((state != PENDING).sum()))
+
+    def mean_face(self, coll: Collection) -> np.ndarray | None:
+        """The mean aligned face over accepted photos, weighted by visibility; None if none."""
+        import dask.array as da
+
+        ok = coll.state("frontalize") == OK
+        if not ok.any():
+            return None
+        chunks = coll.shard
+        rgb = da.from_zarr(coll.array("aligned/rgb"), chunks=(chunks, CANONICAL_HEIGHT, CANONICAL_WIDTH, 3))
+        mask = da.from_zarr(coll.array("aligned/mask"), chunks=(chunks, CANONICAL_HEIGHT, CANONICAL_WIDTH))
+        weight = mask * da.from_array(ok, chunks=chunks)[:, None, None]
+        total = (rgb.astype(np.float32) * weight[..., None]).sum(axis=0)
+        count = weight.sum(axis=0)
+        total, count = self.executor.compute(total, count)
+        mean = np.where(count[..., None] > 0, total / np.maximum(count, 1)[..., None], 0).astype(np.float32)
+        prov = Provenance.make(stage="mean", backend="-", backend_version="1", params={},
+                               inputs={"frontalize": coll.provenance("status/frontalize/state").key},
+                               persona_version=self.version)
+        coll.create_single("aligned/mean", mean, ("y", "x", "channel"), prov)
+        coll.create_single("aligned/coverage", (count / ok.sum()).astype(np.float32), ("y", "x"), prov)
+        return mean
+
+    def pictures(self, coll: Collection, mean: np.ndarray | None) -> dict:
+        out = Path(self.wf.output)
+        slug = coll.path.replace("/", "_")
+        written = {}
+        if mean is not None:
+            big = np.kron(np.clip(mean, 0, 255).round().astype(np.uint8), np.ones((2, 2, 1), np.uint8))
+            media.write_png(out / f"{slug}_mean_face.png", big)
+            written["mean_face"] = str(out / f"{slug}_mean_face.png")
+        ok = np.flatnonzero(coll.state("frontalize") == OK)[:60]
+        if len(ok):
+            faces = coll.array("aligned/rgb").get_orthogonal_selection((ok,))
+            media.write_png(out / f"{slug}_contact_sheet.png", media.contact_sheet(list(faces), columns=10))
+            written["contact_sheet"] = str(out / f"{slug}_contact_sheet.png")
+        return written
+
+    def run(self) -> dict:
+        report = {"workflow": self.wf.name, "store": self.wf.store, "collections": {}}
+        for path, spec in collection_specs(self.wf):
+            coll = self.ingest(path, spec)
+            if not (coll.state("ingest") == OK).any():
+                raise InputError(f"{path}: none of the {coll.n} photos could be read; "
+                                 f"see `persona inspect {self.wf.store}` for the reasons")
+            for stage in PHOTO_STAGE_ORDER:
+                self.photo_stage(coll, stage)
+            mean = self.mean_face(coll)
+            report["collections"][path] = {
+                "n_photos": coll.n, "accepted": int((coll.state("frontalize") == OK).sum()),
+                "pictures": self.pictures(coll, mean)}
+        report["stages"] = self.timer.records
+        _write_json(Path(self.wf.output) / "metrics.json", report)
+        return report
+
+
+def _stat(path: str) -> tuple[int, int]:
+    try:
+        s = os.stat(path)
+        return s.st_size, s.st_mtime_ns
+    except OSError:
+        return -1, -1
+
+
+def _canvas(sources, params) -> list[int]:
+    """The smallest canvas that holds every readable photo after downscaling to max_side."""
+    h = w = 1
+    for s in sources:
+        try:
+            info = media.probe_image(s.path, max_pixels=params["max_pixels"], min_side=params["min_side"])
+        except media.PhotoRejected:
+            continue
+        scale = min(1.0, params["max_side"] / max(info.width, info.height))
+        h, w = max(h, int(round(info.height * scale))), max(w, int(round(info.width * scale)))
+    return [h, w]
+
+
+def _write_json(path: Path, data: dict) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text(json.dumps(data, indent=2, default=str))
+    os.replace(tmp, path)
+
+
+@contextmanager
+def executor_for(wf: Workflow, scheduler: str | None = None, workers: int | None = None):
+    ex = Executor(scheduler or wf.cluster.scheduler, workers or wf.cluster.workers,
+                  wf.cluster.threads_per_worker, wf.cluster.memory_limit)
+    try:
+        yield ex
+    finally:
+        ex.close()
+
+
+def run_workflow(wf: Workflow, *, scheduler: str | None = None, workers: int | None = None,
+                 progress: bool = True) -> dict:
+    """Run every stage of a workflow; returns the run report (also in OUTPUT/metrics.json)."""
+    with executor_for(wf, scheduler, workers) as ex:
+        return Runner(wf, ex, progress=progress).run()

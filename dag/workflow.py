@@ -1,0 +1,282 @@
+"""Workflows: YAML files validated into strict pydantic models.
+
+Validation reports every error at once, each with its YAML path, and suggests the
+nearest valid name for misspelt keys, stage kinds and backend names. Relative paths
+resolve against the workflow file's folder.
+"""
+
+from __future__ import annotations
+
+import difflib
+from pathlib import Path
+from typing import Any, Literal, Union
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+
+from persona.plugins.manager import Registry, default_registry, did_you_mean
+from persona.stores.errors import PersonaError
+
+
+class WorkflowError(PersonaError, ValueError):
+    """A workflow file is invalid. ``errors`` lists (yaml path, message) pairs."""
+
+    def __init__(self, source: str, errors: list[tuple[str, str]]):
+        self.source = source
+        self.errors = errors
+        lines = [f"{source}: {len(errors)} error{'s' if len(errors) != 1 else ''}"]
+        lines += [f"  {path or '(top level)'}: {msg}" for path, msg in errors]
+        super().__init__("\n".join(lines))
+
+
+class Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class VideoRange(Strict):
+    """Frames ``start:stop:step`` of a video."""
+
+    video: str = Field(description="path of the video file")
+    start: int = Field(0, ge=0, description="first frame (0-based)")
+    stop: int | None = Field(None, ge=1, description="frame after the last one; none = to the end")
+    step: int = Field(1, ge=1, description="take every step-th frame")
+
+
+PhotoSpec = Union[str, list[str], VideoRange]
+
+
+class Actor(Strict):
+    photos: PhotoSpec = Field(description="a folder, a glob, a list of files, a video, or {video, start, stop, step}")
+    video: Union[str, VideoRange, None] = Field(None, description="the actor's driving video (driver only)")
+
+
+class StageConfig(Strict):
+    backend: str | None = Field(None, description="backend name; default: the kind's default backend")
+    params: dict[str, Any] = Field(default_factory=dict, description="the backend's parameters")
+
+
+class Cluster(Strict):
+    scheduler: str = Field("local", description='"local" (a local Dask cluster) or the address of '
+                           'an existing dask.distributed scheduler, e.g. tcp://10.0.0.5:8786')
+    workers: int | None = Field(None, ge=1, description="local workers (default: one per core)")
+    threads_per_worker: int = Field(1, ge=1, description="threads per local worker")
+    memory_limit: str = Field("auto", description='memory per local worker, e.g. "2GiB"')
+
+    @field_validator("scheduler")
+    @classmethod
+    def _scheduler(cls, v: str) -> str:
+        if v != "local" and "://" not in v:
+            raise ValueError(f'"{v}" is neither "local" nor a scheduler address such as tcp://host:8786')
+        return v
+
+
+class Workflow(Strict):
+    version: Literal[1] = Field(1, description="workflow format version")
+    name: str = Field(description="a short name for the run")
+    store: str = Field(description="the Zarr store of the run (folder or fsspec URL)")
+    output: str = Field(description="folder for the pictures, videos and reports people open")
+    puppet: Actor = Field(description="actor B, whose face is built")
+    driver: Actor | None = Field(None, description="actor A, whose video drives the puppet")
+    stages: dict[str, StageConfig] = Field(default_factory=dict, description="backend and params per kind")
+    cluster: Cluster = Field(default_factory=Cluster)
+    photos_per_shard: int = Field(16, ge=1, le=4096, description="photos per Zarr shard: the unit of work and of writing")
+
+    #: the folder relative paths were resolved against (not part of the YAML)
+    base_dir: str = Field(".", exclude=True, description="(internal) folder of the workflow file")
+
+    def stage(self, kind: str, registry: Registry | None = None) -> tuple[str, dict]:
+        """(backend name, validated params as a dict) for a kind, defaults filled in."""
+        registry = registry or default_registry()
+        config = self.stages.get(kind, StageConfig())
+        name = config.backend or registry.default(kind)
+        params = registry.get(kind, name).Params.model_validate(config.params)
+        return name, params.model_dump(mode="json")
+
+
+# Stage kinds that take params but no backend choice (their work lives in the DAG).
+class IngestParams(Strict):
+    max_side: int = Field(1600, ge=64, description="photos larger than this (px, longer side) are downscaled")
+    max_pixels: int = Field(64_000_000, ge=1, description="headers claiming more pixels are rejected "
+                            "as decompression bombs without decoding")
+    min_side: int = Field(32, ge=1, description="photos smaller than this (px, shorter side) are rejected")
+
+
+BACKENDLESS = {"ingest": IngestParams}
+
+
+def _resolve(path: str, base: Path) -> str:
+    if "://" in path:
+        return path
+    p = Path(path).expanduser()
+    return str(p if p.is_absolute() else (base / p).resolve())
+
+
+def _yaml_path(loc: tuple) -> str:
+    return ".".join(str(p) for p in loc)
+
+
+def _model_at(loc: tuple) -> type[BaseModel] | None:
+    """The pydantic model whose field names are valid at ``loc`` (for did-you-mean)."""
+    model: Any = Workflow
+    for part in loc:
+        if model is Workflow and part == "stages":
+            return None
+        field = getattr(model, "model_fields", {}).get(str(part))
+        if field is None:
+            return model if isinstance(model, type) else None
+        ann = field.annotation
+        candidates = [a for a in getattr(ann, "__args__", (ann,)) if isinstance(a, type) and issubclass(a, BaseModel)]
+        model = candidates[0] if candidates else None
+        if model is None:
+            return None
+    return model
+
+
+def _pydantic_errors(exc: ValidationError, prefix: tuple = ()) -> list[tuple[str, str]]:
+    out = []
+    for err in exc.errors():
+        loc = prefix + tuple(err["loc"])
+        # drop union branch names pydantic inserts, e.g. ('photos', 'str')
+        loc = tuple(p for p in loc if p not in ("str", "list[str]", "VideoRange", "function-after[_scheduler(), str]"))
+        msg = err["msg"]
+        if err["type"] == "extra_forbidden":
+            model = _model_at(loc[len(prefix):-1]) if not prefix else None
+            names = list(model.model_fields) if model else []
+            msg = f'unknown key "{loc[-1]}".{did_you_mean(loc[-1], [n for n in names if n != "base_dir"])}'
+        out.append((_yaml_path(loc), msg))
+    # a union failing on every branch reports once per branch: keep the first of each path
+    seen, unique = set(), []
+    for path, msg in out:
+        if path not in seen:
+            seen.add(path)
+            unique.append((path, msg))
+    return unique
+
+
+def _check_stages(wf: Workflow, registry: Registry) -> list[tuple[str, str]]:
+    errors = []
+    kinds = set(registry.kinds()) | set(BACKENDLESS)
+    for kind, config in wf.stages.items():
+        path = f"stages.{kind}"
+        if kind in BACKENDLESS:
+            if config.backend is not None:
+                errors.append((f"{path}.backend", f'"{kind}" has no backends to choose; remove "backend"'))
+            try:
+                BACKENDLESS[kind].model_validate(config.params)
+            except ValidationError as exc:
+                errors += _params_errors(exc, f"{path}.params", BACKENDLESS[kind])
+            continue
+        if kind not in kinds:
+            errors.append((path, f'unknown stage kind "{kind}".{did_you_mean(kind, kinds)} '
+                                 f"Known kinds: {', '.join(sorted(kinds))}."))
+            continue
+        name = config.backend or registry.default(kind)
+        if name not in registry.names(kind):
+            names = registry.names(kind)
+            errors.append((f"{path}.backend", f'unknown {kind} backend "{name}".{did_you_mean(name, names)} '
+                                              f"Installed: {', '.join(names)}."))
+            continue
+        params_model = registry.get(kind, name).Params
+        try:
+            params_model.model_validate(config.params)
+        except ValidationError as exc:
+            errors += _params_errors(exc, f"{path}.params", params_model)
+    return errors
+
+
+def _params_errors(exc: ValidationError, prefix: str, model: type[BaseModel]) -> list[tuple[str, str]]:
+    out = []
+    for err in exc.errors():
+        loc = ".".join(str(p) for p in err["loc"])
+        msg = err["msg"]
+        if err["type"] == "extra_forbidden":
+            msg = (f'unknown parameter "{loc}".{did_you_mean(loc, model.model_fields)} '
+                   f"Parameters: {', '.join(model.model_fields) or '(none)'}.")
+        out.append((f"{prefix}.{loc}", msg))
+    return out
+
+
+def _resolve_paths(wf: Workflow, base: Path) -> None:
+    wf.store = _resolve(wf.store, base)
+    wf.output = _resolve(wf.output, base)
+    for actor in (wf.puppet, wf.driver):
+        if actor is None:
+            continue
+        for attr in ("photos", "video"):
+            spec = getattr(actor, attr)
+            if isinstance(spec, str):
+                setattr(actor, attr, _resolve(spec, base))
+            elif isinstance(spec, list):
+                setattr(actor, attr, [_resolve(s, base) for s in spec])
+            elif isinstance(spec, VideoRange):
+                spec.video = _resolve(spec.video, base)
+
+
+def set_override(data: dict, assignment: str) -> None:
+    """Apply ``key.sub=value`` (value parsed as YAML) to raw workflow data."""
+    if "=" not in assignment:
+        raise WorkflowError("--set", [(assignment, "expected key=value, e.g. cluster.workers=2")])
+    key, value = assignment.split("=", 1)
+    parts = key.strip().split(".")
+    node = data
+    for part in parts[:-1]:
+        node = node.setdefault(part, {})
+        if not isinstance(node, dict):
+            raise WorkflowError("--set", [(key, f'"{part}" is not a mapping')])
+    node[parts[-1]] = yaml.safe_load(value)
+
+
+def parse_workflow(data: Any, *, source: str = "<workflow>", base_dir: str | Path = ".",
+                   registry: Registry | None = None) -> Workflow:
+    """Validate raw YAML data into a :class:`Workflow`, or raise WorkflowError with every error."""
+    registry = registry or default_registry()
+    if not isinstance(data, dict):
+        raise WorkflowError(source, [("", f"a workflow is a YAML mapping, got {type(data).__name__}")])
+    try:
+        wf = Workflow.model_validate({**data, "base_dir": str(base_dir)})
+    except ValidationError as exc:
+        errors = _pydantic_errors(exc)
+        # stage checks still run on what parsed, so every error is reported at once
+        stages = data.get("stages")
+        if isinstance(stages, dict):
+            try:
+                partial = Workflow.model_construct(stages={k: StageConfig.model_validate(v or {})
+                                                           for k, v in stages.items()})
+                errors += _check_stages(partial, registry)
+            except ValidationError:
+                pass
+        raise WorkflowError(source, errors) from None
+    errors = _check_stages(wf, registry)
+    if errors:
+        raise WorkflowError(source, errors)
+    _resolve_paths(wf, Path(base_dir))
+    return wf
+
+
+def load_workflow(path: str | Path, overrides: list[str] = (), registry: Registry | None = None) -> Workflow:
+    """Read, override and validate a workflow file."""
+    path = Path(path)
+    if not path.is_file():
+        raise WorkflowError(str(path), [("", "no such file: give the path of a workflow YAML file")])
+    try:
+        data = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark else ""
+        problem = getattr(exc, "problem", None) or str(exc)
+        raise WorkflowError(str(path), [("", f"invalid YAML at {where}{problem}")]) from None
+    except UnicodeDecodeError:
+        raise WorkflowError(str(path), [("", "not a text file: a workflow is a YAML text file")]) from None
+    if data is None:
+        raise WorkflowError(str(path), [("", "the file is empty: see workflows/demo.yaml for an example")])
+    if isinstance(data, dict):
+        for assignment in overrides:
+            set_override(data, assignment)
+    return parse_workflow(data, source=str(path), base_dir=path.resolve().parent, registry=registry)
+
+
+def json_schema() -> dict:
+    return Workflow.model_json_schema()
+
+
+__all__ = ["Workflow", "WorkflowError", "load_workflow", "parse_workflow", "json_schema", "difflib"]

@@ -1,0 +1,110 @@
+"""Landmark backends: dlib's HOG detector + 68-point predictor, and sidecar files."""
+
+from __future__ import annotations
+
+from functools import lru_cache
+from typing import Literal
+
+import cv2
+import numpy as np
+from pydantic import Field
+
+from ..base import Params, Rejected
+from ..hookspecs import hookimpl
+from ..kinds import LandmarkBackend, Landmarks
+
+
+@lru_cache(maxsize=1)
+def dlib_models():
+    """dlib's frontal face detector and the 68-point iBUG shape predictor.
+
+    The predictor ships inside the ``face_recognition_models`` package: nothing is
+    downloaded. Loaded once per process (about a second).
+    """
+    import dlib
+    import face_recognition_models
+
+    return (
+        dlib.get_frontal_face_detector(),
+        dlib.shape_predictor(face_recognition_models.pose_predictor_model_location()),
+    )
+
+
+def choose_subject(boxes: np.ndarray, image_size: tuple[int, int], select: str) -> int:
+    """Index of the subject among face boxes (n, 4) = (left, top, right, bottom).
+
+    ``center``: the face nearest the image centre (the LFW convention);
+    ``largest``: the largest face.
+    """
+    if select == "largest":
+        return int(np.argmax((boxes[:, 2] - boxes[:, 0]) * (boxes[:, 3] - boxes[:, 1])))
+    h, w = image_size
+    centres = (boxes[:, :2] + boxes[:, 2:]) / 2
+    return int(np.argmin(np.hypot(centres[:, 0] - (w - 1) / 2, centres[:, 1] - (h - 1) / 2)))
+
+
+class DlibLandmarks(LandmarkBackend):
+    name = "dlib"
+    description = "dlib HOG face detector + 68-point iBUG shape predictor (face_recognition_models)"
+    default = True
+
+    class Params(Params):
+        select: Literal["center", "largest"] = Field(
+            "center", description="which face is the subject when there are several: "
+            "nearest the image centre (LFW convention) or the largest")
+        upsample: int = Field(1, ge=0, le=3, description="dlib detector upsampling passes")
+        small_side: int = Field(
+            200, ge=0, description="images whose shorter side (px) is below this are padded "
+            "and upscaled x2 before detection (tight crops such as 112x112)")
+        pad: float = Field(0.25, ge=0, le=1, description="padding per side for small images, "
+                           "as a fraction of the image side")
+        retry_padded: bool = Field(True, description="when no face is found in a large image, "
+                                   "retry padded and upscaled")
+
+    def _find(self, image: np.ndarray, padded: bool):
+        detector, predictor = dlib_models()
+        pad, scale = 0, 1.0
+        work = image
+        if padded:
+            pad = int(round(self.params.pad * max(image.shape[:2])))
+            work = cv2.copyMakeBorder(image, pad, pad, pad, pad, cv2.BORDER_REPLICATE)
+            scale = 2.0
+            work = cv2.resize(work, None, fx=scale, fy=scale, interpolation=cv2.INTER_LINEAR)
+        work = np.ascontiguousarray(work)
+        rects = detector(work, self.params.upsample)
+        return rects, work, pad, scale, predictor
+
+    def detect(self, image, hint=None):
+        small = min(image.shape[:2]) < self.params.small_side
+        rects, work, pad, scale, predictor = self._find(image, padded=small)
+        if len(rects) == 0 and not small and self.params.retry_padded:
+            rects, work, pad, scale, predictor = self._find(image, padded=True)
+        if len(rects) == 0:
+            raise Rejected("no face found (dlib HOG detector)")
+        boxes = np.array([[r.left(), r.top(), r.right(), r.bottom()] for r in rects], float)
+        boxes = boxes / scale - pad
+        i = choose_subject(boxes, image.shape[:2], self.params.select)
+        shape = predictor(work, rects[i])
+        points = np.array([[p.x, p.y] for p in shape.parts()], dtype=np.float64) / scale - pad
+        return Landmarks(points=points, box=boxes[i], n_faces=len(rects))
+
+
+class SidecarLandmarks(LandmarkBackend):
+    name = "sidecar"
+    description = "landmarks read from a sidecar file beside each photo (iBUG .pts; synthetic ground truth)"
+
+    class Params(Params):
+        pass
+
+    def detect(self, image, hint=None):
+        if hint is None or not np.all(np.isfinite(hint)):
+            raise Rejected("no landmark sidecar (.pts) beside this photo")
+        points = np.asarray(hint, dtype=np.float64)
+        box = np.r_[points.min(axis=0), points.max(axis=0)]
+        return Landmarks(points=points, box=box, n_faces=1)
+
+
+@hookimpl
+def persona_register_backends(register):
+    register(DlibLandmarks)
+    register(SidecarLandmarks)

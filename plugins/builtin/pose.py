@@ -1,0 +1,73 @@
+"""Head pose by PnP of the detected landmarks against the generic 3D template."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import cv2
+import numpy as np
+from pydantic import Field
+
+from ..base import Params, Rejected
+from ..face.template import IDX49, generic_template
+from ..hookspecs import hookimpl
+from ..kinds import Pose, PoseBackend
+
+
+def default_camera(image_size: tuple[int, int], focal_factor: float) -> np.ndarray:
+    """Intrinsics for a photo of unknown camera: f = c * max(h, w), principal point at the centre."""
+    h, w = image_size
+    f = focal_factor * max(h, w)
+    return np.array([[f, 0, (w - 1) / 2], [0, f, (h - 1) / 2], [0, 0, 1.0]])
+
+
+def solve_pose(points3d: np.ndarray, points2d: np.ndarray, camera: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """rvec, tvec mapping points3d (n, 3) onto points2d (n, 2): EPnP, then Levenberg-Marquardt."""
+    obj = np.ascontiguousarray(points3d, dtype=np.float64)
+    img = np.ascontiguousarray(points2d, dtype=np.float64)
+    ok, rvec, tvec = cv2.solvePnP(obj, img, camera, None, flags=cv2.SOLVEPNP_EPNP)
+    if not ok:
+        raise Rejected("pose: PnP failed")
+    ok, rvec, tvec = cv2.solvePnP(obj, img, camera, None, rvec, tvec, True, cv2.SOLVEPNP_ITERATIVE)
+    if not ok:
+        raise Rejected("pose: PnP refinement failed")
+    return rvec.ravel(), tvec.ravel()
+
+
+class PnPPose(PoseBackend):
+    name = "pnp"
+    description = "PnP (EPnP + iterative) of the landmarks against the generic analytic 3D face"
+    default = True
+
+    class Params(Params):
+        focal_factor: float = Field(1.2, gt=0.2, le=10, description="focal length as a multiple "
+                                    "of the photo's longer side (unknown Internet cameras)")
+        points: Literal["fiducials49", "all68"] = Field(
+            "fiducials49", description="landmarks used: the paper's 49 fiducials (no jaw contour, "
+            "which slides with the view) or all 68")
+        max_rms: float = Field(0.12, gt=0, description="reject poses whose landmark reprojection "
+                               "RMS exceeds this fraction of the inter-ocular distance")
+
+    def estimate(self, landmarks, image_size):
+        template = generic_template()
+        idx = list(IDX49) if self.params.points == "fiducials49" else list(range(68))
+        camera = default_camera(image_size, self.params.focal_factor)
+        rvec, tvec = solve_pose(template.landmarks3d[idx], landmarks[idx], camera)
+        rotation = cv2.Rodrigues(rvec)[0]
+        depth = template.landmarks3d[idx] @ rotation.T + tvec
+        if np.any(depth[:, 2] <= 0):
+            raise Rejected("pose: PnP put the face behind the camera")
+        if rotation[2, 2] <= 0.05:  # the template's forward axis (0, 0, 1) must still face away
+            raise Rejected("pose: face turned away from the camera (|yaw| or |pitch| near 90°)")
+        projected = cv2.projectPoints(template.landmarks3d[idx], rvec, tvec, camera, None)[0][:, 0]
+        rms = float(np.sqrt(np.mean(np.sum((projected - landmarks[idx]) ** 2, axis=1))))
+        eyes = np.linalg.norm(landmarks[36:42].mean(0) - landmarks[42:48].mean(0))
+        if rms > self.params.max_rms * eyes:
+            raise Rejected(f"pose: landmarks do not fit a face (reprojection RMS {rms:.1f} px "
+                           f"> {self.params.max_rms:g} x inter-ocular {eyes:.1f} px)")
+        return Pose(rvec=rvec, tvec=tvec, camera=camera, rms=rms)
+
+
+@hookimpl
+def persona_register_backends(register):
+    register(PnPPose)

@@ -1,0 +1,45 @@
+"""The contract between Persona and its plugins (pluggy hook specifications).
+
+A plugin is any module or object with functions marked ``@hookimpl`` whose names
+match the specs below. Built-in backends and third-party packages register the
+same way; third parties announce their module in the ``persona`` entry-point
+group of their ``pyproject.toml``::
+
+    [project.entry-points.persona]
+    my_flow = "my_package.persona_plugin"
+"""
+
+import pluggy
+
+hookspec = pluggy.HookspecMarker("persona")
+hookimpl = pluggy.HookimplMarker("persona")
+
+
+@hookspec
+def persona_register_backends(register):
+    """Register backend classes by calling ``register(BackendClass)`` once per class.
+
+    A backend class subclasses :class:`persona.plugins.base.Backend` and sets
+    ``name``, ``kind``, ``description`` and a strict pydantic ``Params`` model.
+    """
+
+
+@hookspec
+def persona_before_stage(stage, collection, info):
+    """Called before a stage runs on one collection (e.g. ``"puppet"``).
+
+    ``info`` is a dict with at least ``backend``, ``params`` and ``n_items``.
+    """
+
+
+@hookspec
+def persona_after_stage(stage, collection, summary):
+    """Called after a stage finished on one collection.
+
+    ``summary`` holds ``seconds``, ``n_done``, ``n_skipped``, ``n_ok`` and ``n_rejected``.
+    """
+
+
+@hookspec
+def persona_stage_error(stage, collection, error):
+    """Called when a stage fails with an exception (the run stops after this)."""

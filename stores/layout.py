@@ -1,0 +1,234 @@
+"""The Zarr v3 layout of a Persona store.
+
+::
+
+    run.zarr/
+      puppet/                     a collection: one actor's photos (photo axis first)
+        photos/ids, photos/source, photos/frame, photos/sha256, photos/size
+        photos/rgb                (photo, y, x, 3) uint8, padded to the collection's canvas
+        photos/hint               (photo, 68, 2) float32, landmarks from sidecar files (NaN if none)
+        status/<stage>/state      (photo,) int8: 0 pending, 1 ok, 2 rejected here, 3 rejected upstream
+        status/<stage>/reason     (photo,) str: why a photo was rejected
+        landmarks/points          (photo, 68, 2) float32 ; landmarks/fiducials (photo, 49, 2)
+        landmarks/box, landmarks/n_faces
+        pose                      (photo, 10) float64 (rx ry rz tx ty tz f cx cy rms)
+        aligned/rgb               (photo, y, x, 3) uint8 ; aligned/mask (photo, y, x) bool
+        aligned/landmarks         (photo, 68, 2) ; aligned/fiducials (photo, 49, 2)
+        aligned/mean              (y, x, 3) float32
+      driver/                     the driver's photos, the same arrays
+      driver/frames/              the driver's video frames, the same arrays (+ fps)
+
+Per-photo arrays have one photo per chunk and ``photos_per_shard`` photos per shard.
+A shard is the write unit: one task writes whole shards, no two tasks the same one.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import zarr
+
+from .errors import PersonaError
+from .provenance import Provenance
+
+PENDING, OK, REJECTED, UPSTREAM = 0, 1, 2, 3
+STATE_NAMES = {PENDING: "pending", OK: "ok", REJECTED: "rejected", UPSTREAM: "rejected upstream"}
+LAYOUT_VERSION = 1
+
+
+class StoreError(PersonaError, ValueError):
+    """The store is missing, not a Persona store, or inconsistent."""
+
+
+def open_store(url: str, mode: str = "a") -> zarr.Group:
+    """Open (or create, with mode "a") a Persona store at a local path or fsspec URL."""
+    try:
+        root = zarr.open_group(str(url), mode=mode, zarr_format=3)
+    except FileNotFoundError:
+        raise StoreError(f"no Persona store at {url}: run `persona run WORKFLOW` first") from None
+    except Exception as exc:
+        raise StoreError(f"cannot open {url} as a Zarr v3 store: {exc}") from exc
+    if mode != "r" and "persona" not in root.attrs:
+        root.attrs["persona"] = {"layout": LAYOUT_VERSION}
+    if "persona" not in root.attrs:
+        raise StoreError(f"{url} is a Zarr store but not a Persona store (no 'persona' attribute)")
+    return root
+
+
+@dataclass
+class Collection:
+    """One collection of photos (or video frames) in a store, e.g. ``puppet`` or ``driver/frames``."""
+
+    root: zarr.Group
+    path: str
+
+    @property
+    def group(self) -> zarr.Group:
+        return self.root[self.path]
+
+    @property
+    def attrs(self) -> dict:
+        return dict(self.group.attrs)
+
+    @property
+    def n(self) -> int:
+        return int(self.group.attrs["n_photos"])
+
+    @property
+    def shard(self) -> int:
+        return int(self.group.attrs["photos_per_shard"])
+
+    def exists(self) -> bool:
+        try:
+            return "n_photos" in self.root[self.path].attrs
+        except KeyError:
+            return False
+
+    def shard_ranges(self) -> list[tuple[int, int]]:
+        return [(s, min(s + self.shard, self.n)) for s in range(0, self.n, self.shard)]
+
+    # -- arrays ------------------------------------------------------------------
+    def create(self, name: str, tail: tuple[int, ...], dtype, dims: tuple[str, ...],
+               provenance: Provenance, fill_value: Any = None) -> zarr.Array:
+        """(Re)create a per-photo array of shape (n, *tail): one photo per chunk, shards of photos."""
+        if len(dims) != 1 + len(tail):
+            raise ValueError(f"{name}: {len(dims)} dimension names for {1 + len(tail)} dimensions")
+        shape = (self.n, *tail)
+        if np.dtype(dtype).kind in "OTU" or dtype is str:
+            chunks, shards = (self.shard,), None
+        else:
+            chunks, shards = (1, *tail), (self.shard, *tail)
+        if fill_value is None:
+            fill_value = np.nan if np.dtype(dtype).kind == "f" else 0
+        array = self.group.create_array(
+            name, shape=shape, dtype=dtype, chunks=chunks, shards=shards,
+            dimension_names=dims, fill_value=fill_value, overwrite=True)
+        array.attrs["provenance"] = provenance.model_dump()
+        return array
+
+    def create_single(self, name: str, data: np.ndarray, dims: tuple[str, ...],
+                      provenance: Provenance) -> zarr.Array:
+        """A collection-level array (e.g. the mean face), written at once."""
+        array = self.group.create_array(name, shape=data.shape, dtype=data.dtype, chunks=data.shape,
+                                        dimension_names=dims, overwrite=True)
+        array[...] = data
+        array.attrs["provenance"] = provenance.model_dump()
+        return array
+
+    def array(self, name: str) -> zarr.Array:
+        try:
+            return self.group[name]
+        except KeyError:
+            raise StoreError(f"{self.path}/{name} is not in the store: run the stage that makes it") from None
+
+    def has(self, name: str) -> bool:
+        try:
+            self.group[name]
+            return True
+        except KeyError:
+            return False
+
+    def provenance(self, name: str) -> Provenance | None:
+        if not self.has(name):
+            return None
+        raw = self.group[name].attrs.get("provenance")
+        return Provenance.model_validate(raw) if raw else None
+
+    # -- status ------------------------------------------------------------------
+    def create_status(self, stage: str, provenance: Provenance) -> None:
+        self.create(f"status/{stage}/state", (), np.int8, ("photo",), provenance, fill_value=PENDING)
+        self.create(f"status/{stage}/reason", (), str, ("photo",), provenance, fill_value="")
+
+    def state(self, stage: str) -> np.ndarray:
+        if not self.has(f"status/{stage}/state"):
+            return np.zeros(self.n, np.int8)
+        return self.array(f"status/{stage}/state")[:]
+
+    def reasons(self, stage: str) -> np.ndarray:
+        return self.array(f"status/{stage}/reason")[:]
+
+    def write_status(self, stage: str, start: int, state: np.ndarray, reasons: list[str]) -> None:
+        """Written last by a task, after its outputs: a shard counts as done only then."""
+        stop = start + len(state)
+        self.array(f"status/{stage}/reason")[start:stop] = np.asarray(reasons, dtype=object).astype(str)
+        self.array(f"status/{stage}/state")[start:stop] = state
+
+    def stages(self) -> list[str]:
+        try:
+            return sorted(self.group["status"].group_keys())
+        except KeyError:
+            return []
+
+
+def collections(root: zarr.Group) -> list[Collection]:
+    """Every collection in the store, in a stable order."""
+    found = []
+
+    def walk(group: zarr.Group, path: str):
+        if "n_photos" in group.attrs:
+            found.append(Collection(root, path))
+        for name, child in sorted(group.groups()):
+            if name not in ("status", "photos", "landmarks", "aligned"):
+                walk(child, f"{path}/{name}" if path else name)
+
+    walk(root, "")
+    return found
+
+
+def first_rejection(collection: Collection, stages: list[str]) -> tuple[np.ndarray, list[str]]:
+    """Final state per photo (OK / REJECTED / PENDING) and the reason of the stage that rejected it."""
+    n = collection.n
+    final = np.full(n, OK, np.int8)
+    why = [""] * n
+    for stage in stages:
+        if not collection.has(f"status/{stage}/state"):
+            final[final == OK] = PENDING
+            continue
+        state = collection.state(stage)
+        reasons = collection.reasons(stage)
+        for i in np.flatnonzero((state == REJECTED) & (final == OK)):
+            final[i] = REJECTED
+            why[i] = f"{stage}: {reasons[i]}"
+        final[(state == PENDING) & (final == OK)] = PENDING
+    return final, why
+
+
+def summarize(url: str) -> dict:
+    """What ``persona inspect`` shows: groups, arrays, shapes, and photo counts by outcome."""
+    root = open_store(url, mode="r")
+    out: dict[str, Any] = {"store": str(url), "collections": {}}
+    for c in collections(root):
+        stages = list(c.attrs.get("stages", c.stages()))
+        final, why = first_rejection(c, stages)
+        by_reason: dict[str, int] = {}
+        for i in np.flatnonzero(final == REJECTED):
+            by_reason[why[i]] = by_reason.get(why[i], 0) + 1
+        arrays = {}
+
+        def walk(group: zarr.Group, prefix: str):
+            for name, arr in sorted(group.arrays()):
+                arrays[prefix + name] = {"shape": list(arr.shape), "dtype": str(arr.dtype),
+                                         "dims": list(arr.metadata.dimension_names or ())}
+            for name, child in sorted(group.groups()):
+                if "n_photos" not in child.attrs:
+                    walk(child, f"{prefix}{name}/")
+
+        walk(c.group, "")
+        per_stage = {}
+        for s in stages:
+            state = c.state(s)
+            per_stage[s] = {STATE_NAMES[k]: int((state == k).sum()) for k in STATE_NAMES}
+        out["collections"][c.path] = {
+            "n_photos": c.n,
+            "accepted": int((final == OK).sum()),
+            "rejected": int((final == REJECTED).sum()),
+            "pending": int((final == PENDING).sum()),
+            "rejected_by_reason": dict(sorted(by_reason.items(), key=lambda kv: -kv[1])),
+            "rejections": {str(root[c.path]["photos/ids"][i]): why[i] for i in np.flatnonzero(final == REJECTED)},
+            "stages": per_stage,
+            "arrays": arrays,
+            "attrs": {k: v for k, v in c.attrs.items() if k in ("source", "fps", "canvas", "video")},
+        }
+    return out
