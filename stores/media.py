@@ -336,8 +336,17 @@ def _short(e: BaseException, limit: int = 160) -> str:
 def _orientation(img: Image.Image) -> int:
     """EXIF orientation 1..8 (1 when absent or unreadable)."""
     try:
-        value = img.getexif().get(0x0112, 1)
-        value = int(value)
+        if img.format == "PNG":
+            # PngImageFile.getexif() decodes the whole image to look for an eXIf chunk
+            # after the pixels; read only an eXIf chunk found in the header
+            raw = img.info.get("exif")
+            if not raw:
+                return 1
+            exif = Image.Exif()
+            exif.load(raw)
+        else:
+            exif = img.getexif()
+        value = int(exif.get(0x0112, 1))
     except Exception:  # noqa: BLE001 - a broken EXIF block is not worth rejecting a photo
         return 1
     return value if 1 <= value <= 8 else 1

@@ -1,0 +1,37 @@
+#!/usr/bin/env bash
+# Set Persona up on a fresh Debian/Ubuntu machine and run it.
+#
+#   bash setup.sh demo    # install, then run the embedded demo end to end (synthetic faces)
+#   bash setup.sh test    # install, then run the test suite
+#   bash setup.sh         # install only
+#
+# Installs: the system packages open3d needs (libusb-1.0-0, libgomp1), a virtual
+# environment in .venv with Persona (editable) and its Python dependencies.
+set -euo pipefail
+cd "$(dirname "$0")"
+
+PYTHON=${PYTHON:-python3}
+"$PYTHON" -c 'import sys; sys.exit(sys.version_info < (3, 11))' || {
+  echo "Persona needs Python 3.11 or newer; set PYTHON=/path/to/python3.11" >&2; exit 1; }
+
+missing=()
+for pkg in libusb-1.0-0 libgomp1; do
+  dpkg -s "$pkg" >/dev/null 2>&1 || missing+=("$pkg")
+done
+"$PYTHON" -c 'import venv, ensurepip' 2>/dev/null || missing+=("python3-venv")
+if [ ${#missing[@]} -gt 0 ]; then
+  SUDO=""; [ "$(id -u)" -eq 0 ] || SUDO="sudo"
+  echo "installing system packages: ${missing[*]}"
+  $SUDO apt-get update -qq
+  DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq "${missing[@]}"
+fi
+
+[ -x .venv/bin/python ] || "$PYTHON" -m venv .venv
+.venv/bin/python -m pip install -q -e ".[test]"
+
+case "${1:-}" in
+  demo) shift; exec .venv/bin/persona demo "$@" ;;
+  test) shift; exec .venv/bin/python -m pytest "$@" ;;
+  "")   echo "installed: run .venv/bin/persona --help" ;;
+  *)    echo "usage: bash setup.sh [demo|test] [args...]" >&2; exit 2 ;;
+esac

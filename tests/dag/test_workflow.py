@@ -1,0 +1,114 @@
+import pytest
+
+from persona.dag.workflow import WorkflowError, load_workflow, parse_workflow
+
+
+def write(tmp_path, text, name="wf.yaml"):
+    path = tmp_path / name
+    path.write_text(text)
+    return path
+
+
+GOOD = """
+version: 1
+name: t
+store: out/run.zarr
+output: out
+puppet: {photos: photos}
+stages:
+  landmarks: {backend: dlib, params: {select: largest}}
+"""
+
+
+def test_relative_paths_resolve_against_the_workflow_folder(tmp_path):
+    (tmp_path / "sub").mkdir()
+    wf = load_workflow(write(tmp_path / "sub", GOOD))
+    assert wf.store == str((tmp_path / "sub" / "out" / "run.zarr").resolve())
+    assert wf.puppet.photos == str((tmp_path / "sub" / "photos").resolve())
+    assert wf.stage("landmarks") == ("dlib", {"select": "largest", "upsample": 1, "small_side": 200,
+                                               "pad": 0.25, "retry_padded": True})
+    assert wf.stage("pose")[0] == "pnp"
+
+
+def test_every_error_reported_at_once_with_paths_and_suggestions(tmp_path):
+    text = """
+version: 1
+name: t
+stor: x.zarr
+output: out
+puppet: {photos: p, vidoe: v.mp4}
+stages:
+  landmarks: {backend: dlb}
+  pose: {params: {focal_factr: 1.0}}
+  frontalise: {}
+cluster: {scheduler: nowhere}
+"""
+    with pytest.raises(WorkflowError) as info:
+        load_workflow(write(tmp_path, text))
+    errors = dict(info.value.errors)
+    assert 'Did you mean "store"' in errors["stor"]
+    assert "store" in errors  # missing required key
+    assert 'Did you mean "video"' in errors["puppet.vidoe"]
+    assert 'Did you mean "dlib"' in errors["stages.landmarks.backend"]
+    assert 'Did you mean "focal_factor"' in errors["stages.pose.params.focal_factr"]
+    assert 'Did you mean "frontalize"' in errors["stages.frontalise"]
+    assert "cluster.scheduler" in errors
+    message = str(info.value)
+    assert message.count("\n") >= 7  # one line per error
+
+
+def test_invalid_yaml_names_line_and_column(tmp_path):
+    with pytest.raises(WorkflowError, match=r"invalid YAML at line 3, column 8: mapping values"):
+        load_workflow(write(tmp_path, "version: 1\nname: t\n  store: x\n"))
+
+
+@pytest.mark.parametrize("text, expected", [
+    ("", "empty"),
+    ("- a\n- b\n", "mapping"),
+])
+def test_not_a_workflow(tmp_path, text, expected):
+    with pytest.raises(WorkflowError, match=expected):
+        load_workflow(write(tmp_path, text))
+
+
+def test_missing_file(tmp_path):
+    with pytest.raises(WorkflowError, match="no such file"):
+        load_workflow(tmp_path / "nope.yaml")
+
+
+def test_overrides(tmp_path):
+    wf = load_workflow(write(tmp_path, GOOD), ["cluster.workers=3", "stages.landmarks.params.upsample=2"])
+    assert wf.cluster.workers == 3
+    assert wf.stage("landmarks")[1]["upsample"] == 2
+    with pytest.raises(WorkflowError, match="upsample"):
+        load_workflow(write(tmp_path, GOOD), ["stages.landmarks.params.upsample=9"])
+
+
+def test_ingest_takes_params_but_no_backend():
+    base = {"version": 1, "name": "t", "store": "s", "output": "o", "puppet": {"photos": "p"}}
+    wf = parse_workflow({**base, "stages": {"ingest": {"params": {"max_side": 800}}}})
+    assert wf.stages["ingest"].params == {"max_side": 800}
+    with pytest.raises(WorkflowError, match="no backends"):
+        parse_workflow({**base, "stages": {"ingest": {"backend": "x"}}})
+    with pytest.raises(WorkflowError, match='Did you mean "max_side"'):
+        parse_workflow({**base, "stages": {"ingest": {"params": {"max_sid": 800}}}})
+
+
+def test_video_range_and_lists():
+    base = {"version": 1, "name": "t", "store": "s", "output": "o"}
+    wf = parse_workflow({**base, "puppet": {"photos": {"video": "v.mov", "stop": 900}},
+                         "driver": {"photos": ["a.jpg", "b.jpg"], "video": {"video": "v.mov", "start": 900}}},
+                        base_dir="/data")
+    assert wf.puppet.photos.video == "/data/v.mov" and wf.puppet.photos.stop == 900
+    assert wf.driver.photos == ["/data/a.jpg", "/data/b.jpg"]
+    assert wf.driver.video.start == 900
+
+
+def test_shipped_workflows_validate():
+    from pathlib import Path
+
+    folder = Path(__file__).resolve().parents[2] / "workflows"
+    files = sorted(folder.glob("*.yaml"))
+    assert len(files) >= 2
+    for path in files:
+        load_workflow(path)
