@@ -20,6 +20,7 @@ This module imports neither ``persona.plugins`` nor ``persona.dag``.
 
 from __future__ import annotations
 
+import contextlib
 import glob
 import hashlib
 import logging
@@ -27,6 +28,7 @@ import math
 import os
 import re
 import tempfile
+import threading
 import warnings
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
@@ -271,7 +273,7 @@ def _mp(n: int) -> str:
 def _open_checked(path, max_pixels: int, min_side: int) -> tuple[Image.Image, object, int]:
     """Open the header, check size limits. Returns (image, file handle, orientation).
 
-    Must be called inside ``warnings.catch_warnings()``.
+    Must be called inside ``_quiet_warnings()``.
     """
     p = Path(path)
     try:
@@ -327,6 +329,40 @@ def _pil_bomb_reason(e: BaseException, max_pixels: int) -> str:
     )
 
 
+_quiet_lock = threading.Lock()
+_quiet_depth = 0
+_quiet_saved: list | None = None
+
+
+@contextlib.contextmanager
+def _quiet_warnings():
+    """Silence warnings (Pillow's EXIF, palette and size warnings) while decoding.
+
+    ``warnings.catch_warnings()`` saves and restores the process-global filter list;
+    with several threads decoding at once (a Dask worker's threads) the enter/exit
+    pairs interleave and can leave ``"ignore"`` installed for good. Here the first
+    thread in installs the filter and the last one out restores the saved list, under
+    a lock. (While any decode runs, other threads' warnings are silenced too.)
+    """
+    global _quiet_depth, _quiet_saved
+    with _quiet_lock:
+        if _quiet_depth == 0:
+            _quiet_saved = list(warnings.filters)
+            warnings.simplefilter("ignore")
+        _quiet_depth += 1
+    try:
+        yield
+    finally:
+        with _quiet_lock:
+            _quiet_depth -= 1
+            if _quiet_depth == 0:
+                warnings.filters[:] = _quiet_saved
+                _quiet_saved = None
+                mutated = getattr(warnings, "_filters_mutated", None)
+                if mutated is not None:  # invalidate the per-module "already warned" caches
+                    mutated()
+
+
 def _short(e: BaseException, limit: int = 160) -> str:
     text = str(e).strip() or type(e).__name__
     text = " ".join(text.split())
@@ -378,8 +414,7 @@ def probe_image(path, *, max_pixels: int = MAX_PIXELS, min_side: int = MIN_SIDE)
     too large (decompression bomb) file. A photo that passes can still be rejected by
     :func:`decode_image` (e.g. a truncated body).
     """
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
+    with _quiet_warnings():
         img, fh, orientation = _open_checked(path, max_pixels, min_side)
         try:
             w, h = img.size
@@ -518,13 +553,10 @@ def decode_image(
       (``Image.MAX_IMAGE_PIXELS``, about 89 MP; an error at twice that) still applies
       when ``max_pixels`` is set higher, and is reported the same way.
     - Every failure raises :class:`PhotoRejected` with a specific reason; no Pillow or
-      OpenCV exception and no warning escapes. (Warnings are silenced with
-      ``warnings.catch_warnings()``, which is process-global state in Python 3.11:
-      fine for Dask's process workers and for threads that do not themselves rely on
-      warning filters.)
+      OpenCV exception and no warning escapes (see :func:`_quiet_warnings`: safe
+      with many decoding threads, unlike a bare ``warnings.catch_warnings()``).
     """
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
+    with _quiet_warnings():
         img, fh, orientation = _open_checked(path, max_pixels, min_side)
         fmt = img.format or "image"
         try:
@@ -543,6 +575,8 @@ def decode_image(
                     raise PhotoRejected(_pil_bomb_reason(e, max_pixels)) from None
                 except (OSError, SyntaxError, ValueError, EOFError, IndexError, struct_error) as e:
                     raise PhotoRejected(f"corrupt or truncated {fmt}: {_short(e)}") from None
+                if fmt == "PNG" and orientation == 1:
+                    orientation = _orientation(img)  # an eXIf chunk after the pixels
                 a = _pil_to_array(img)
         except PhotoRejected:
             raise

@@ -3,11 +3,13 @@
 After Hassner et al. (CVPR 2015) and ALGORITHMS.md §4: the map ``fmap`` takes each
 canonical pixel (x, y) to the photo pixel where the posed template point
 (x, y, Z(x, y)) projects; the photo is sampled once through it. A z-buffer of the
-posed template marks self-occluded canonical pixels, which stay out of the mask
+posed template (ray casting) marks self-occluded canonical pixels, which stay out of the mask
 (used later as weights, never filled with mirrored texture).
 """
 
 from __future__ import annotations
+
+from functools import lru_cache
 
 import cv2
 import numpy as np
@@ -15,6 +17,7 @@ from pydantic import Field
 from scipy.ndimage import map_coordinates
 
 from ..base import Params, Rejected
+from ..face.mesh import cast, grid_triangles, raycasting_scene
 from ..face.template import generic_template
 from ..hookspecs import hookimpl
 from ..kinds import Frontal, FrontalizeBackend, Pose
@@ -44,19 +47,36 @@ def frontalizing_map(depth: np.ndarray, pose: Pose) -> tuple[np.ndarray, np.ndar
     return xy.astype(np.float32), z
 
 
-def visible(fmap: np.ndarray, z: np.ndarray, mask: np.ndarray, image_size, tolerance: float) -> np.ndarray:
-    """Canonical pixels whose template point is the nearest one along its photo pixel's ray."""
+@lru_cache(maxsize=1)
+def _template_scene():
+    """The generic template as a ray-casting scene in canonical coordinates (built once per process)."""
+    template = generic_template()
+    h, w = template.depth.shape
+    ys, xs = np.mgrid[0:h, 0:w].astype(np.float64)
+    vertices = np.stack([xs, ys, template.depth], axis=-1).reshape(-1, 3)
+    return raycasting_scene(vertices, grid_triangles(template.mask))
+
+
+def visible(fmap: np.ndarray, mask: np.ndarray, pose: Pose, image_size, tolerance: float) -> np.ndarray:
+    """Canonical pixels whose template point is the first surface hit on its ray from the camera.
+
+    An exact z-buffer: rays from the camera centre (expressed in the canonical frame)
+    through each template point; the point is visible when nothing of the template lies
+    in front of it, and its projection falls inside the photo.
+    """
+    template = generic_template()
     h, w = image_size
-    cols = np.round(fmap[..., 0]).astype(np.int64)
-    rows = np.round(fmap[..., 1]).astype(np.int64)
-    inside = mask & (cols >= 0) & (cols < w) & (rows >= 0) & (rows < h) & (z > 0)
-    flat = rows[inside] * w + cols[inside]
-    zbuffer = np.full(h * w, np.inf)
-    np.minimum.at(zbuffer, flat, z[inside])
-    # a 3x3 minimum makes the test robust to the rounding of neighbouring samples
-    zbuffer = cv2.erode(zbuffer.reshape(h, w).astype(np.float32), np.ones((3, 3), np.uint8))
+    inside = (mask & (fmap[..., 0] >= 0) & (fmap[..., 0] <= w - 1)
+              & (fmap[..., 1] >= 0) & (fmap[..., 1] <= h - 1))
+    rotation = cv2.Rodrigues(pose.rvec)[0]
+    centre = -rotation.T @ pose.tvec
+    rows, cols = np.nonzero(inside)
+    points = np.stack([cols, rows, template.depth[rows, cols]], axis=1).astype(np.float64)
+    offsets = points - centre
+    distance = np.linalg.norm(offsets, axis=1)
+    hits = cast(_template_scene(), np.broadcast_to(centre, points.shape), offsets / distance[:, None])
     out = np.zeros_like(mask)
-    out[inside] = z[inside] <= zbuffer.ravel()[flat] + tolerance
+    out[rows, cols] = hits["t_hit"] >= distance - tolerance
     return out
 
 
@@ -88,15 +108,15 @@ class TemplateFrontalize(FrontalizeBackend):
 
     class Params(Params):
         occlusion_tolerance: float = Field(
-            3.0, ge=0, description="canonical depth units a point may lie behind the z-buffer "
-            "and still count as visible")
+            1.0, ge=0, description="canonical px a template point may lie behind the first "
+            "surface hit on its camera ray and still count as visible")
         min_visible: float = Field(0.3, ge=0, le=1, description="reject faces with less than "
                                    "this fraction of the template's face visible")
 
     def frontalize(self, image, landmarks, pose):
         template = generic_template()
-        fmap, z = frontalizing_map(template.depth, pose)
-        mask = visible(fmap, z, template.mask, image.shape[:2], self.params.occlusion_tolerance)
+        fmap, _ = frontalizing_map(template.depth, pose)
+        mask = visible(fmap, template.mask, pose, image.shape[:2], self.params.occlusion_tolerance)
         fraction = mask.sum() / template.mask.sum()
         if fraction < self.params.min_visible:
             raise Rejected(f"frontalize: only {fraction:.0%} of the face is visible in the photo")

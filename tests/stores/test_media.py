@@ -8,7 +8,6 @@ import os
 import pickle
 import resource
 import struct
-import zlib
 from pathlib import Path
 
 import cv2
@@ -348,7 +347,6 @@ def clip(tmp_path_factory):
     for i in range(20):
         a = np.full((48, 64, 3), 40, np.uint8)
         a[10:26, 2 + 2 * i : 18 + 2 * i] = 255
-        a[..., 0] = np.clip(a[..., 0].astype(int) + 0, 0, 255)
         a[36:, :, 0] = 10 * i
         frames.append(a)
     path = tmp_path_factory.mktemp("video") / "clip.mp4"
@@ -580,3 +578,50 @@ def test_contact_sheet(faces):
         media.contact_sheet([faces[0], faces[0][:50]])
     with pytest.raises(ValueError, match="no images"):
         media.contact_sheet([])
+
+
+# --------------------------------------------------------------------------- more decode corners
+
+
+def test_png_exif_orientation_and_probe_reads_header_only(tmp_path, faces):
+    exif = Image.Exif()
+    exif[badinput.EXIF_ORIENTATION] = 8
+    Image.fromarray(np.ascontiguousarray(np.rot90(faces[0], -1))).save(tmp_path / "o8.png", exif=exif.tobytes())
+    assert np.array_equal(media.decode_image(tmp_path / "o8.png"), faces[0])
+    assert media.probe_image(tmp_path / "o8.png") == media.ImageInfo(width=90, height=120)
+    # header only: a PNG cut after its header probes fine but does not decode
+    data = (tmp_path / "o8.png").read_bytes()
+    (tmp_path / "cut.png").write_bytes(data[: len(data) // 3])
+    assert media.probe_image(tmp_path / "cut.png") == media.ImageInfo(width=90, height=120)
+    with pytest.raises(PhotoRejected, match="corrupt or truncated PNG"):
+        media.decode_image(tmp_path / "cut.png")
+
+
+def test_broken_exif_does_not_reject_the_photo(tmp_path, faces):
+    good = badinput.jpeg_bytes(faces[0])
+    # splice an APP1 "Exif" segment holding garbage right after SOI
+    payload = b"Exif\x00\x00" + b"MM\x00\x2a\xff\xff\xff\xff" + os.urandom(20)
+    app1 = b"\xff\xe1" + struct.pack(">H", len(payload) + 2) + payload
+    (tmp_path / "badexif.jpg").write_bytes(good[:2] + app1 + good[2:])
+    a = media.decode_image(tmp_path / "badexif.jpg")
+    assert mad(a, faces[0]) < 2.0
+
+
+def test_decoding_in_threads_restores_warning_filters(bad):
+    import warnings
+    from concurrent.futures import ThreadPoolExecutor
+
+    folder, expected = bad
+    before = list(warnings.filters)
+
+    def work(name):
+        try:
+            return media.decode_image(folder / name).shape
+        except PhotoRejected as e:
+            return e.reason
+
+    with ThreadPoolExecutor(8) as pool:
+        results = list(pool.map(work, list(expected) * 20))
+    assert len(results) == 20 * len(expected)
+    assert warnings.filters == before
+    assert media._quiet_depth == 0
