@@ -97,7 +97,10 @@ def canonical_landmarks(points: np.ndarray, depth: np.ndarray, pose: Pose, start
             d[j] = step
             jac[:, :, j] = (project(template_points(depth, x + d), pose)[0]
                             - project(template_points(depth, x - d), pose)[0]) / (2 * step)
-        x -= np.linalg.solve(jac, (f - points)[..., None])[..., 0]
+        # damped Gauss-Newton: a (near-)singular Jacobian far off the face must not fail
+        jt = np.swapaxes(jac, 1, 2)
+        normal = jt @ jac + 1e-6 * np.eye(2)
+        x -= np.linalg.solve(normal, jt @ (f - points)[..., None])[..., 0]
     return x
 
 

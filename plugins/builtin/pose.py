@@ -45,7 +45,7 @@ class PnPPose(PoseBackend):
         points: Literal["fiducials49", "all68"] = Field(
             "fiducials49", description="landmarks used: the paper's 49 fiducials (no jaw contour, "
             "which slides with the view) or all 68")
-        max_rms: float = Field(0.12, gt=0, description="reject poses whose landmark reprojection "
+        max_rms: float = Field(0.2, gt=0, description="reject poses whose landmark reprojection "
                                "RMS exceeds this fraction of the inter-ocular distance")
 
     def estimate(self, landmarks, image_size):

@@ -1,0 +1,88 @@
+"""Every stage on real photo collections (../shared/data; skipped when absent).
+
+One run (Bush as the puppet; Obama's photos and 100 frames of his address as the
+driver) is shared by the tests of this module.
+"""
+
+import numpy as np
+import pytest
+import yaml
+
+from persona.dag.runner import run_workflow
+from persona.dag.workflow import load_workflow
+from persona.plugins.builtin.landmarks import DlibLandmarks
+from persona.plugins.face.template import generic_template
+from persona.stores.layout import OK, REJECTED, Collection, open_store, summarize
+
+pytestmark = [pytest.mark.realdata, pytest.mark.slow]
+
+
+@pytest.fixture(scope="module")
+def real_run(shared_data, tmp_path_factory):
+    folder = tmp_path_factory.mktemp("real")
+    workflow = {
+        "version": 1, "name": "real", "store": str(folder / "run.zarr"), "output": str(folder / "out"),
+        "puppet": {"photos": str(shared_data / "collections" / "george_w_bush")},
+        "driver": {"photos": str(shared_data / "collections" / "barack_obama"),
+                   "video": {"video": str(shared_data / "videos" / "obama_address.mov"), "start": 900, "stop": 1000}},
+        "cluster": {"scheduler": "local", "workers": 2},
+    }
+    path = folder / "wf.yaml"
+    path.write_text(yaml.safe_dump(workflow))
+    report = run_workflow(load_workflow(path), progress=False)
+    return folder, report
+
+
+def landmark_rate(store, path):
+    coll = Collection(open_store(store, mode="r"), path)
+    state = coll.state("landmarks")
+    ingest = coll.state("ingest")
+    return (state == OK).mean(), coll, state, ingest
+
+
+def test_bush_landmarks_found_in_97_percent(real_run):
+    folder, _ = real_run
+    rate, coll, state, ingest = landmark_rate(folder / "run.zarr", "puppet")
+    assert coll.n == 530
+    assert rate >= 0.97, rate
+    reasons = coll.reasons("landmarks")
+    assert all(reasons[i] for i in np.flatnonzero(state == REJECTED))
+
+
+def test_obama_tight_crops_landmarks_found_in_92_percent(real_run):
+    folder, _ = real_run
+    rate, coll, state, _ = landmark_rate(folder / "run.zarr", "driver")
+    assert coll.n == 252
+    assert rate >= 0.92, rate
+
+
+def test_video_frames_ingested_with_fps_and_aligned(real_run):
+    folder, _ = real_run
+    coll = Collection(open_store(folder / "run.zarr", mode="r"), "driver/frames")
+    assert coll.n == 100
+    assert coll.attrs["fps"] == pytest.approx(25)
+    assert list(coll.array("photos/frame")[:3]) == [900, 901, 902]
+    assert (coll.state("frontalize") == OK).mean() >= 0.95
+
+
+def test_every_photo_accounted_for(real_run):
+    folder, _ = real_run
+    summary = summarize(str(folder / "run.zarr"))
+    for path, c in summary["collections"].items():
+        assert c["accepted"] + c["rejected"] == c["n_photos"], path
+        assert sum(c["rejected_by_reason"].values()) == c["rejected"]
+
+
+def test_bush_mean_face_is_a_face_with_landmarks_where_the_frame_puts_them(real_run):
+    """dlib finds the mean aligned face; its 68 landmarks lie within 5 % of the
+    inter-ocular distance (median) of the canonical frame's landmarks."""
+    folder, report = real_run
+    coll = Collection(open_store(folder / "run.zarr", mode="r"), "puppet")
+    mean = np.clip(coll.array("aligned/mean")[:], 0, 255).round().astype(np.uint8)
+    found = DlibLandmarks().detect(mean)
+    canonical = generic_template().landmarks3d[:, :2]
+    iod = np.linalg.norm(canonical[36:42].mean(0) - canonical[42:48].mean(0))
+    error = np.linalg.norm(found.points - canonical, axis=1)
+    assert np.median(error) / iod < 0.05, np.median(error) / iod
+    assert (folder / "out" / "puppet_mean_face.png").is_file()
+    assert (folder / "out" / "puppet_contact_sheet.png").is_file()
