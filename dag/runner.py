@@ -23,7 +23,7 @@ from persona.plugins.hookspecs import hookimpl
 from persona.plugins.manager import get_plugin_manager
 from persona.stores import media
 from persona.stores.errors import InputError, PersonaError
-from persona.stores.layout import OK, PENDING, Collection, open_store
+from persona.stores.layout import OK, PENDING, REJECTED, Collection, open_store
 from persona.stores.provenance import Provenance, cache_key
 
 from . import stages as st
@@ -105,7 +105,12 @@ class Executor:
 
 @dataclass
 class StageTimer:
-    """A built-in plugin that records every stage's wall time and counts."""
+    """A built-in plugin that records every stage's times and counts.
+
+    ``wall_seconds``: from the stage's start to its end (per-photo stages run fused per
+    shard, so they share one wall time); ``task_seconds``: the stage's own compute time
+    summed over all tasks and workers.
+    """
 
     records: list = field(default_factory=list)
     _start: dict = field(default_factory=dict)
@@ -117,7 +122,8 @@ class StageTimer:
     @hookimpl
     def persona_after_stage(self, stage, collection, summary):
         seconds = time.perf_counter() - self._start.pop((stage, collection), time.perf_counter())
-        self.records.append({"stage": stage, "collection": collection, "seconds": round(seconds, 3),
+        self.records.append({"stage": stage, "collection": collection, "wall_seconds": round(seconds, 3),
+                             "task_seconds": round(summary.get("seconds", 0.0), 3),
                              **{k: v for k, v in summary.items() if k != "seconds"}})
 
 
@@ -152,51 +158,25 @@ class Runner:
         self.root = open_store(self.wf.store)
         self.version = persona_version()
 
-    # one stage on one collection, with hooks, progress and resume
-    def _stage(self, stage: str, coll: Collection, backend: str, params: dict, tasks, fn, done: int):
-        info = {"backend": backend, "params": params, "n_items": coll.n}
-        self.pm.hook.persona_before_stage(stage=stage, collection=coll.path, info=info)
-        from tqdm.auto import tqdm
+    def _ingest_params(self) -> dict:
+        config = self.wf.stages.get("ingest")
+        return IngestParams.model_validate(config.params if config else {}).model_dump()
 
-        counts = {"n_done": 0, "n_skipped": done, "n_ok": 0, "n_rejected": 0}
-        try:
-            with tqdm(total=coll.n, initial=done, desc=f"{coll.path:>13} {stage:<10}", unit="photo",
-                      disable=not self.progress, leave=True, dynamic_ncols=True) as bar:
-                for result in self.executor.run(fn, tasks):
-                    counts["n_done"] += result["n"]
-                    bar.update(result["n"])
-        except Exception as exc:
-            self.pm.hook.persona_stage_error(stage=stage, collection=coll.path, error=exc)
-            raise
-        state = coll.state(stage)
-        counts.update(n_ok=int((state == OK).sum()), n_rejected=int((state == 2).sum()))
-        self.pm.hook.persona_after_stage(stage=stage, collection=coll.path, summary=counts)
-
-    def ingest(self, path: str, spec) -> Collection:
-        params = self.wf.stages.get("ingest")
-        params = IngestParams.model_validate(params.params if params else {}).model_dump()
+    def collection(self, path: str, spec) -> tuple[Collection, bool]:
+        """Open (or create anew, when its sources or ingest params changed) a collection."""
+        params = self._ingest_params()
         sources = media.resolve_sources(_media_spec(spec), self.wf.base_dir)
         video = sources[0].path if sources[0].frame is not None else None
         if video and any(s.path != video or s.frame is None for s in sources):
-            raise InputError(f"{path}: mix of video frames and photos; give the video on its own")
+            raise InputError(f"{path}: a mix of video frames and photos; give the video on its own")
         stats = [(s.path, s.frame, *_stat(s.path)) for s in sources]
         prov = Provenance.make(stage="ingest", backend="-", backend_version="1", params=params,
                                inputs={"sources": cache_key(sources=stats)}, persona_version=self.version)
         coll = Collection(self.root, path)
-        fresh = not (coll.exists() and (coll.provenance("status/ingest/state") or prov).key == prov.key
-                     and coll.has("status/ingest/state"))
-        if fresh:
+        current = coll.provenance("status/ingest/state") if coll.exists() else None
+        if current is None or current.key != prov.key:
             self._create_collection(coll, sources, video, params, prov)
-        state = coll.state("ingest")
-        todo = [(s, e) for s, e in coll.shard_ranges() if (state[s:e] == PENDING).any()]
-        done = int((state != PENDING).sum())
-        if video:
-            tasks = [(self.wf.store, path, params)] if todo else []
-            self._stage("ingest", coll, "-", params, tasks, st.ingest_video, done)
-        else:
-            tasks = [(self.wf.store, path, s, e, params) for s, e in todo]
-            self._stage("ingest", coll, "-", params, tasks, st.ingest_image_shard, done)
-        return coll
+        return coll, video is not None
 
     def _create_collection(self, coll, sources, video, params, prov):
         group = self.root.require_group(coll.path)
@@ -207,40 +187,85 @@ class Runner:
             scale = min(1.0, params["max_side"] / max(size))
             canvas = [int(round(size[0] * scale)), int(round(size[1] * scale))]
             frames = [s.frame for s in sources]
-            group.attrs.update({"fps": fps, "video": {"path": video, "start": min(frames),
-                                                      "stop": max(frames) + 1,
-                                                      "step": frames[1] - frames[0] if n > 1 else 1}})
+            group.attrs.update({"fps": fps, "video": {
+                "path": video, "start": min(frames), "stop": max(frames) + 1,
+                "step": frames[1] - frames[0] if n > 1 else 1}})
         else:
             canvas = _canvas(sources, params)
         group.attrs.update({"n_photos": n, "photos_per_shard": self.wf.photos_per_shard,
-                            "canvas": canvas, "stages": list(ALL_STAGES), "layout": "persona-collection-1"})
+                            "canvas": canvas, "stages": list(ALL_STAGES)})
         coll.create("photos/ids", (), str, ("photo",), prov)[:] = np.array([s.id for s in sources])
         coll.create("photos/source", (), str, ("photo",), prov)[:] = np.array([s.path for s in sources])
         coll.create("photos/frame", (), "int64", ("photo",), prov, fill_value=-1)[:] = np.array(
             [-1 if s.frame is None else s.frame for s in sources], dtype=np.int64)
-        coll.create("photos/rgb", (*canvas, 3), "uint8", ("photo", "y", "x", "channel"), prov)
-        for o in st.INGEST_OUTPUTS:
-            coll.create(o.name, o.tail, str if o.dtype == "str" else o.dtype, o.dims, prov)
-        coll.create_status("ingest", prov)
+        self._create_outputs(coll, st.INGEST, prov)
 
-    def photo_stage(self, coll: Collection, stage_name: str):
-        stage = st.PHOTO_STAGES[stage_name]
-        backend, params = self.wf.stage(stage.kind)
-        cls = st.default_registry().get(stage.kind, backend)
-        upstream = coll.provenance(f"status/{stage.upstream}/state")
-        prov = Provenance.make(stage=stage_name, backend=backend, backend_version=cls.version,
-                               params=params, inputs={stage.upstream: upstream.key},
-                               persona_version=self.version)
-        current = coll.provenance(f"status/{stage_name}/state")
-        if current is None or current.key != prov.key:
-            for o in stage.outputs:
-                coll.create(o.name, o.tail, o.dtype, o.dims, prov)
-            coll.create_status(stage_name, prov)
-        state = coll.state(stage_name)
-        todo = [(s, e) for s, e in coll.shard_ranges() if (state[s:e] == PENDING).any()]
-        tasks = [(self.wf.store, coll.path, stage_name, s, e, backend, params) for s, e in todo]
-        self._stage(stage_name, coll, backend, params, tasks, st.run_photo_shard,
-                    int((state != PENDING).sum()))
+    def _create_outputs(self, coll: Collection, stage: st.PhotoStage, prov: Provenance) -> None:
+        for o in stage.outputs:
+            coll.create(o.name, st.output_tail(o, coll.attrs["canvas"]),
+                        str if o.dtype == "str" else o.dtype, o.dims, prov)
+        coll.create_status(stage.name, prov)
+
+    def steps(self, coll: Collection) -> list[tuple[str, str, dict]]:
+        """(stage, backend, params) of every per-photo stage; (re)creates the outputs of
+        each stage whose cache key changed, so that it starts over."""
+        steps = [("ingest", "-", self._ingest_params())]
+        upstream = coll.provenance("status/ingest/state")
+        for name in PHOTO_STAGE_ORDER:
+            stage = st.PHOTO_STAGES[name]
+            backend, params = self.wf.stage(stage.kind)
+            cls = st.default_registry().get(stage.kind, backend)
+            prov = Provenance.make(stage=name, backend=backend, backend_version=cls.version,
+                                   params=params, inputs={stage.upstream: upstream.key},
+                                   persona_version=self.version)
+            current = coll.provenance(f"status/{name}/state")
+            if current is None or current.key != prov.key:
+                self._create_outputs(coll, stage, prov)
+            steps.append((name, backend, params))
+            upstream = prov
+        return steps
+
+    def run_photo_stages(self, coll: Collection, video: bool) -> None:
+        """Every per-photo stage over every shard not finished yet, with hooks and progress bars."""
+        steps = self.steps(coll)
+        if video:  # frames come from one sequential decoding pass, then the chain without ingest
+            self._run(coll, steps[:1], [(self.wf.store, coll.path, steps[0][2])], st.ingest_video)
+            steps = steps[1:]
+        pending = [(s, e) for s, e in coll.shard_ranges()
+                   if any((coll.state(name)[s:e] == PENDING).any() for name, _, _ in steps)]
+        tasks = [(self.wf.store, coll.path, s, e, steps) for s, e in pending]
+        self._run(coll, steps, tasks, st.run_chain)
+
+    def _run(self, coll, steps, tasks, fn):
+        from tqdm.auto import tqdm
+
+        names = [name for name, _, _ in steps]
+        done = {name: int((coll.state(name) != PENDING).sum()) for name in names}
+        counts = {name: {"n_done": 0, "n_skipped": done[name], "seconds": 0.0} for name in names}
+        for name, backend, params in steps:
+            self.pm.hook.persona_before_stage(stage=name, collection=coll.path,
+                                              info={"backend": backend, "params": params, "n_items": coll.n})
+        bars = {name: tqdm(total=coll.n, initial=done[name], desc=f"{coll.path:>13} {name:<10}",
+                           unit="photo", disable=not self.progress, leave=True, dynamic_ncols=True)
+                for name in names}
+        try:
+            for result in self.executor.run(fn, tasks):
+                for name, summary in result.items():
+                    if not summary.get("skipped"):
+                        counts[name]["n_done"] += summary["n"]
+                        counts[name]["seconds"] += summary["seconds"]
+                        bars[name].update(summary["n"])
+        except BaseException as exc:
+            for name in names:
+                self.pm.hook.persona_stage_error(stage=name, collection=coll.path, error=exc)
+            raise
+        finally:
+            for bar in bars.values():
+                bar.close()
+        for name in names:
+            state = coll.state(name)
+            self.pm.hook.persona_after_stage(stage=name, collection=coll.path, summary={
+                **counts[name], "n_ok": int((state == OK).sum()), "n_rejected": int((state == REJECTED).sum())})
 
     def mean_face(self, coll: Collection) -> np.ndarray | None:
         """The mean aligned face over accepted photos, weighted by visibility; None if none."""
@@ -282,12 +307,11 @@ class Runner:
     def run(self) -> dict:
         report = {"workflow": self.wf.name, "store": self.wf.store, "collections": {}}
         for path, spec in collection_specs(self.wf):
-            coll = self.ingest(path, spec)
-            if not (coll.state("ingest") == OK).any():
-                raise InputError(f"{path}: none of the {coll.n} photos could be read; "
-                                 f"see `persona inspect {self.wf.store}` for the reasons")
-            for stage in PHOTO_STAGE_ORDER:
-                self.photo_stage(coll, stage)
+            coll, video = self.collection(path, spec)
+            self.run_photo_stages(coll, video)
+            if not (coll.state("frontalize") == OK).any():
+                raise RunError(f"{path}: no photo of the {coll.n} got through to an aligned face; "
+                               f"see `persona inspect {self.wf.store}` for each photo's reason")
             mean = self.mean_face(coll)
             report["collections"][path] = {
                 "n_photos": coll.n, "accepted": int((coll.state("frontalize") == OK).sum()),

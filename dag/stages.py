@@ -1,9 +1,15 @@
-"""The stages: glue that reads a shard of inputs from the store, maps a backend over
-its photos, and writes the outputs and the per-photo status back.
+"""The per-photo stages: glue that maps a backend over the photos of one shard.
 
-Every function here that runs on a Dask worker takes plain arguments (store URL,
-collection path, photo range, backend name and params) and opens the store itself,
-so the same task runs in a local process or on another machine.
+Per-photo stages (ingest, landmarks, pose, frontalize) run as one *chain* per shard:
+a single Dask task decodes a shard's photos and passes them through every stage
+in memory, so the raw photo is read once. Each stage still writes its own outputs,
+its own per-photo status and its own provenance; a stage whose status for the shard
+is already written (by an earlier, interrupted run with the same cache key) is not
+recomputed, its outputs are read back instead.
+
+Task functions take plain arguments (store URL, collection path, photo range,
+backend names and params) and open the store themselves, so the same task runs in
+a local process or on another machine.
 """
 
 from __future__ import annotations
@@ -40,16 +46,17 @@ class Output:
 class PhotoStage:
     """A stage that processes each photo on its own.
 
-    ``compute(backend, inputs)`` gets one photo's input arrays by name and returns
-    its outputs by name, or raises :class:`Rejected`.
+    ``compute(backend, params, inputs, context)`` gets one photo's inputs by array name
+    and returns its outputs by array name, or raises :class:`Rejected`.
+    ``kind`` is the backend kind, or None for a stage without backends (ingest).
     """
 
     name: str
-    kind: str
-    upstream: str
+    kind: str | None
+    upstream: str | None
     inputs: tuple[str, ...]
     outputs: tuple[Output, ...]
-    compute: Callable[[Backend, dict], dict] = field(repr=False)
+    compute: Callable[..., dict] = field(repr=False)
 
 
 def _photo(inputs: dict) -> np.ndarray:
@@ -57,195 +64,181 @@ def _photo(inputs: dict) -> np.ndarray:
     return inputs["photos/rgb"][:h, :w]
 
 
-def _landmarks(backend, inputs):
+def _ingest(backend, params, inputs, canvas):
+    source = str(inputs["photos/source"])
+    image = media.decode_image(source, **params)
+    if image.shape[0] > canvas[0] or image.shape[1] > canvas[1]:
+        raise Rejected(f"{image.shape[1]}x{image.shape[0]} px, larger than the collection canvas "
+                       f"{canvas[1]}x{canvas[0]}: the file changed on disk during the run?")
+    hint = media.read_landmark_sidecar(source)
+    if hint is not None:  # sidecars describe the file; the photo may have been downscaled
+        hint = hint * (image.shape[1] / _original_width(source, params))
+    rgb = np.zeros((*canvas, 3), np.uint8)
+    rgb[:image.shape[0], :image.shape[1]] = image
+    return {"photos/rgb": rgb, "photos/size": image.shape[:2],
+            "photos/hint": np.full((68, 2), np.nan) if hint is None else hint,
+            "photos/sha256": media.sha256_file(source)}
+
+
+def _original_width(source, params) -> int:
+    return media.probe_image(source, max_pixels=params["max_pixels"], min_side=params["min_side"]).width
+
+
+def _landmarks(backend, params, inputs, canvas):
     found = backend.detect(_photo(inputs), inputs["photos/hint"])
     return {"landmarks/points": found.points, "landmarks/fiducials": found.points[list(IDX49)],
             "landmarks/box": found.box, "landmarks/n_faces": found.n_faces}
 
 
-def _pose(backend, inputs):
+def _pose(backend, params, inputs, canvas):
     pose = backend.estimate(inputs["landmarks/points"].astype(np.float64), tuple(inputs["photos/size"]))
     return {"pose": pose.as_vector()}
 
 
-def _frontalize(backend, inputs):
+def _frontalize(backend, params, inputs, canvas):
     front = backend.frontalize(_photo(inputs), inputs["landmarks/points"].astype(np.float64),
                                Pose.from_vector(inputs["pose"]))
     return {"aligned/rgb": front.rgb, "aligned/mask": front.mask,
             "aligned/landmarks": front.landmarks, "aligned/fiducials": front.landmarks[list(IDX49)]}
 
 
-PHOTO_STAGES = {
-    s.name: s for s in (
-        PhotoStage("landmarks", "landmarks", "ingest", ("photos/rgb", "photos/size", "photos/hint"), (
-            Output("landmarks/points", (68, 2), "float32", ("photo", "point", "xy")),
-            Output("landmarks/fiducials", (49, 2), "float32", ("photo", "point", "xy")),
-            Output("landmarks/box", (4,), "float32", ("photo", "ltrb")),
-            Output("landmarks/n_faces", (), "int16", ("photo",)),
-        ), _landmarks),
-        PhotoStage("pose", "pose", "landmarks", ("landmarks/points", "photos/size"), (
-            Output("pose", (len(POSE_FIELDS),), "float64", ("photo", "field")),
-        ), _pose),
-        PhotoStage("frontalize", "frontalize", "pose",
-                   ("photos/rgb", "photos/size", "landmarks/points", "pose"), (
-            Output("aligned/rgb", (H, W, 3), "uint8", ("photo", "y", "x", "channel")),
-            Output("aligned/mask", (H, W), "bool", ("photo", "y", "x")),
-            Output("aligned/landmarks", (68, 2), "float32", ("photo", "point", "xy")),
-            Output("aligned/fiducials", (49, 2), "float32", ("photo", "point", "xy")),
-        ), _frontalize),
-    )
-}
-
-
-def make_backend(kind: str, name: str, params: dict) -> Backend:
-    return default_registry().get(kind, name)(params)
-
-
-def _fill(dtype: str):
-    return np.nan if np.dtype(dtype).kind == "f" else 0
-
-
-def run_photo_shard(url: str, path: str, stage_name: str, start: int, stop: int,
-                    backend_name: str, params: dict) -> dict:
-    """Run one stage on photos [start, stop) of a collection; write outputs, then status."""
-    t0 = time.perf_counter()
-    stage = PHOTO_STAGES[stage_name]
-    coll = Collection(open_store(url), path)
-    backend = make_backend(stage.kind, backend_name, params)
-    ready = coll.array(f"status/{stage.upstream}/state")[start:stop] == OK
-    inputs = {name: coll.array(name)[start:stop] for name in stage.inputs}
-    n = stop - start
-    outputs = {o.name: np.full((n, *o.tail), _fill(o.dtype), dtype=o.dtype) for o in stage.outputs}
-    state = np.full(n, UPSTREAM, np.int8)
-    reasons = [""] * n
-    for j in np.flatnonzero(ready):
-        try:
-            result = stage.compute(backend, {k: v[j] for k, v in inputs.items()})
-        except Rejected as exc:
-            state[j], reasons[j] = REJECTED, exc.reason
-            continue
-        except Exception as exc:  # one odd photo must not end a long run; the reason says it all
-            log.warning("%s %s photo %d: unexpected %s", path, stage_name, start + j, exc, exc_info=True)
-            state[j], reasons[j] = REJECTED, f"unexpected error in {backend_name}: {type(exc).__name__}: {exc}"
-            continue
-        for name, value in result.items():
-            outputs[name][j] = value
-        state[j] = OK
-    for name, value in outputs.items():
-        coll.array(name)[start:stop] = value
-    coll.write_status(stage_name, start, state, reasons)
-    return _summary(state, time.perf_counter() - t0)
-
-
-def _summary(state: np.ndarray, seconds: float) -> dict:
-    return {"n": int(len(state)), "ok": int((state == OK).sum()),
-            "rejected": int((state == REJECTED).sum()), "seconds": seconds}
-
-
-# -- ingest ---------------------------------------------------------------------------
-
-INGEST_OUTPUTS = (
+INGEST = PhotoStage("ingest", None, None, ("photos/source",), (
+    Output("photos/rgb", (), "uint8", ("photo", "y", "x", "channel")),  # tail = the canvas
     Output("photos/size", (2,), "int32", ("photo", "hw")),
     Output("photos/hint", (68, 2), "float32", ("photo", "point", "xy")),
     Output("photos/sha256", (), "str", ("photo",)),
-)
+), _ingest)
+
+PHOTO_STAGES = {s.name: s for s in (
+    INGEST,
+    PhotoStage("landmarks", "landmarks", "ingest", ("photos/rgb", "photos/size", "photos/hint"), (
+        Output("landmarks/points", (68, 2), "float32", ("photo", "point", "xy")),
+        Output("landmarks/fiducials", (49, 2), "float32", ("photo", "point", "xy")),
+        Output("landmarks/box", (4,), "float32", ("photo", "ltrb")),
+        Output("landmarks/n_faces", (), "int16", ("photo",)),
+    ), _landmarks),
+    PhotoStage("pose", "pose", "landmarks", ("landmarks/points", "photos/size"), (
+        Output("pose", (len(POSE_FIELDS),), "float64", ("photo", "field")),
+    ), _pose),
+    PhotoStage("frontalize", "frontalize", "pose",
+               ("photos/rgb", "photos/size", "landmarks/points", "pose"), (
+        Output("aligned/rgb", (H, W, 3), "uint8", ("photo", "y", "x", "channel")),
+        Output("aligned/mask", (H, W), "bool", ("photo", "y", "x")),
+        Output("aligned/landmarks", (68, 2), "float32", ("photo", "point", "xy")),
+        Output("aligned/fiducials", (49, 2), "float32", ("photo", "point", "xy")),
+    ), _frontalize),
+)}
 
 
-def _fit(image: np.ndarray, canvas: tuple[int, int]) -> np.ndarray:
-    """Place an image at the top-left of a zero canvas (images never exceed it)."""
-    out = np.zeros((*canvas, 3), np.uint8)
-    h, w = image.shape[:2]
-    out[:h, :w] = image
-    return out
+def output_tail(output: Output, canvas) -> tuple[int, ...]:
+    return (*canvas, 3) if output.name == "photos/rgb" else output.tail
 
 
-def ingest_image_shard(url: str, path: str, start: int, stop: int, params: dict) -> dict:
-    """Decode photos [start, stop) of an image collection into the store."""
-    t0 = time.perf_counter()
+def _empty(output: Output, n: int, canvas) -> np.ndarray:
+    tail = output_tail(output, canvas)
+    if output.dtype == "str":
+        return np.full((n, *tail), "", dtype=object)
+    fill = np.nan if np.dtype(output.dtype).kind == "f" else 0
+    return np.full((n, *tail), fill, dtype=output.dtype)
+
+
+def _backend(stage: PhotoStage, name: str, params: dict) -> Backend | None:
+    return None if stage.kind is None else default_registry().get(stage.kind, name)(params)
+
+
+def run_chain(url: str, path: str, start: int, stop: int, steps: list[tuple[str, str, dict]]) -> dict:
+    """Run stages ``steps`` = [(stage, backend name, params), ...] on photos [start, stop).
+
+    Writes each stage's outputs and then its status. Returns per-stage summaries.
+    """
     coll = Collection(open_store(url), path)
     canvas = tuple(coll.attrs["canvas"])
-    sources = coll.array("photos/source")[start:stop]
     n = stop - start
-    rgb = np.zeros((n, *canvas, 3), np.uint8)
-    size = np.zeros((n, 2), np.int32)
-    hint = np.full((n, 68, 2), np.nan, np.float32)
-    sha = [""] * n
-    state = np.full(n, OK, np.int8)
-    reasons = [""] * n
-    for j, source in enumerate(sources):
-        try:
-            image = media.decode_image(source, **params)
-            if image.shape[0] > canvas[0] or image.shape[1] > canvas[1]:
-                raise media.PhotoRejected(f"image {image.shape[1]}x{image.shape[0]} larger than the "
-                                          f"collection canvas {canvas[1]}x{canvas[0]}: changed on disk since the run started?")
-            points = media.read_landmark_sidecar(source)
-            if points is not None:
-                points = points * (image.shape[1] / media.probe_image(source, **_probe(params)).width)
-                hint[j] = points
-            sha[j] = media.sha256_file(source)
-        except media.PhotoRejected as exc:
-            state[j], reasons[j] = REJECTED, exc.reason
+    shard: dict[str, np.ndarray] = {}  # this shard's arrays, computed here or read back
+
+    def get(name: str) -> np.ndarray:
+        if name not in shard:
+            shard[name] = coll.array(name)[start:stop]
+        return shard[name]
+
+    summaries = {}
+    for stage_name, backend_name, params in steps:
+        t0 = time.perf_counter()
+        stage = PHOTO_STAGES[stage_name]
+        status = f"status/{stage_name}/state"
+        if not (get(status) == PENDING).any():  # done by an earlier run: keep it
+            summaries[stage_name] = _summary(get(status), 0.0, skipped=True)
             continue
-        rgb[j] = _fit(image, canvas)
-        size[j] = image.shape[:2]
-    _write_ingest(coll, start, rgb, size, hint, sha, state, reasons)
-    return _summary(state, time.perf_counter() - t0)
+        backend = _backend(stage, backend_name, params)
+        ready = np.ones(n, bool) if stage.upstream is None else get(f"status/{stage.upstream}/state") == OK
+        inputs = {name: get(name) for name in stage.inputs}
+        outputs = {o.name: _empty(o, n, canvas) for o in stage.outputs}
+        state = np.full(n, UPSTREAM, np.int8)
+        reasons = [""] * n
+        for j in np.flatnonzero(ready):
+            try:
+                result = stage.compute(backend, params, {k: v[j] for k, v in inputs.items()}, canvas)
+            except (Rejected, media.PhotoRejected) as exc:
+                state[j], reasons[j] = REJECTED, exc.reason
+                continue
+            except Exception as exc:  # one odd photo must not end a long run; the reason says it all
+                log.warning("%s %s photo %d: unexpected %r", path, stage_name, start + j, exc, exc_info=True)
+                state[j], reasons[j] = REJECTED, f"unexpected error in {stage_name}: {type(exc).__name__}: {exc}"
+                continue
+            for name, value in result.items():
+                outputs[name][j] = value
+            state[j] = OK
+        for name, value in outputs.items():
+            coll.array(name)[start:stop] = value.astype(str) if value.dtype == object else value
+            shard[name] = value
+        coll.write_status(stage_name, start, state, reasons)
+        shard[status] = state
+        summaries[stage_name] = _summary(state, time.perf_counter() - t0)
+    return summaries
 
 
-def _probe(params: dict) -> dict:
-    return {k: params[k] for k in ("max_pixels", "min_side")}
+def _summary(state: np.ndarray, seconds: float, skipped: bool = False) -> dict:
+    return {"n": int(len(state)), "ok": int((state == OK).sum()), "rejected": int((state == REJECTED).sum()),
+            "seconds": seconds, "skipped": skipped}
 
 
 def ingest_video(url: str, path: str, params: dict) -> dict:
-    """Decode the frames of a video collection shard by shard (one sequential pass)."""
+    """Decode the frames of a video collection in one sequential pass, shard by shard.
+
+    Shards already ingested (an interrupted run) are decoded past but not rewritten.
+    """
     t0 = time.perf_counter()
     coll = Collection(open_store(url), path)
     canvas = tuple(coll.attrs["canvas"])
     video = coll.attrs["video"]
-    frames = coll.array("photos/frame")[:]
+    position = {int(f): i for i, f in enumerate(coll.array("photos/frame")[:])}
     done = coll.state("ingest") != PENDING
-    wanted = {int(f): i for i, f in enumerate(frames)}
-    shards = {s: e for s, e in coll.shard_ranges()}
+    ends = dict(coll.shard_ranges())
     buffer: dict[int, np.ndarray] = {}
     with media.VideoReader(video["path"]) as reader:
         for index, image in reader.frames(video["start"], video["stop"], video["step"]):
-            i = wanted.get(index)
+            i = position.get(index)
             if i is None or done[i]:
                 continue
-            buffer[i] = image
+            buffer[i] = image if image.shape[:2] == canvas else cv2.resize(
+                image, (canvas[1], canvas[0]), interpolation=cv2.INTER_AREA)
             start = i - i % coll.shard
-            stop = shards[start]
-            if all(k in buffer for k in range(start, stop)):
-                n = stop - start
-                rgb = np.stack([_resize(buffer.pop(k), canvas) for k in range(start, stop)])
-                size = np.tile(np.array(canvas, np.int32), (n, 1))
-                hint = np.full((n, 68, 2), np.nan, np.float32)
-                state = np.full(n, OK, np.int8)
-                _write_ingest(coll, start, rgb, size, hint, [""] * n, state, [""] * n)
-    missing = np.flatnonzero(coll.state("ingest") == PENDING)
-    if len(missing):  # the container promised frames it did not deliver
-        for start, stop in coll.shard_ranges():
-            idx = [i for i in missing if start <= i < stop]
-            if idx:
-                state = coll.state("ingest")[start:stop]
-                reasons = list(coll.reasons("ingest")[start:stop])
-                for i in idx:
-                    state[i - start], reasons[i - start] = REJECTED, "frame could not be decoded"
-                coll.write_status("ingest", start, state, reasons)
-    return _summary(coll.state("ingest"), time.perf_counter() - t0)
+            if all(k in buffer for k in range(start, ends[start])):
+                _write_frames(coll, start, [buffer.pop(k) for k in range(start, ends[start])], canvas)
+    state = coll.state("ingest")
+    for start, stop in coll.shard_ranges():  # frames the container promised but did not deliver
+        if (state[start:stop] == PENDING).any():
+            part = state[start:stop]
+            reasons = ["frame could not be decoded" if s == PENDING else "" for s in part]
+            coll.write_status("ingest", start, np.where(part == PENDING, REJECTED, part).astype(np.int8), reasons)
+    return {"ingest": _summary(coll.state("ingest"), time.perf_counter() - t0)}
 
 
-def _resize(image: np.ndarray, canvas) -> np.ndarray:
-    """A video frame at the collection's canvas size (videos above max_side are downscaled)."""
-    if image.shape[:2] == tuple(canvas):
-        return image
-    return cv2.resize(image, (canvas[1], canvas[0]), interpolation=cv2.INTER_AREA)
-
-
-def _write_ingest(coll, start, rgb, size, hint, sha, state, reasons):
-    stop = start + len(state)
-    coll.array("photos/rgb")[start:stop] = rgb
-    coll.array("photos/size")[start:stop] = size
-    coll.array("photos/hint")[start:stop] = hint
-    coll.array("photos/sha256")[start:stop] = np.asarray(sha, dtype=object).astype(str)
-    coll.write_status("ingest", start, state, reasons)
+def _write_frames(coll: Collection, start: int, frames: list[np.ndarray], canvas) -> None:
+    n = len(frames)
+    stop = start + n
+    coll.array("photos/rgb")[start:stop] = np.stack(frames)
+    coll.array("photos/size")[start:stop] = np.tile(np.array(canvas, np.int32), (n, 1))
+    coll.array("photos/hint")[start:stop] = np.full((n, 68, 2), np.nan, np.float32)
+    coll.array("photos/sha256")[start:stop] = np.full(n, "", dtype=object).astype(str)
+    coll.write_status("ingest", start, np.full(n, OK, np.int8), [""] * n)

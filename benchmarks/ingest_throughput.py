@@ -1,0 +1,128 @@
+"""Throughput of ingest -> frontalize on a real collection, against dlib detection alone.
+
+    .venv/bin/python benchmarks/ingest_throughput.py [--collection george_w_bush] [--runs 3] [--big 2000]
+
+Prints photos per second with 1 and 2 workers (median of --runs runs), the floor
+(dlib's HOG detector alone, upsample 1, on the decoded photos, in the same number of
+processes), their ratio, and the peak resident memory of the whole process tree
+(this process + Dask workers) on a --big photo list (the collection repeated through
+symbolic links).
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import tempfile
+import threading
+import time
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+import psutil
+import yaml
+
+SHARED = Path(__file__).resolve().parents[2] / "shared" / "data" / "collections"
+
+
+def detect_only(paths: list[str]) -> int:
+    import cv2
+    import dlib
+
+    detector = dlib.get_frontal_face_detector()
+    found = 0
+    for p in paths:
+        image = cv2.cvtColor(cv2.imread(p), cv2.COLOR_BGR2RGB)
+        found += len(detector(image, 1)) > 0
+    return found
+
+
+def floor(paths: list[str], workers: int) -> float:
+    """Photos per second of detection alone, the photos split over ``workers`` processes."""
+    parts = [paths[i::workers] for i in range(workers)]
+    with ProcessPoolExecutor(workers) as pool:
+        list(pool.map(detect_only, [p[:2] for p in parts]))  # warm up: imports
+        t0 = time.perf_counter()
+        list(pool.map(detect_only, parts))
+        return len(paths) / (time.perf_counter() - t0)
+
+
+class PeakMemory:
+    """Samples the summed RSS of this process and its children."""
+
+    def __init__(self, interval=0.1):
+        self.interval, self.peak, self._stop = interval, 0, threading.Event()
+
+    def _run(self):
+        me = psutil.Process()
+        while not self._stop.is_set():
+            total = 0
+            for p in [me, *me.children(recursive=True)]:
+                try:
+                    total += p.memory_info().rss
+                except psutil.Error:
+                    pass
+            self.peak = max(self.peak, total)
+            time.sleep(self.interval)
+
+    def __enter__(self):
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc):
+        self._stop.set()
+        self._thread.join()
+
+
+def pipeline(photos, workers: int, folder: Path) -> tuple[float, dict]:
+    from persona.dag.runner import run_workflow
+    from persona.dag.workflow import load_workflow
+
+    wf = {"version": 1, "name": "bench", "store": str(folder / "run.zarr"), "output": str(folder / "out"),
+          "puppet": {"photos": photos}, "cluster": {"scheduler": "local", "workers": workers}}
+    path = folder / "wf.yaml"
+    path.write_text(yaml.safe_dump(wf))
+    workflow = load_workflow(path)
+    t0 = time.perf_counter()
+    report = run_workflow(workflow, progress=False)
+    return time.perf_counter() - t0, report
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--collection", default="george_w_bush")
+    ap.add_argument("--runs", type=int, default=3)
+    ap.add_argument("--big", type=int, default=2000)
+    args = ap.parse_args()
+    folder = SHARED / args.collection
+    paths = sorted(str(p) for p in folder.iterdir())
+    n = len(paths)
+    print(f"{args.collection}: {n} photos; {psutil.cpu_count()} cores")
+    for workers in (1, 2):
+        runs, floors = [], []
+        for _ in range(args.runs):
+            with tempfile.TemporaryDirectory() as tmp:
+                seconds, report = pipeline(str(folder), workers, Path(tmp))
+            runs.append(n / seconds)
+            floors.append(floor(paths, workers))
+        stages = {r["stage"]: r["seconds"] for r in report["stages"]}
+        p, f = statistics.median(runs), statistics.median(floors)
+        print(f"workers={workers}: ingest->frontalize {p:6.1f} photos/s (median of {args.runs}); "
+              f"detector floor {f:6.1f} photos/s; floor/pipeline = {f / p:.2f}x; "
+              f"last run stage seconds {stages}")
+    if args.big:
+        with tempfile.TemporaryDirectory() as tmp:
+            links = Path(tmp) / "photos"
+            links.mkdir()
+            for i in range(args.big):
+                (links / f"{i:05d}_{Path(paths[i % n]).name}").symlink_to(paths[i % n])
+            with PeakMemory() as mem:
+                seconds, report = pipeline(str(links), 2, Path(tmp))
+            accepted = report["collections"]["puppet"]["accepted"]
+            print(f"{args.big} photos, 2 workers: {args.big / seconds:.1f} photos/s, {accepted} aligned, "
+                  f"peak resident memory (all processes) {mem.peak / 2**30:.2f} GiB")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,239 @@
+import json
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from persona.dag.cli import main as cli
+from persona.dag.runner import run_workflow
+from persona.dag.workflow import load_workflow
+from persona.stores.layout import OK, PENDING, Collection, open_store, summarize
+
+from .conftest import assert_same_store, write_photos, write_workflow
+
+PERSONA = str(Path(sys.executable).with_name("persona"))
+
+
+def test_sidecar_pipeline_recovers_the_canonical_landmarks(tmp_path, synthetic_photos):
+    """With ground-truth landmarks, pose-corrected landmarks land near the template's."""
+    from persona.plugins.face.template import generic_template
+
+    write_photos(tmp_path / "photos", synthetic_photos[:8])
+    wf = load_workflow(write_workflow(tmp_path, "photos", stages={"landmarks": {"backend": "sidecar"}}))
+    report = run_workflow(wf, scheduler="sync", progress=False)
+    assert report["collections"]["puppet"]["accepted"] == 8
+    coll = Collection(open_store(wf.store, mode="r"), "puppet")
+    aligned = coll.array("aligned/landmarks")[:]
+    template = generic_template().landmarks3d[:, :2]
+    iod = np.linalg.norm(template[36:42].mean(0) - template[42:48].mean(0))
+    inner = np.linalg.norm(aligned[:, 17:] - template[17:], axis=2)
+    # identities and expressions differ from the template: a few % of the eye distance
+    assert np.median(inner) < 0.08 * iod
+    assert (tmp_path / "out" / "puppet_mean_face.png").is_file()
+    mask = coll.array("aligned/mask")[:]
+    assert mask.mean(axis=(1, 2)).min() > 0.3
+
+
+def test_bad_input_collection_runs_to_completion(tmp_path, synthetic_photos):
+    import badinput
+
+    from persona.stores import media
+
+    folder = tmp_path / "photos"
+    folder.mkdir()
+    faces = [p.image for p in synthetic_photos[:3]]
+    expected = badinput.make_bad_collection(folder, faces)
+    rng = np.random.default_rng(0)
+    noise = (rng.random((40, 40, 3)) * 255).astype(np.uint8)
+    media.write_png(folder / "no_face.png", np.kron(noise, np.ones((6, 6, 1), np.uint8)))
+    three = np.concatenate([synthetic_photos[i].image for i in (3, 4, 5)], axis=1)
+    media.write_png(folder / "three_faces.png", three)
+    wf = load_workflow(write_workflow(tmp_path, "photos"))
+    run_workflow(wf, scheduler="sync", progress=False)
+
+    summary = summarize(wf.store)["collections"]["puppet"]
+    rejections = summary["rejections"]
+    ids = {Path(name).stem: name for name in expected}
+    for name, outcome in expected.items():
+        stem = Path(name).stem
+        if outcome == "ok":
+            assert stem not in rejections, (name, rejections.get(stem))
+        else:
+            assert outcome in rejections[stem], (name, rejections[stem])
+            assert rejections[stem].startswith("ingest: ")
+    assert "no face found" in rejections["no_face"]
+    assert "three_faces" not in rejections
+    coll = Collection(open_store(wf.store, mode="r"), "puppet")
+    i = list(coll.array("photos/ids")[:]).index("three_faces")
+    assert coll.array("landmarks/n_faces")[i] == 3
+    box = coll.array("landmarks/box")[i]
+    assert three.shape[1] / 3 < (box[0] + box[2]) / 2 < 2 * three.shape[1] / 3  # the centre face
+    assert summary["accepted"] == sum(v == "ok" for v in expected.values()) + 1
+    assert summary["accepted"] + summary["rejected"] == summary["n_photos"] == len(ids) + 2
+    # the CLI shows every reason
+    assert cli(["inspect", wf.store]) == 0
+
+
+def test_changed_params_rerun_only_what_depends_on_them(tmp_path, synthetic_photos):
+    write_photos(tmp_path / "photos", synthetic_photos[:6])
+    path = write_workflow(tmp_path, "photos", stages={"landmarks": {"backend": "sidecar"}})
+    first = run_workflow(load_workflow(path), scheduler="sync", progress=False)
+    again = run_workflow(load_workflow(path), scheduler="sync", progress=False)
+    assert all(r["n_done"] == 0 for r in again["stages"]), again["stages"]
+    changed = run_workflow(load_workflow(path, ["stages.pose.params.focal_factor=2.0"]),
+                           scheduler="sync", progress=False)
+    done = {r["stage"]: r["n_done"] for r in changed["stages"]}
+    assert done == {"ingest": 0, "landmarks": 0, "pose": 6, "frontalize": 6}
+    assert first["stages"][0]["n_done"] == 6
+
+
+def test_unknown_backend_fails_before_any_compute(tmp_path, capsys):
+    (tmp_path / "photos").mkdir()
+    path = write_workflow(tmp_path, "photos", stages={"landmarks": {"backend": "dlibb"}})
+    assert cli(["run", str(path)]) == 2
+    err = capsys.readouterr().err
+    assert 'unknown landmarks backend "dlibb". Did you mean "dlib"?' in err
+    assert not (tmp_path / "run.zarr").exists()
+
+
+def test_empty_folder_is_a_clear_error(tmp_path, capsys):
+    (tmp_path / "photos").mkdir()
+    path = write_workflow(tmp_path, "photos")
+    assert cli(["run", str(path), "--scheduler", "sync"]) == 2
+    err = capsys.readouterr().err
+    assert "photos" in err and "empty" in err.lower()
+    assert "resume with" in err.lower()
+
+
+def _wait_for(predicate, timeout, interval=0.02):
+    end = time.time() + timeout
+    while time.time() < end:
+        if predicate():
+            return True
+        time.sleep(interval)
+    return False
+
+
+def _landmark_states(store):
+    try:
+        coll = Collection(open_store(store, mode="r"), "puppet")
+        return coll.state("landmarks") if coll.has("status/landmarks/state") else None
+    except Exception:
+        return None
+
+
+def test_resume_after_sigkill_recomputes_nothing_finished(tmp_path, synthetic_photos):
+    photos = write_photos(tmp_path / "photos", synthetic_photos * 2)  # 48 photos, 12 shards
+    killed = tmp_path / "killed"
+    clean = tmp_path / "clean"
+    for folder in (killed, clean):
+        folder.mkdir()
+        write_workflow(folder, str(photos))
+
+    proc = subprocess.Popen([PERSONA, "run", str(killed / "wf.yaml"), "--scheduler", "sync", "--quiet"],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+
+    def some_done():
+        state = _landmark_states(killed / "run.zarr")
+        return state is not None and (state != PENDING).sum() >= 4
+
+    assert _wait_for(some_done, timeout=120), "the run never got into the landmarks stage"
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    state = _landmark_states(killed / "run.zarr")
+    finished = int((state != PENDING).sum())
+    assert 0 < finished < len(state), "the kill did not land part-way through landmarks"
+    shard_file = killed / "run.zarr" / "puppet" / "landmarks" / "points" / "c" / "0" / "0" / "0"
+    before = shard_file.stat().st_mtime_ns
+
+    resumed = run_workflow(load_workflow(killed / "wf.yaml"), scheduler="sync", progress=False)
+    landmarks = [r for r in resumed["stages"] if r["stage"] == "landmarks"][0]
+    assert landmarks["n_skipped"] >= finished - finished % 4
+    assert landmarks["n_done"] + landmarks["n_skipped"] == 48
+    assert shard_file.stat().st_mtime_ns == before  # the first shard was not rewritten
+    ingest = [r for r in resumed["stages"] if r["stage"] == "ingest"][0]
+    assert ingest["n_done"] == 0
+
+    run_workflow(load_workflow(clean / "wf.yaml"), scheduler="sync", progress=False)
+    assert_same_store(killed / "run.zarr", clean / "run.zarr")
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture
+def dask_cluster(tmp_path):
+    """A real dask scheduler and two workers on 127.0.0.1, as separate processes."""
+    port = _free_port()
+    address = f"tcp://127.0.0.1:{port}"
+    dask = str(Path(sys.executable).with_name("dask"))
+    env = {**os.environ, "PERSONA_PLUGINS": ""}
+    procs = [subprocess.Popen([dask, "scheduler", "--host", "127.0.0.1", "--port", str(port),
+                               "--no-dashboard"], env=env, cwd=tmp_path,
+                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)]
+    for _ in range(2):
+        procs.append(subprocess.Popen([dask, "worker", address, "--nthreads", "1", "--no-dashboard",
+                                       "--host", "127.0.0.1"], env=env, cwd=tmp_path,
+                                      stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+    try:
+        from distributed import Client
+
+        with Client(address, timeout="60s") as client:
+            client.wait_for_workers(2, timeout=60)
+        yield address
+    finally:
+        for p in reversed(procs):
+            p.terminate()
+        for p in procs:
+            try:
+                p.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                p.kill()
+
+
+def test_distributed_cluster_gives_the_same_store_as_a_local_run(tmp_path, synthetic_photos, dask_cluster):
+    photos = write_photos(tmp_path / "photos", synthetic_photos[:12])
+    remote, local = tmp_path / "remote", tmp_path / "local"
+    for folder in (remote, local):
+        folder.mkdir()
+        write_workflow(folder, str(photos))
+    assert cli(["run", str(remote / "wf.yaml"), "--scheduler", dask_cluster, "--quiet"]) == 0
+    run_workflow(load_workflow(local / "wf.yaml"), scheduler="sync", progress=False)
+    assert_same_store(remote / "run.zarr", local / "run.zarr")
+    metrics = json.loads((remote / "out" / "metrics.json").read_text())
+    assert metrics["collections"]["puppet"]["accepted"] >= 10
+
+
+def test_local_dask_cluster_run(tmp_path, synthetic_photos):
+    photos = write_photos(tmp_path / "photos", synthetic_photos[:8])
+    path = write_workflow(tmp_path, str(photos), cluster={"scheduler": "local", "workers": 2})
+    report = run_workflow(load_workflow(path), progress=False)
+    assert report["collections"]["puppet"]["accepted"] >= 7
+
+
+def test_inspect_json(tmp_path, synthetic_photos, capsys):
+    write_photos(tmp_path / "photos", synthetic_photos[:4])
+    path = write_workflow(tmp_path, "photos", stages={"landmarks": {"backend": "sidecar"}})
+    run_workflow(load_workflow(path), scheduler="sync", progress=False)
+    capsys.readouterr()
+    assert cli(["inspect", str(tmp_path / "run.zarr"), "--json"]) == 0
+    data = json.loads(capsys.readouterr().out)
+    puppet = data["collections"]["puppet"]
+    assert puppet["accepted"] == 4
+    rgb = puppet["arrays"]["aligned/rgb"]
+    assert rgb["dims"] == ["photo", "y", "x", "channel"] and rgb["shape"] == [4, 244, 194, 3]
+    root = open_store(tmp_path / "run.zarr", mode="r")
+    prov = root["puppet/aligned/rgb"].attrs["provenance"]
+    assert prov["stage"] == "frontalize" and prov["backend"] == "template" and prov["key"]
+    assert root["puppet/aligned/rgb"].chunks == (1, 244, 194, 3)
+    assert root["puppet/aligned/rgb"].shards == (4, 244, 194, 3)

@@ -1,0 +1,68 @@
+import numpy as np
+import pytest
+from pydantic import ValidationError
+
+from persona.stores.layout import (OK, PENDING, REJECTED, Collection, StoreError, first_rejection,
+                                   open_store, summarize)
+from persona.stores.provenance import Provenance, cache_key
+
+
+def prov(stage="s", **params):
+    return Provenance.make(stage=stage, backend="b", backend_version="1", params=params,
+                           inputs={}, persona_version="test")
+
+
+def make(tmp_path, n=10, shard=4):
+    root = open_store(str(tmp_path / "s.zarr"))
+    root.require_group("puppet").attrs.update({"n_photos": n, "photos_per_shard": shard})
+    coll = Collection(root, "puppet")
+    coll.create("photos/ids", (), str, ("photo",), prov())[:] = np.array([f"p{i}" for i in range(n)])
+    return root, coll
+
+
+def test_shards_are_the_write_unit_and_photos_the_chunk(tmp_path):
+    _, coll = make(tmp_path)
+    assert coll.shard_ranges() == [(0, 4), (4, 8), (8, 10)]
+    arr = coll.create("aligned/rgb", (6, 5, 3), "uint8", ("photo", "y", "x", "channel"), prov())
+    assert arr.chunks == (1, 6, 5, 3) and arr.shards == (4, 6, 5, 3)
+    assert arr.metadata.dimension_names == ("photo", "y", "x", "channel")
+    with pytest.raises(ValueError, match="dimension names"):
+        coll.create("bad", (2,), "float32", ("photo",), prov())
+
+
+def test_provenance_is_validated_and_keys_are_stable(tmp_path):
+    _, coll = make(tmp_path)
+    coll.create("x", (2,), "float32", ("photo", "v"), prov(a=1))
+    assert coll.provenance("x").key == prov(a=1).key != prov(a=2).key
+    assert cache_key(a=1, b=[1, 2]) == cache_key(b=[1, 2], a=1)
+    with pytest.raises(ValidationError):
+        Provenance.model_validate({**prov().model_dump(), "surprise": 1})
+
+
+def test_status_and_first_rejection(tmp_path):
+    _, coll = make(tmp_path, n=5, shard=5)
+    for stage in ("ingest", "landmarks"):
+        coll.create_status(stage, prov(stage))
+    assert (coll.state("ingest") == PENDING).all()
+    coll.write_status("ingest", 0, np.array([OK, REJECTED, OK, OK, OK], np.int8),
+                      ["", "empty file (0 bytes)", "", "", ""])
+    coll.write_status("landmarks", 0, np.array([OK, 3, REJECTED, OK, OK], np.int8),
+                      ["", "", "no face found", "", ""])
+    final, why = first_rejection(coll, ["ingest", "landmarks"])
+    assert list(final) == [OK, REJECTED, REJECTED, OK, OK]
+    assert why[1] == "ingest: empty file (0 bytes)" and why[2] == "landmarks: no face found"
+    coll.group.attrs["stages"] = ["ingest", "landmarks"]
+    summary = summarize(str(tmp_path / "s.zarr"))["collections"]["puppet"]
+    assert summary["accepted"] == 3 and summary["rejected"] == 2
+    assert summary["rejected_by_reason"] == {"ingest: empty file (0 bytes)": 1, "landmarks: no face found": 1}
+    assert summary["rejections"] == {"p1": "ingest: empty file (0 bytes)", "p2": "landmarks: no face found"}
+
+
+def test_missing_or_foreign_store_is_a_clear_error(tmp_path):
+    with pytest.raises(StoreError, match="persona run"):
+        open_store(str(tmp_path / "nothing.zarr"), mode="r")
+    import zarr
+
+    zarr.open_group(str(tmp_path / "other.zarr"), mode="w")
+    with pytest.raises(StoreError, match="not a Persona store"):
+        open_store(str(tmp_path / "other.zarr"), mode="r")
