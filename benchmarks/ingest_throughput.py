@@ -106,11 +106,11 @@ def main():
                 seconds, report = pipeline(str(folder), workers, Path(tmp))
             runs.append(n / seconds)
             floors.append(floor(paths, workers))
-        stages = {r["stage"]: r["seconds"] for r in report["stages"]}
+        stages = {r["stage"]: r["task_seconds"] for r in report["stages"]}
         p, f = statistics.median(runs), statistics.median(floors)
         print(f"workers={workers}: ingest->frontalize {p:6.1f} photos/s (median of {args.runs}); "
               f"detector floor {f:6.1f} photos/s; floor/pipeline = {f / p:.2f}x; "
-              f"last run stage seconds {stages}")
+              f"last run, task seconds per stage {stages}")
     if args.big:
         with tempfile.TemporaryDirectory() as tmp:
             links = Path(tmp) / "photos"

@@ -231,8 +231,8 @@ class Runner:
         if video:  # frames come from one sequential decoding pass, then the chain without ingest
             self._run(coll, steps[:1], [(self.wf.store, coll.path, steps[0][2])], st.ingest_video)
             steps = steps[1:]
-        pending = [(s, e) for s, e in coll.shard_ranges()
-                   if any((coll.state(name)[s:e] == PENDING).any() for name, _, _ in steps)]
+        states = [coll.state(name) for name, _, _ in steps]
+        pending = [(s, e) for s, e in coll.shard_ranges() if any((state[s:e] == PENDING).any() for state in states)]
         tasks = [(self.wf.store, coll.path, s, e, steps) for s, e in pending]
         self._run(coll, steps, tasks, st.run_chain)
 

@@ -18,13 +18,14 @@
       driver/                     the driver's photos, the same arrays
       driver/frames/              the driver's video frames, the same arrays (+ fps)
 
-Per-photo arrays have one photo per chunk and ``photos_per_shard`` photos per shard.
-A shard is the write unit: one task writes whole shards, no two tasks the same one.
+Per-photo images have one photo per chunk and ``photos_per_shard`` photos per shard;
+small per-photo values (landmarks, pose, status) are chunked by shard. A shard is the
+write unit: one task writes whole shards, no two tasks the same one.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -57,12 +58,17 @@ def open_store(url: str, mode: str = "a") -> zarr.Group:
     return root
 
 
+#: per-photo items at least this large (bytes) get a chunk of their own inside shards
+IMAGE_BYTES = 16384
+
+
 @dataclass
 class Collection:
     """One collection of photos (or video frames) in a store, e.g. ``puppet`` or ``driver/frames``."""
 
     root: zarr.Group
     path: str
+    _arrays: dict = field(default_factory=dict, repr=False)
 
     @property
     def group(self) -> zarr.Group:
@@ -92,20 +98,27 @@ class Collection:
     # -- arrays ------------------------------------------------------------------
     def create(self, name: str, tail: tuple[int, ...], dtype, dims: tuple[str, ...],
                provenance: Provenance, fill_value: Any = None) -> zarr.Array:
-        """(Re)create a per-photo array of shape (n, *tail): one photo per chunk, shards of photos."""
+        """(Re)create a per-photo array of shape (n, *tail).
+
+        Images get one photo per chunk, ``photos_per_shard`` chunks per shard; small
+        per-photo values get one chunk per shard. Either way a shard of photos is one file.
+        """
         if len(dims) != 1 + len(tail):
             raise ValueError(f"{name}: {len(dims)} dimension names for {1 + len(tail)} dimensions")
         shape = (self.n, *tail)
-        if np.dtype(dtype).kind in "OTU" or dtype is str:
-            chunks, shards = (self.shard,), None
-        else:
+        if dtype is str or np.dtype(dtype).kind in "OTU":
+            dtype, chunks, shards = str, (self.shard,), None
+        elif np.dtype(dtype).itemsize * int(np.prod(tail)) >= IMAGE_BYTES:
             chunks, shards = (1, *tail), (self.shard, *tail)
+        else:
+            chunks, shards = (self.shard, *tail), None
         if fill_value is None:
             fill_value = np.nan if np.dtype(dtype).kind == "f" else 0
         array = self.group.create_array(
             name, shape=shape, dtype=dtype, chunks=chunks, shards=shards,
             dimension_names=dims, fill_value=fill_value, overwrite=True)
         array.attrs["provenance"] = provenance.model_dump()
+        self._arrays[name] = array
         return array
 
     def create_single(self, name: str, data: np.ndarray, dims: tuple[str, ...],
@@ -118,16 +131,18 @@ class Collection:
         return array
 
     def array(self, name: str) -> zarr.Array:
-        try:
-            return self.group[name]
-        except KeyError:
-            raise StoreError(f"{self.path}/{name} is not in the store: run the stage that makes it") from None
+        if name not in self._arrays:
+            try:
+                self._arrays[name] = self.group[name]
+            except KeyError:
+                raise StoreError(f"{self.path}/{name} is not in the store: run the stage that makes it") from None
+        return self._arrays[name]
 
     def has(self, name: str) -> bool:
         try:
-            self.group[name]
+            self.array(name)
             return True
-        except KeyError:
+        except StoreError:
             return False
 
     def provenance(self, name: str) -> Provenance | None:

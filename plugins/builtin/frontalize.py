@@ -57,12 +57,14 @@ def _template_scene():
     return raycasting_scene(vertices, grid_triangles(template.mask))
 
 
-def visible(fmap: np.ndarray, mask: np.ndarray, pose: Pose, image_size, tolerance: float) -> np.ndarray:
+def visible(fmap: np.ndarray, mask: np.ndarray, pose: Pose, image_size, tolerance: float,
+            step: int = 1) -> np.ndarray:
     """Canonical pixels whose template point is the first surface hit on its ray from the camera.
 
     An exact z-buffer: rays from the camera centre (expressed in the canonical frame)
     through each template point; the point is visible when nothing of the template lies
-    in front of it, and its projection falls inside the photo.
+    in front of it, and its projection falls inside the photo. With ``step`` > 1 the rays
+    are cast on every step-th row and column and the answer spread to the pixels between.
     """
     template = generic_template()
     h, w = image_size
@@ -70,14 +72,18 @@ def visible(fmap: np.ndarray, mask: np.ndarray, pose: Pose, image_size, toleranc
               & (fmap[..., 1] >= 0) & (fmap[..., 1] <= h - 1))
     rotation = cv2.Rodrigues(pose.rvec)[0]
     centre = -rotation.T @ pose.tvec
-    rows, cols = np.nonzero(inside)
+    coarse = np.zeros_like(mask)
+    coarse[::step, ::step] = True
+    rows, cols = np.nonzero(coarse & template.mask)
     points = np.stack([cols, rows, template.depth[rows, cols]], axis=1).astype(np.float64)
     offsets = points - centre
     distance = np.linalg.norm(offsets, axis=1)
     hits = cast(_template_scene(), np.broadcast_to(centre, points.shape), offsets / distance[:, None])
-    out = np.zeros_like(mask)
-    out[rows, cols] = hits["t_hit"] >= distance - tolerance
-    return out
+    seen = np.zeros(mask.shape, np.uint8)
+    seen[rows, cols] = hits["t_hit"] >= distance - tolerance
+    if step > 1:  # each cast ray stands for the step x step block it starts
+        seen = np.repeat(np.repeat(seen[::step, ::step], step, 0), step, 1)[:mask.shape[0], :mask.shape[1]]
+    return inside & seen.astype(bool)
 
 
 def canonical_landmarks(points: np.ndarray, depth: np.ndarray, pose: Pose, start: np.ndarray,
@@ -113,13 +119,16 @@ class TemplateFrontalize(FrontalizeBackend):
         occlusion_tolerance: float = Field(
             1.0, ge=0, description="canonical px a template point may lie behind the first "
             "surface hit on its camera ray and still count as visible")
+        visibility_step: int = Field(2, ge=1, le=8, description="cast visibility rays on every "
+                                     "n-th canonical row and column (1 = every pixel, exact)")
         min_visible: float = Field(0.3, ge=0, le=1, description="reject faces with less than "
                                    "this fraction of the template's face visible")
 
     def frontalize(self, image, landmarks, pose):
         template = generic_template()
         fmap, _ = frontalizing_map(template.depth, pose)
-        mask = visible(fmap, template.mask, pose, image.shape[:2], self.params.occlusion_tolerance)
+        mask = visible(fmap, template.mask, pose, image.shape[:2], self.params.occlusion_tolerance,
+                       self.params.visibility_step)
         fraction = mask.sum() / template.mask.sum()
         if fraction < self.params.min_visible:
             raise Rejected(f"frontalize: only {fraction:.0%} of the face is visible in the photo")
