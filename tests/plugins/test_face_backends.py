@@ -1,0 +1,81 @@
+"""Landmarks, pose and frontalize backends on cases with known answers."""
+
+import cv2
+import numpy as np
+import pytest
+
+from persona.plugins.base import Rejected
+from persona.plugins.builtin.frontalize import canonical_landmarks, frontalizing_map, project, template_points
+from persona.plugins.builtin.landmarks import SidecarLandmarks, choose_subject
+from persona.plugins.builtin.pose import PnPPose, default_camera
+from persona.plugins.face.template import generic_template
+from persona.plugins.kinds import Pose
+
+
+def test_subject_is_the_face_nearest_the_centre_or_the_largest():
+    boxes = np.array([[0, 0, 100, 100], [90, 90, 140, 140], [200, 0, 240, 40]], float)
+    assert choose_subject(boxes, (250, 250), "center") == 1
+    assert choose_subject(boxes, (250, 250), "largest") == 0
+
+
+def test_sidecar_backend_needs_a_sidecar():
+    with pytest.raises(Rejected, match="sidecar"):
+        SidecarLandmarks().detect(np.zeros((10, 10, 3), np.uint8), None)
+    points = np.random.default_rng(0).random((68, 2)) * 100
+    found = SidecarLandmarks().detect(np.zeros((10, 10, 3), np.uint8), points)
+    np.testing.assert_array_equal(found.points, points)
+
+
+def posed_landmarks(yaw, pitch, roll, size=(250, 250), distance=900.0, focal_factor=1.2):
+    template = generic_template()
+    rvec = cv2.Rodrigues(cv2.Rodrigues(np.radians([pitch, 0, 0]))[0]
+                         @ cv2.Rodrigues(np.radians([0, yaw, 0]))[0]
+                         @ cv2.Rodrigues(np.radians([0, 0, roll]))[0])[0].ravel()
+    centre = template.landmarks3d.mean(axis=0)
+    rotation = cv2.Rodrigues(rvec)[0]
+    tvec = np.array([0, 0, distance]) - rotation @ centre
+    camera = default_camera(size, focal_factor)
+    points = cv2.projectPoints(template.landmarks3d, rvec, tvec, camera, None)[0][:, 0]
+    return points, rvec, tvec, camera
+
+
+@pytest.mark.parametrize("yaw, pitch, roll", [(0, 0, 0), (25, -10, 5), (-30, 12, -8)])
+def test_pnp_recovers_the_pose_of_the_template(yaw, pitch, roll):
+    points, rvec, tvec, camera = posed_landmarks(yaw, pitch, roll)
+    pose = PnPPose().estimate(points, (250, 250))
+    error = cv2.Rodrigues(cv2.Rodrigues(pose.rvec)[0].T @ cv2.Rodrigues(rvec)[0])[0]
+    assert np.degrees(np.linalg.norm(error)) < 0.1
+    np.testing.assert_allclose(pose.tvec, tvec, rtol=1e-3)
+    assert pose.rms < 0.01
+    np.testing.assert_allclose(Pose.from_vector(pose.as_vector()).camera, camera)
+
+
+def test_pnp_rejects_landmarks_that_fit_no_face():
+    points = np.random.default_rng(1).random((68, 2)) * 200
+    with pytest.raises(Rejected, match="pose"):
+        PnPPose().estimate(points, (250, 250))
+
+
+@pytest.mark.parametrize("yaw", [0, 30])
+def test_canonical_landmarks_invert_the_frontalizing_map(yaw):
+    """Rigid case: the projections of canonical points map back onto them (ALGORITHMS §4.4: < 0.05 px)."""
+    template = generic_template()
+    _, rvec, tvec, camera = posed_landmarks(yaw, 5, 0)
+    pose = Pose(rvec, tvec, camera, 0.0)
+    truth = template.landmarks3d[17:, :2] + np.random.default_rng(2).normal(0, 1.5, (51, 2))
+    points = project(template_points(template.depth, truth), pose)[0]
+    found = canonical_landmarks(points, template.depth, pose, template.landmarks3d[17:, :2])
+    # the nose hides its far side at yaw 30: there the map has two preimages, so skip the nose
+    keep = [i - 17 for i in range(17, 68) if not 27 <= i <= 35]
+    assert np.abs(found[keep] - truth[keep]).max() < 0.05
+
+
+def test_frontalizing_map_sends_template_landmarks_to_their_projections():
+    template = generic_template()
+    points, rvec, tvec, camera = posed_landmarks(20, 0, 0)
+    fmap, depth = frontalizing_map(template.depth, Pose(rvec, tvec, camera, 0.0))
+    assert fmap.dtype == np.float32 and fmap.shape == (*template.depth.shape, 2)
+    for k in (30, 36, 45, 48, 54):  # nose tip, eye corners, mouth corners
+        x, y = template.landmarks3d[k, :2]
+        if float(x).is_integer() and float(y).is_integer():
+            np.testing.assert_allclose(fmap[int(y), int(x)], points[k], atol=1e-3)
