@@ -115,8 +115,13 @@ def is_video(path) -> bool:
     return Path(path).suffix.lower() in VIDEO_EXTENSIONS
 
 
+#: files beside photos that describe them (landmark sidecars): never listed as photos
+SIDECAR_EXTENSIONS = (".pts",)
+
+
 def _hidden(path: Path) -> bool:
-    return path.name.startswith(".")
+    """Hidden files and sidecars are not photos; any other file is, and decode judges it."""
+    return path.name.startswith(".") or path.suffix.lower() in SIDECAR_EXTENSIONS
 
 
 def _resolve_path(text, base_dir: Path) -> Path:

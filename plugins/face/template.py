@@ -171,6 +171,8 @@ class FaceIdentity:
     lips: tuple[float, float, float] = (0.62, 0.30, 0.30)
     brows: tuple[float, float, float] = (0.16, 0.11, 0.08)
     iris: tuple[float, float, float] = (0.25, 0.16, 0.10)
+    hair: tuple[float, float, float] = (0.10, 0.07, 0.05)
+    hairline: float = -0.98  # Y of the hairline at the forehead centre; <= OVAL_TOP for no hair
     texture_seed: int = 0  # seed of the skin noise texture
 
     def __post_init__(self):
@@ -193,6 +195,8 @@ class FaceIdentity:
         kw["lips"] = tuple(float(c * tone * rng.uniform(0.9, 1.1)) for c in (0.70, 0.34, 0.33))
         kw["brows"] = tuple(float(c * rng.uniform(0.5, 2.0)) for c in (0.14, 0.10, 0.07))
         kw["iris"] = tuple(float(c) for c in rng.uniform([0.08, 0.06, 0.04], [0.35, 0.30, 0.30]))
+        kw["hair"] = tuple(float(c) for c in np.array([0.12, 0.08, 0.05]) * rng.choice([0.5, 1.0, 2.0, 4.0]))
+        kw["hairline"] = float(rng.uniform(-1.10, -0.90))
         kw["texture_seed"] = int(rng.integers(0, 2**31 - 1))
         return cls(**kw)
 
@@ -257,7 +261,7 @@ def face_height(identity: FaceIdentity, X: np.ndarray, Y: np.ndarray) -> np.ndar
     sx_head = 1.3 * i.fw / FW0
     h = 60.0 * np.sqrt(np.maximum(0.0, 1 - (X / sx_head) ** 2 - ((Y - OVAL_CENTER_Y) / 1.8) ** 2))
     h = h + 0.55 * i.a_n * _gauss(X, Y, 0.0, L.nose_tip_y - 0.25, i.w_n, 0.25)
-    h = h + i.a_n * _gauss(X, Y, 0.0, L.nose_tip_y + 0.05, 1.2 * i.w_n, 0.10)
+    h = h + i.a_n * _gauss(X, Y, 0.0, L.nose_tip_y + 0.015, 1.2 * i.w_n, 0.10)
     mw = i.mouth_w
     for s in (-1.0, 1.0):
         h = h + 0.3 * i.a_n * _gauss(X, Y, s * L.ala[0], L.ala[1], 0.07, 0.06)

@@ -23,9 +23,11 @@ def make(tmp_path, n=10, shard=4):
 def test_shards_are_the_write_unit_and_photos_the_chunk(tmp_path):
     _, coll = make(tmp_path)
     assert coll.shard_ranges() == [(0, 4), (4, 8), (8, 10)]
-    arr = coll.create("aligned/rgb", (6, 5, 3), "uint8", ("photo", "y", "x", "channel"), prov())
-    assert arr.chunks == (1, 6, 5, 3) and arr.shards == (4, 6, 5, 3)
+    arr = coll.create("aligned/rgb", (64, 64, 3), "uint8", ("photo", "y", "x", "channel"), prov())
+    assert arr.chunks == (1, 64, 64, 3) and arr.shards == (4, 64, 64, 3)
     assert arr.metadata.dimension_names == ("photo", "y", "x", "channel")
+    small = coll.create("landmarks/points", (68, 2), "float32", ("photo", "point", "xy"), prov())
+    assert small.chunks == (4, 68, 2) and small.shards is None  # small values: a chunk per shard
     with pytest.raises(ValueError, match="dimension names"):
         coll.create("bad", (2,), "float32", ("photo",), prov())
 
