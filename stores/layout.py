@@ -59,7 +59,7 @@ def open_store(url: str, mode: str = "a") -> zarr.Group:
 
 
 #: per-photo items at least this large (bytes) get a chunk of their own inside shards
-IMAGE_BYTES = 16384
+IMAGE_BYTES = 4096
 
 
 @dataclass
