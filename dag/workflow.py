@@ -7,7 +7,6 @@ resolve against the workflow file's folder.
 
 from __future__ import annotations
 
-import difflib
 from pathlib import Path
 from typing import Any, Literal, Union
 
@@ -56,8 +55,9 @@ class StageConfig(Strict):
 
 
 class Cluster(Strict):
-    scheduler: str = Field("local", description='"local" (a local Dask cluster) or the address of '
-                           'an existing dask.distributed scheduler, e.g. tcp://10.0.0.5:8786')
+    scheduler: str = Field("local", description='"local" (a local Dask cluster), "sync" (no cluster: '
+                           'everything in this process, for debugging) or the address of an existing '
+                           'dask.distributed scheduler, e.g. tcp://10.0.0.5:8786')
     workers: int | None = Field(None, ge=1, description="local workers (default: one per core)")
     threads_per_worker: int = Field(1, ge=1, description="threads per local worker")
     memory_limit: str = Field("auto", description='memory per local worker, e.g. "2GiB"')
@@ -65,8 +65,8 @@ class Cluster(Strict):
     @field_validator("scheduler")
     @classmethod
     def _scheduler(cls, v: str) -> str:
-        if v != "local" and "://" not in v:
-            raise ValueError(f'"{v}" is neither "local" nor a scheduler address such as tcp://host:8786')
+        if v not in ("local", "sync") and "://" not in v:
+            raise ValueError(f'"{v}" is neither "local", "sync" nor a scheduler address such as tcp://host:8786')
         return v
 
 
@@ -117,40 +117,36 @@ def _yaml_path(loc: tuple) -> str:
 
 def _model_at(loc: tuple) -> type[BaseModel] | None:
     """The pydantic model whose field names are valid at ``loc`` (for did-you-mean)."""
-    model: Any = Workflow
-    for part in loc:
-        if model is Workflow and part == "stages":
-            return None
-        field = getattr(model, "model_fields", {}).get(str(part))
+    model: type[BaseModel] | None = Workflow
+    parts = list(loc)
+    while parts and model is not None:
+        part = str(parts.pop(0))
+        if model is Workflow and part == "stages":  # stages.<kind> is a StageConfig
+            if not parts:
+                return None
+            parts.pop(0)
+            model = StageConfig
+            continue
+        field = model.model_fields.get(part)
         if field is None:
-            return model if isinstance(model, type) else None
-        ann = field.annotation
-        candidates = [a for a in getattr(ann, "__args__", (ann,)) if isinstance(a, type) and issubclass(a, BaseModel)]
-        model = candidates[0] if candidates else None
-        if model is None:
             return None
+        args = getattr(field.annotation, "__args__", (field.annotation,))
+        model = next((a for a in args if isinstance(a, type) and issubclass(a, BaseModel)), None)
     return model
 
 
-def _pydantic_errors(exc: ValidationError, prefix: tuple = ()) -> list[tuple[str, str]]:
-    out = []
+def _pydantic_errors(exc: ValidationError) -> list[tuple[str, str]]:
+    """(yaml path, message) per error; one per path (a union reports once per branch)."""
+    out: dict[str, str] = {}
     for err in exc.errors():
-        loc = prefix + tuple(err["loc"])
-        # drop union branch names pydantic inserts, e.g. ('photos', 'str')
-        loc = tuple(p for p in loc if p not in ("str", "list[str]", "VideoRange", "function-after[_scheduler(), str]"))
+        loc = tuple(p for p in err["loc"] if p not in ("str", "list[str]", "VideoRange"))
         msg = err["msg"]
         if err["type"] == "extra_forbidden":
-            model = _model_at(loc[len(prefix):-1]) if not prefix else None
-            names = list(model.model_fields) if model else []
-            msg = f'unknown key "{loc[-1]}".{did_you_mean(loc[-1], [n for n in names if n != "base_dir"])}'
-        out.append((_yaml_path(loc), msg))
-    # a union failing on every branch reports once per branch: keep the first of each path
-    seen, unique = set(), []
-    for path, msg in out:
-        if path not in seen:
-            seen.add(path)
-            unique.append((path, msg))
-    return unique
+            model = _model_at(loc[:-1])
+            names = [n for n in (model.model_fields if model else ()) if n != "base_dir"]
+            msg = f'unknown key "{loc[-1]}".{did_you_mean(loc[-1], names)}'
+        out.setdefault(_yaml_path(loc), msg)
+    return list(out.items())
 
 
 def _check_stages(wf: Workflow, registry: Registry) -> list[tuple[str, str]]:
@@ -279,4 +275,4 @@ def json_schema() -> dict:
     return Workflow.model_json_schema()
 
 
-__all__ = ["Workflow", "WorkflowError", "load_workflow", "parse_workflow", "json_schema", "difflib"]
+

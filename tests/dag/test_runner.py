@@ -1,6 +1,5 @@
 import json
 import os
-import shutil
 import signal
 import socket
 import subprocess
@@ -14,7 +13,7 @@ import pytest
 from persona.dag.cli import main as cli
 from persona.dag.runner import run_workflow
 from persona.dag.workflow import load_workflow
-from persona.stores.layout import OK, PENDING, Collection, open_store, summarize
+from persona.stores.layout import PENDING, Collection, open_store, summarize
 
 from pipeline import assert_same_store, write_photos, write_workflow
 

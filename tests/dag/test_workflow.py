@@ -113,3 +113,12 @@ def test_shipped_workflows_validate():
     assert len(files) >= 2
     for path in files:
         load_workflow(path)
+
+
+def test_misspelt_key_inside_a_stage_gets_a_suggestion():
+    base = {"version": 1, "name": "t", "store": "s", "output": "o", "puppet": {"photos": "p"}}
+    with pytest.raises(WorkflowError) as info:
+        parse_workflow({**base, "stages": {"landmarks": {"bakend": "dlib"}}, "cluster": {"schedular": "x"}})
+    errors = dict(info.value.errors)
+    assert 'Did you mean "backend"' in errors["stages.landmarks.bakend"]
+    assert 'Did you mean "scheduler"' in errors["cluster.schedular"]
