@@ -18,7 +18,6 @@ from pathlib import Path
 
 import numpy as np
 
-from persona.plugins.face.template import CANONICAL_HEIGHT, CANONICAL_WIDTH
 from persona.plugins.hookspecs import hookimpl
 from persona.plugins.manager import get_plugin_manager
 from persona.stores import media
@@ -268,20 +267,17 @@ class Runner:
                 **counts[name], "n_ok": int((state == OK).sum()), "n_rejected": int((state == REJECTED).sum())})
 
     def mean_face(self, coll: Collection) -> np.ndarray | None:
-        """The mean aligned face over accepted photos, weighted by visibility; None if none."""
-        import dask.array as da
+        """The mean aligned face over accepted photos, weighted by visibility; None if none.
 
+        A map over shards (each task sums its shard) and a sum of the parts."""
         ok = coll.state("frontalize") == OK
         if not ok.any():
             return None
-        chunks = coll.shard
-        rgb = da.from_zarr(coll.array("aligned/rgb"), chunks=(chunks, CANONICAL_HEIGHT, CANONICAL_WIDTH, 3))
-        mask = da.from_zarr(coll.array("aligned/mask"), chunks=(chunks, CANONICAL_HEIGHT, CANONICAL_WIDTH))
-        weight = mask * da.from_array(ok, chunks=chunks)[:, None, None]
-        total = (rgb.astype(np.float32) * weight[..., None]).sum(axis=0)
-        count = weight.sum(axis=0)
-        total, count = self.executor.compute(total, count)
-        mean = np.where(count[..., None] > 0, total / np.maximum(count, 1)[..., None], 0).astype(np.float32)
+        tasks = [(self.wf.store, coll.path, s, e) for s, e in coll.shard_ranges() if ok[s:e].any()]
+        parts = list(self.executor.run(st.aligned_sum, tasks))
+        total = sum(p["sum"] for p in parts)
+        count = sum(p["count"] for p in parts)
+        mean = (total / np.maximum(count, 1)[..., None]).astype(np.float32)
         prov = Provenance.make(stage="mean", backend="-", backend_version="1", params={},
                                inputs={"frontalize": coll.provenance("status/frontalize/state").key},
                                persona_version=self.version)
@@ -289,20 +285,26 @@ class Runner:
         coll.create_single("aligned/coverage", (count / ok.sum()).astype(np.float32), ("y", "x"), prov)
         return mean
 
-    def pictures(self, coll: Collection, mean: np.ndarray | None) -> dict:
+    def pictures(self, coll: Collection, mean: np.ndarray | None, n_faces: int = 60) -> dict:
+        """The mean aligned face (x2) and a contact sheet of the first accepted aligned faces."""
         out = Path(self.wf.output)
         slug = coll.path.replace("/", "_")
         written = {}
         if mean is not None:
             big = np.kron(np.clip(mean, 0, 255).round().astype(np.uint8), np.ones((2, 2, 1), np.uint8))
-            media.write_png(out / f"{slug}_mean_face.png", big)
-            written["mean_face"] = str(out / f"{slug}_mean_face.png")
-        ok = np.flatnonzero(coll.state("frontalize") == OK)[:60]
-        if len(ok):
-            faces = coll.array("aligned/rgb").get_orthogonal_selection((ok,))
-            media.write_png(out / f"{slug}_contact_sheet.png", media.contact_sheet(list(faces), columns=10))
-            written["contact_sheet"] = str(out / f"{slug}_contact_sheet.png")
-        return written
+            written["mean_face"] = out / f"{slug}_mean_face.png"
+            media.write_png(written["mean_face"], big)
+        ok = coll.state("frontalize") == OK
+        faces = []
+        for start, stop in coll.shard_ranges():  # whole shards: slices read fast, selections do not
+            if len(faces) >= n_faces:
+                break
+            if ok[start:stop].any():
+                faces += list(coll.array("aligned/rgb")[start:stop][ok[start:stop]])
+        if faces:
+            written["contact_sheet"] = out / f"{slug}_contact_sheet.png"
+            media.write_png(written["contact_sheet"], media.contact_sheet(faces[:n_faces], columns=10))
+        return {k: str(v) for k, v in written.items()}
 
     def run(self) -> dict:
         report = {"workflow": self.wf.name, "store": self.wf.store, "collections": {}}

@@ -202,6 +202,17 @@ def _summary(state: np.ndarray, seconds: float, skipped: bool = False) -> dict:
             "seconds": seconds, "skipped": skipped}
 
 
+def aligned_sum(url: str, path: str, start: int, stop: int) -> dict:
+    """Sum of the accepted aligned faces of photos [start, stop), weighted by visibility,
+    and the per-pixel count: one shard's part of the mean face."""
+    coll = Collection(open_store(url, mode="r"), path)
+    ok = coll.array("status/frontalize/state")[start:stop] == OK
+    mask = coll.array("aligned/mask")[start:stop] & ok[:, None, None]
+    rgb = coll.array("aligned/rgb")[start:stop]
+    return {"sum": np.einsum("nyxc,nyx->yxc", rgb, mask, dtype=np.float64),
+            "count": mask.sum(axis=0, dtype=np.int64)}
+
+
 def ingest_video(url: str, path: str, params: dict) -> dict:
     """Decode the frames of a video collection in one sequential pass, shard by shard.
 
