@@ -26,6 +26,7 @@ from persona.stores.layout import OK, PENDING, REJECTED, Collection, open_store
 from persona.stores.provenance import Provenance, cache_key
 
 from . import stages as st
+from .drive import run_drive, write_videos
 from .workflow import IngestParams, VideoRange, Workflow
 
 log = logging.getLogger(__name__)
@@ -64,7 +65,7 @@ class Executor:
         if scheduler == "local":
             self._cluster = LocalCluster(
                 n_workers=workers or os.cpu_count() or 1, threads_per_worker=threads_per_worker,
-                processes=True, memory_limit=memory_limit, dashboard_address=None,
+                processes=True, memory_limit=memory_limit, dashboard_address=":0",
                 silence_logs=logging.ERROR)
             self.client = Client(self._cluster)
         else:
@@ -212,17 +213,21 @@ class Runner:
         upstream = coll.provenance("status/ingest/state")
         for name in PHOTO_STAGE_ORDER:
             stage = st.PHOTO_STAGES[name]
-            backend, params = self.wf.stage(stage.kind)
-            cls = st.default_registry().get(stage.kind, backend)
-            prov = Provenance.make(stage=name, backend=backend, backend_version=cls.version,
-                                   params=params, inputs={stage.upstream: upstream.key},
-                                   persona_version=self.version)
-            current = coll.provenance(f"status/{name}/state")
-            if current is None or current.key != prov.key:
-                self._create_outputs(coll, stage, prov)
-            steps.append((name, backend, params))
-            upstream = prov
+            upstream = self.prepare_stage(coll, stage, {stage.upstream: upstream.key})
+            steps.append((name, upstream.backend, upstream.params))
         return steps
+
+    def prepare_stage(self, coll: Collection, stage: st.PhotoStage, inputs: dict[str, str]) -> Provenance:
+        """The provenance of a stage's next run; its outputs are (re)created when the key
+        changed, so that the stage starts over rather than mixing old and new results."""
+        backend, params = self.wf.stage(stage.kind)
+        cls = st.default_registry().get(stage.kind, backend)
+        prov = Provenance.make(stage=stage.name, backend=backend, backend_version=cls.version,
+                               params=params, inputs=inputs, persona_version=self.version)
+        current = coll.provenance(f"status/{stage.name}/state")
+        if current is None or current.key != prov.key:
+            self._create_outputs(coll, stage, prov)
+        return prov
 
     def run_photo_stages(self, coll: Collection, video: bool) -> None:
         """Every per-photo stage over every shard not finished yet, with hooks and progress bars."""
@@ -230,6 +235,10 @@ class Runner:
         if video:  # frames come from one sequential decoding pass, then the chain without ingest
             self._run(coll, steps[:1], [(self.wf.store, coll.path, steps[0][2])], st.ingest_video)
             steps = steps[1:]
+        self.run_stage_tasks(coll, steps)
+
+    def run_stage_tasks(self, coll: Collection, steps: list[tuple[str, str, dict]]) -> None:
+        """The chain of ``steps`` on every shard where one of them is not done yet."""
         states = [coll.state(name) for name, _, _ in steps]
         pending = [(s, e) for s, e in coll.shard_ranges() if any((state[s:e] == PENDING).any() for state in states)]
         tasks = [(self.wf.store, coll.path, s, e, steps) for s, e in pending]
@@ -283,6 +292,8 @@ class Runner:
                                persona_version=self.version)
         coll.create_single("aligned/mean", mean, ("y", "x", "channel"), prov)
         coll.create_single("aligned/coverage", (count / ok.sum()).astype(np.float32), ("y", "x"), prov)
+        fiducials = coll.array("aligned/fiducials")[:][ok].mean(axis=0)
+        coll.create_single("aligned/mean_fiducials", fiducials, ("point", "xy"), prov)
         return mean
 
     def pictures(self, coll: Collection, mean: np.ndarray | None, n_faces: int = 60) -> dict:
@@ -318,6 +329,9 @@ class Runner:
             report["collections"][path] = {
                 "n_photos": coll.n, "accepted": int((coll.state("frontalize") == OK).sum()),
                 "pictures": self.pictures(coll, mean)}
+        if self.wf.driver is not None and self.wf.driver.video is not None:
+            drive = run_drive(self)
+            report["videos"] = write_videos(drive, Collection(self.root, "driver/frames"), Path(self.wf.output))
         report["stages"] = self.timer.records
         _write_json(Path(self.wf.output) / "metrics.json", report)
         return report

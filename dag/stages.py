@@ -24,7 +24,7 @@ import numpy as np
 
 from persona.plugins.base import Backend, Rejected
 from persona.plugins.face.template import CANONICAL_HEIGHT, CANONICAL_WIDTH, IDX49
-from persona.plugins.kinds import POSE_FIELDS, Pose
+from persona.plugins.kinds import POSE_FIELDS, Pose, Puppet
 from persona.plugins.manager import default_registry
 from persona.stores import media
 from persona.stores.layout import OK, PENDING, REJECTED, UPSTREAM, Collection, open_store
@@ -47,8 +47,11 @@ class PhotoStage:
     """A stage that processes each photo on its own.
 
     ``compute(backend, params, inputs, context)`` gets one photo's inputs by array name
-    and returns its outputs by array name, or raises :class:`Rejected`.
-    ``kind`` is the backend kind, or None for a stage without backends (ingest).
+    and returns its outputs by array name, or raises :class:`Rejected`. Input names are
+    relative to the collection, or absolute ("/driver/frames/photos/rgb") for another
+    collection's arrays with the same photo axis. ``context(root)`` loads what every photo
+    shares (the collection's canvas is always in it). ``kind`` is the backend kind, or None
+    for a stage without backends (ingest).
     """
 
     name: str
@@ -57,6 +60,7 @@ class PhotoStage:
     inputs: tuple[str, ...]
     outputs: tuple[Output, ...]
     compute: Callable[..., dict] = field(repr=False)
+    context: Callable[..., dict] | None = field(default=None, repr=False)
 
 
 def _photo(inputs: dict) -> np.ndarray:
@@ -64,7 +68,8 @@ def _photo(inputs: dict) -> np.ndarray:
     return inputs["photos/rgb"][:h, :w]
 
 
-def _ingest(backend, params, inputs, canvas):
+def _ingest(backend, params, inputs, context):
+    canvas = context["canvas"]
     source = str(inputs["photos/source"])
     image = media.decode_image(source, **params)
     if image.shape[0] > canvas[0] or image.shape[1] > canvas[1]:
@@ -84,18 +89,18 @@ def _original_width(source, params) -> int:
     return media.probe_image(source, max_pixels=params["max_pixels"], min_side=params["min_side"]).width
 
 
-def _landmarks(backend, params, inputs, canvas):
+def _landmarks(backend, params, inputs, context):
     found = backend.detect(_photo(inputs), inputs["photos/hint"])
     return {"landmarks/points": found.points, "landmarks/fiducials": found.points[list(IDX49)],
             "landmarks/box": found.box, "landmarks/n_faces": found.n_faces}
 
 
-def _pose(backend, params, inputs, canvas):
+def _pose(backend, params, inputs, context):
     pose = backend.estimate(inputs["landmarks/points"].astype(np.float64), tuple(inputs["photos/size"]))
     return {"pose": pose.as_vector()}
 
 
-def _frontalize(backend, params, inputs, canvas):
+def _frontalize(backend, params, inputs, context):
     front = backend.frontalize(_photo(inputs), inputs["landmarks/points"].astype(np.float64),
                                Pose.from_vector(inputs["pose"]))
     return {"aligned/rgb": front.rgb, "aligned/mask": front.mask,
@@ -130,8 +135,34 @@ PHOTO_STAGES = {s.name: s for s in (
 )}
 
 
+def _puppet(root) -> dict:
+    group = root["puppet/aligned"]
+    return {"puppet": Puppet(appearance=group["mean"][...], coverage=group["coverage"][...],
+                             fiducials=group["mean_fiducials"][...].astype(np.float64))}
+
+
+def _render(backend, params, inputs, context):
+    h, w = inputs["/driver/frames/photos/size"]
+    out = backend.render(context["puppet"], inputs["target"].astype(np.float64),
+                         Pose.from_vector(inputs["pose"]), inputs["/driver/frames/photos/rgb"][:h, :w])
+    return {"render/rgb": out.rgb, "render/mask": np.round(out.mask * 255).astype(np.uint8)}
+
+
+#: the puppet performing the driver's video: one "photo" per driver frame, in the ``drive`` collection
+RENDER = PhotoStage(
+    "render", "render", "retarget",
+    ("target", "pose", "/driver/frames/photos/rgb", "/driver/frames/photos/size"), (
+        Output("render/rgb", (), "uint8", ("frame", "y", "x", "channel")),  # tail = the canvas
+        Output("render/mask", (), "uint8", ("frame", "y", "x")),
+    ), _render, _puppet)
+PHOTO_STAGES["render"] = RENDER
+
+
 def output_tail(output: Output, canvas) -> tuple[int, ...]:
-    return (*canvas, 3) if output.name == "photos/rgb" else output.tail
+    """The per-photo shape of an output; frame-sized outputs take the collection's canvas."""
+    if output.name in ("photos/rgb", "render/rgb"):
+        return (*canvas, 3)
+    return tuple(canvas) if output.name == "render/mask" else output.tail
 
 
 def _empty(output: Output, n: int, canvas) -> np.ndarray:
@@ -151,14 +182,15 @@ def run_chain(url: str, path: str, start: int, stop: int, steps: list[tuple[str,
 
     Writes each stage's outputs and then its status. Returns per-stage summaries.
     """
-    coll = Collection(open_store(url), path)
+    root = open_store(url)
+    coll = Collection(root, path)
     canvas = tuple(coll.attrs["canvas"])
     n = stop - start
     shard: dict[str, np.ndarray] = {}  # this shard's arrays, computed here or read back
 
     def get(name: str) -> np.ndarray:
         if name not in shard:
-            shard[name] = coll.array(name)[start:stop]
+            shard[name] = root[name[1:]][start:stop] if name.startswith("/") else coll.array(name)[start:stop]
         return shard[name]
 
     summaries = {}
@@ -170,6 +202,7 @@ def run_chain(url: str, path: str, start: int, stop: int, steps: list[tuple[str,
             summaries[stage_name] = _summary(get(status), 0.0, skipped=True)
             continue
         backend = _backend(stage, backend_name, params)
+        context = {"canvas": canvas, **(stage.context(root) if stage.context else {})}
         ready = np.ones(n, bool) if stage.upstream is None else get(f"status/{stage.upstream}/state") == OK
         inputs = {name: get(name) for name in stage.inputs}
         outputs = {o.name: _empty(o, n, canvas) for o in stage.outputs}
@@ -177,7 +210,7 @@ def run_chain(url: str, path: str, start: int, stop: int, steps: list[tuple[str,
         reasons = [""] * n
         for j in np.flatnonzero(ready):
             try:
-                result = stage.compute(backend, params, {k: v[j] for k, v in inputs.items()}, canvas)
+                result = stage.compute(backend, params, {k: v[j] for k, v in inputs.items()}, context)
             except (Rejected, media.PhotoRejected) as exc:
                 state[j], reasons[j] = REJECTED, exc.reason
                 continue

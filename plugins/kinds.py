@@ -97,3 +97,36 @@ class FrontalizeBackend(Backend):
 
     def frontalize(self, image: np.ndarray, landmarks: np.ndarray, pose: Pose) -> Frontal:
         raise NotImplementedError
+
+
+@dataclass(frozen=True)
+class Puppet:
+    """What a renderer knows of the puppet (actor B), in the canonical frame.
+
+    appearance : ndarray, shape (H, W, 3), float32 — B's face (e.g. the average), 0-255
+    coverage : ndarray, shape (H, W), float32 — fraction of photos that saw each pixel
+    fiducials : ndarray, shape (49, 2) — B's neutral (mean) fiducials
+    """
+
+    appearance: np.ndarray
+    coverage: np.ndarray
+    fiducials: np.ndarray
+
+
+@dataclass(frozen=True)
+class Rendered:
+    """One output frame: rgb (h, w, 3) uint8, and mask (h, w) float32 in [0, 1] where the face is."""
+
+    rgb: np.ndarray
+    mask: np.ndarray
+
+
+class RenderBackend(Backend):
+    """Kind ``render``: the puppet performing one driver frame."""
+
+    kind = "render"
+
+    def render(self, puppet: Puppet, target: np.ndarray, pose: Pose, frame: np.ndarray) -> Rendered:
+        """target: (49, 2) canonical fiducials to show; pose: the driver's head pose in this
+        frame; frame: the driver's frame (h, w, 3) uint8 (its size, and a background)."""
+        raise NotImplementedError

@@ -29,6 +29,8 @@ DEFAULT_PLUGINS = (
     "persona.plugins.builtin.landmarks",
     "persona.plugins.builtin.pose",
     "persona.plugins.builtin.frontalize",
+    "persona.plugins.builtin.render",
+    "persona.plugins.builtin.evaluate",
 )
 
 ENTRY_POINT_GROUP = "persona"

@@ -48,7 +48,7 @@ def frontalizing_map(depth: np.ndarray, pose: Pose) -> tuple[np.ndarray, np.ndar
 
 
 @lru_cache(maxsize=1)
-def _template_scene():
+def template_scene():
     """The generic template as a ray-casting scene in canonical coordinates (built once per process)."""
     template = generic_template()
     h, w = template.depth.shape
@@ -78,7 +78,7 @@ def visible(fmap: np.ndarray, mask: np.ndarray, pose: Pose, image_size, toleranc
     points = np.stack([cols, rows, template.depth[rows, cols]], axis=1).astype(np.float64)
     offsets = points - centre
     distance = np.linalg.norm(offsets, axis=1)
-    hits = cast(_template_scene(), np.broadcast_to(centre, points.shape), offsets / distance[:, None])
+    hits = cast(template_scene(), np.broadcast_to(centre, points.shape), offsets / distance[:, None])
     seen = np.zeros(mask.shape, np.uint8)
     seen[rows, cols] = hits["t_hit"] >= distance - tolerance
     if step > 1:  # each cast ray stands for the step x step block it starts

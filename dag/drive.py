@@ -1,0 +1,78 @@
+"""Driving the puppet: the driver's video frames -> the puppet's frames -> videos.
+
+``retarget`` (in this process): the driver's per-frame pose and pose-corrected fiducials,
+frames without a face bridged by interpolation, and the target fiducials for the puppet
+(its neutral plus the driver's offsets, scaled to its proportions). ``render`` (Dask
+tasks over shards of frames): the chosen render backend draws each frame. Both live in
+the ``drive`` collection, whose photo axis is the driver's frame axis.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from persona.plugins.face.tracks import bridge
+from persona.plugins.face.warp import retarget
+from persona.stores import media
+from persona.stores.layout import OK, Collection
+from persona.stores.provenance import Provenance
+
+from . import stages as st
+
+
+def run_drive(runner) -> Collection:
+    """Retarget and render every driver frame; returns the ``drive`` collection."""
+    frames = Collection(runner.root, "driver/frames")
+    puppet = Collection(runner.root, "puppet")
+    found = frames.state("frontalize") == OK
+    inputs = {"frames": frames.provenance("status/frontalize/state").key,
+              "puppet": puppet.provenance("aligned/mean").key}
+    prov = Provenance.make(stage="retarget", backend="-", backend_version="1", params={},
+                           inputs=inputs, persona_version=runner.version)
+    drive = Collection(runner.root, "drive")
+    current = drive.provenance("status/retarget/state") if drive.exists() else None
+    if current is None or current.key != prov.key:
+        _retarget(runner, drive, frames, puppet, found, prov)
+    render = runner.prepare_stage(drive, st.RENDER, {"retarget": prov.key})
+    steps = [("render", render.backend, render.params)]
+    runner.run_stage_tasks(drive, steps)
+    return drive
+
+
+def _retarget(runner, drive, frames, puppet, found, prov) -> None:
+    n = frames.n
+    group = runner.root.require_group("drive")
+    group.attrs.update({"n_photos": n, "photos_per_shard": runner.wf.photos_per_shard,
+                        "canvas": frames.attrs["canvas"], "fps": frames.attrs["fps"],
+                        "stages": ["retarget", "render"]})
+    fiducials = frames.array("aligned/fiducials")[:].astype(np.float64)
+    pose = bridge(frames.array("pose")[:], found)
+    driver_fiducials = bridge(fiducials, found)
+    target = retarget(driver_fiducials, fiducials[found].mean(axis=0),
+                      puppet.array("aligned/mean_fiducials")[...].astype(np.float64))
+    for name, value, tail, dims in (
+            ("target", target, (49, 2), ("frame", "point", "xy")),
+            ("pose", pose, (10,), ("frame", "field")),
+            ("bridged", ~found, (), ("frame",))):
+        drive.create(name, tail, value.dtype, dims, prov)[:] = value
+    drive.create("photos/ids", (), str, ("frame",), prov)[:] = frames.array("photos/ids")[:]
+    drive.create_status("retarget", prov)
+    drive.write_status("retarget", 0, np.full(n, OK, np.int8), [""] * n)
+
+
+def write_videos(drive: Collection, frames: Collection, output: Path) -> dict[str, str]:
+    """puppet.mp4 (the puppet alone) and side_by_side.mp4 (driver | puppet), at the video's fps."""
+    fps = float(drive.attrs["fps"])
+
+    def shards(*arrays):
+        for start, stop in drive.shard_ranges():
+            parts = [a[start:stop] for a in arrays]
+            yield from (np.concatenate(row, axis=1) for row in zip(*parts))
+
+    rendered, original = drive.array("render/rgb"), frames.array("photos/rgb")
+    media.write_video_mp4(output / "puppet.mp4", shards(rendered), fps)
+    media.write_video_mp4(output / "side_by_side.mp4", shards(original, rendered), fps)
+    return {"puppet": str(output / "puppet.mp4"), "side_by_side": str(output / "side_by_side.mp4")}
+

@@ -1,0 +1,475 @@
+"""Evaluation figures of a puppet video (paper §6), with dlib only.
+
+Two parts:
+
+- the ``identity`` backend kind (:class:`IdentityBackend`) and its dlib implementation
+  :class:`DlibIdentity`: dlib's 128-D ResNet face descriptor (shipped in
+  ``face_recognition_models``, nothing downloaded), for "does the puppet look like B
+  and not like A";
+- pure metric functions on landmark tracks, frames and descriptors: expression
+  transfer (correlation of mouth / eye / brow signals between driver and output),
+  stability (landmark jitter, colour flicker), identity distances and masked
+  PSNR / SSIM.
+
+Conventions: landmark tracks are (n, 68, 2) float arrays of iBUG points (x, y); a frame
+without a face has NaN landmarks (or a NaN descriptor row), and every per-frame signal
+is NaN there. Scalar figures are plain Python ``float`` / ``int`` (JSON-serialisable;
+NaN when undefined, e.g. too few frames), per-frame series are float64 ndarrays.
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+
+import numpy as np
+from pydantic import Field
+
+from ..base import Backend, Params, Rejected
+from ..hookspecs import hookimpl
+
+# iBUG 68 indices
+RIGHT_EYE = slice(36, 42)  # subject's right eye (image left)
+LEFT_EYE = slice(42, 48)
+BROWS = slice(17, 27)
+INNER_LIP_PAIRS = ((62, 66), (61, 67), (63, 65))
+EYE_LID_PAIRS = (((37, 41), (38, 40)), ((43, 47), (44, 46)))
+
+
+# --------------------------------------------------------------------------- identity
+
+
+class IdentityBackend(Backend):
+    """Kind ``identity``: a face descriptor whose Euclidean distances compare identities."""
+
+    kind = "identity"
+
+    def describe(self, image: np.ndarray, landmarks: np.ndarray) -> np.ndarray:
+        """image: (h, w, 3) uint8 RGB; landmarks: (68, 2) (x, y) -> descriptor (d,) float64."""
+        raise NotImplementedError
+
+
+@lru_cache(maxsize=1)
+def dlib_face_recognition_model():
+    """dlib's ResNet face recognition model (``face_recognition_models``), loaded once per process."""
+    import dlib
+    import face_recognition_models
+
+    return dlib.face_recognition_model_v1(face_recognition_models.face_recognition_model_location())
+
+
+def full_object_detection(landmarks: np.ndarray):
+    """A ``dlib.full_object_detection`` of the 68 landmarks in their bounding box."""
+    import dlib
+
+    points = np.asarray(landmarks, dtype=np.float64)
+    left, top = np.floor(points.min(axis=0)).astype(int)
+    right, bottom = np.ceil(points.max(axis=0)).astype(int)
+    rect = dlib.rectangle(int(left), int(top), int(right), int(bottom))
+    return dlib.full_object_detection(rect, [dlib.point(int(round(x)), int(round(y))) for x, y in points])
+
+
+class DlibIdentity(IdentityBackend):
+    name = "dlib_resnet"
+    description = ("dlib ResNet 128-D face descriptor (face_recognition_models); same person "
+                   "below ~0.6 Euclidean distance")
+    default = True
+
+    class Params(Params):
+        jitters: int = Field(0, ge=0, le=100, description="dlib num_jitters: average the descriptor "
+                             "over this many randomly jittered copies of the aligned face (0: the "
+                             "face once; 10-100 is slightly more accurate and that many times slower)")
+        padding: float = Field(0.25, ge=0, le=1, description="padding of dlib's aligned 150x150 "
+                               "face chip around the landmarks (dlib's default 0.25, as trained)")
+
+    def describe(self, image, landmarks):
+        image = np.asarray(image)
+        if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
+            raise ValueError(f"identity: want an (h, w, 3) uint8 RGB image, got {image.shape} {image.dtype}")
+        landmarks = np.asarray(landmarks, dtype=np.float64)
+        if landmarks.shape != (68, 2):
+            raise ValueError(f"identity: want (68, 2) landmarks, got {landmarks.shape}")
+        if not np.all(np.isfinite(landmarks)):
+            raise Rejected("identity: no landmarks (no face) in this frame")
+        shape = full_object_detection(landmarks)
+        descriptor = dlib_face_recognition_model().compute_face_descriptor(
+            np.ascontiguousarray(image), shape, self.params.jitters, self.params.padding)
+        return np.array(descriptor, dtype=np.float64)
+
+
+@hookimpl
+def persona_register_backends(register):
+    register(DlibIdentity)
+
+
+# --------------------------------------------------------------------------- helpers
+
+
+def _track(landmarks) -> np.ndarray:
+    """(n, 68, 2) float64 (a single (68, 2) face becomes n = 1)."""
+    x = np.asarray(landmarks, dtype=np.float64)
+    if x.ndim == 2:
+        x = x[None]
+    if x.ndim != 3 or x.shape[1:] != (68, 2):
+        raise ValueError(f"want landmarks of shape (n, 68, 2), got {x.shape}")
+    return x
+
+
+def _ratio(num, den) -> float:
+    """num / den as a float, NaN when den is 0 or either is not finite."""
+    num, den = float(num), float(den)
+    if not (np.isfinite(num) and np.isfinite(den)) or den == 0:
+        return float("nan")
+    return num / den
+
+
+def _divide(num: np.ndarray, den: np.ndarray) -> np.ndarray:
+    """Elementwise num / den, NaN where den is not a positive finite number (no warnings)."""
+    num, den = np.broadcast_arrays(np.asarray(num, float), np.asarray(den, float))
+    out = np.full(num.shape, np.nan)
+    ok = np.isfinite(den) & (den > 0)
+    np.divide(num, den, out=out, where=ok)
+    return out
+
+
+def _finite_mean(values) -> float:
+    """Mean of the finite values, NaN when there are none (no empty-slice warning)."""
+    v = np.asarray(values, dtype=np.float64).ravel()
+    v = v[np.isfinite(v)]
+    return float(v.mean()) if v.size else float("nan")
+
+
+def _dist(landmarks: np.ndarray, i: int, j: int) -> np.ndarray:
+    return np.linalg.norm(landmarks[:, i] - landmarks[:, j], axis=-1)
+
+
+def eye_centres(landmarks) -> tuple[np.ndarray, np.ndarray]:
+    """Centres of the two eyes, each (n, 2): the means of points 36-41 and 42-47."""
+    x = _track(landmarks)
+    return x[:, RIGHT_EYE].mean(axis=1), x[:, LEFT_EYE].mean(axis=1)
+
+
+# --------------------------------------------------------------------------- expression
+
+
+def interocular(landmarks) -> np.ndarray:
+    """Inter-ocular distance (IOD) of each frame.
+
+    Parameters
+    ----------
+    landmarks : ndarray, shape (n, 68, 2)
+        iBUG landmarks (x, y) per frame; NaN for a frame without a face.
+
+    Returns
+    -------
+    ndarray, shape (n,), float64
+        Distance between the eye centres (means of points 36-41 and 42-47), NaN
+        where the landmarks are NaN.
+    """
+    right, left = eye_centres(landmarks)
+    return np.linalg.norm(left - right, axis=-1)
+
+
+def expression_signals(landmarks) -> dict[str, np.ndarray]:
+    """Per-frame expression signals, normalised by the inter-ocular distance (IOD).
+
+    Parameters
+    ----------
+    landmarks : ndarray, shape (n, 68, 2)
+        iBUG landmarks (x, y) per frame; NaN for a frame without a face.
+
+    Returns
+    -------
+    dict of str to ndarray, each shape (n,), float64
+        ``mouth_open``: inner-lip gap, the mean of ``|62-66|``, ``|61-67|``, ``|63-65|``,
+        over IOD;
+        ``eye_open``: mean over both eyes of ``(|37-41| + |38-40|) / 2`` (and
+        ``43-47``, ``44-46``), over IOD;
+        ``brow_height``: mean distance of the brow points 17-26 to the line through the
+        two eye centres, over IOD.
+        NaN where the landmarks are NaN (or the IOD is 0).
+    """
+    x = _track(landmarks)
+    right, left = eye_centres(x)
+    axis = left - right  # (n, 2)
+    iod = np.linalg.norm(axis, axis=-1)
+    mouth = np.mean([_dist(x, i, j) for i, j in INNER_LIP_PAIRS], axis=0)
+    eye = np.mean([(_dist(x, *a) + _dist(x, *b)) / 2 for a, b in EYE_LID_PAIRS], axis=0)
+    rel = x[:, BROWS] - right[:, None]  # (n, 10, 2)
+    cross = np.abs(axis[:, None, 0] * rel[..., 1] - axis[:, None, 1] * rel[..., 0])  # = dist * IOD
+    brow = _divide(cross.mean(axis=1), iod)
+    return {
+        "mouth_open": _divide(mouth, iod),
+        "eye_open": _divide(eye, iod),
+        "brow_height": _divide(brow, iod),
+    }
+
+
+def pearson(a, b) -> float:
+    """Pearson correlation of two per-frame signals.
+
+    Parameters
+    ----------
+    a, b : array_like, shape (n,)
+        Signals; NaN (or inf) marks a frame to leave out.
+
+    Returns
+    -------
+    float
+        The correlation over the frames where both are finite; NaN when there are fewer
+        than 3 such frames or either signal has zero variance there.
+    """
+    a = np.asarray(a, dtype=np.float64).ravel()
+    b = np.asarray(b, dtype=np.float64).ravel()
+    if a.shape != b.shape:
+        raise ValueError(f"pearson: signals of different lengths {a.shape} and {b.shape}")
+    ok = np.isfinite(a) & np.isfinite(b)
+    if ok.sum() < 3:
+        return float("nan")
+    da = a[ok] - a[ok].mean()
+    db = b[ok] - b[ok].mean()
+    saa, sbb = float(da @ da), float(db @ db)
+    if saa == 0 or sbb == 0:
+        return float("nan")
+    # sqrt(s * s) == s exactly in IEEE arithmetic, so a signal against itself gives exactly 1
+    r = float(da @ db) / np.sqrt(saa * sbb)
+    return float(np.clip(r, -1.0, 1.0))
+
+
+# --------------------------------------------------------------------------- stability
+
+
+def jitter(landmarks) -> float:
+    """Landmark jitter: the mean acceleration of the points, relative to the face size.
+
+    Parameters
+    ----------
+    landmarks : ndarray, shape (n, 68, 2)
+        iBUG landmarks (x, y) per frame; NaN for a frame without a face.
+
+    Returns
+    -------
+    float
+        Mean over frames t = 1 .. n-2 and the 68 points of
+        ``|x[t+1] - 2 x[t] + x[t-1]|`` (Euclidean) divided by the IOD of frame t.
+        Triples with a NaN frame are skipped; NaN when no triple is left. Constant and
+        uniformly moving tracks have jitter 0.
+    """
+    x = _track(landmarks)
+    if len(x) < 3:
+        return float("nan")
+    accel = np.linalg.norm(x[2:] - 2 * x[1:-1] + x[:-2], axis=-1)  # (n-2, 68)
+    return _finite_mean(_divide(accel, interocular(x)[1:-1, None]))
+
+
+def masked_mean_colours(frames, masks) -> np.ndarray:
+    """Mean RGB of the masked pixels of each frame.
+
+    Parameters
+    ----------
+    frames : ndarray, shape (n, h, w, 3)
+    masks : ndarray, shape (n, h, w), bool
+
+    Returns
+    -------
+    ndarray, shape (n, 3), float64
+        In the frames' units (0-255 for uint8); NaN for a frame with an empty mask.
+    """
+    frames = np.asarray(frames)
+    masks = np.asarray(masks, dtype=bool)
+    if frames.ndim != 4 or masks.shape != frames.shape[:3]:
+        raise ValueError(f"want frames (n, h, w, c) and masks (n, h, w), "
+                         f"got {frames.shape} and {masks.shape}")
+    out = np.full((len(frames), frames.shape[3]), np.nan)
+    for t, (frame, mask) in enumerate(zip(frames, masks)):
+        if mask.any():
+            out[t] = frame[mask].mean(axis=0, dtype=np.float64)
+    return out
+
+
+def colour_change(frames, masks) -> float:
+    """Colour flicker of the face region between consecutive frames.
+
+    Parameters
+    ----------
+    frames : ndarray, shape (n, h, w, 3)
+        RGB frames (uint8, 0-255).
+    masks : ndarray, shape (n, h, w), bool
+        The face region of each frame (empty: no face).
+
+    Returns
+    -------
+    float
+        Mean over t of the Euclidean RGB distance between the mean colours of the masked
+        region at t+1 and at t, in 0-255 units; pairs with an empty mask are skipped,
+        NaN when no pair is left.
+    """
+    colours = masked_mean_colours(frames, masks)
+    if len(colours) < 2:
+        return float("nan")
+    return _finite_mean(np.linalg.norm(np.diff(colours, axis=0), axis=-1))
+
+
+# --------------------------------------------------------------------------- identity figures
+
+
+def centroid(descriptors) -> np.ndarray:
+    """Mean of the finite rows of descriptors (n, d) -> (d,); all NaN when there are none."""
+    d = np.asarray(descriptors, dtype=np.float64)
+    ok = np.all(np.isfinite(d), axis=1)
+    return d[ok].mean(axis=0) if ok.any() else np.full(d.shape[1], np.nan)
+
+
+def identity_figures(descriptors, centroid_b, centroid_a, threshold: float = 0.6) -> dict:
+    """Does each output frame look like B (the puppet) and not like A (the driver)?
+
+    Parameters
+    ----------
+    descriptors : ndarray, shape (n, d)
+        Face descriptor of each output frame; a NaN row for a frame without a face.
+    centroid_b, centroid_a : ndarray, shape (d,)
+        Reference descriptors of B and A (e.g. the :func:`centroid` of their photos).
+    threshold : float
+        Same-person distance threshold (0.6 for dlib's descriptor).
+
+    Returns
+    -------
+    dict
+        ``distance_to_b``, ``distance_to_a``: ndarray (n,) float64, NaN without a face;
+        ``mean_distance_to_b``, ``mean_distance_to_a``: float over the frames with a face;
+        ``fraction_b_not_a``: float, the fraction of all n frames with
+        ``d_b < threshold`` and ``d_a > threshold`` (a frame without a face counts as a
+        failure; NaN when n = 0);
+        ``frames_without_face``: int.
+    """
+    d = np.asarray(descriptors, dtype=np.float64)
+    if d.ndim != 2:
+        raise ValueError(f"want descriptors of shape (n, d), got {d.shape}")
+    b = np.asarray(centroid_b, dtype=np.float64)
+    a = np.asarray(centroid_a, dtype=np.float64)
+    face = np.all(np.isfinite(d), axis=1)
+    d_b = np.linalg.norm(d - b, axis=1)  # NaN rows stay NaN
+    d_a = np.linalg.norm(d - a, axis=1)
+    d_b[~face] = np.nan
+    d_a[~face] = np.nan
+    n = len(d)
+    with np.errstate(invalid="ignore"):  # NaN comparisons are False: failures
+        success = (d_b < threshold) & (d_a > threshold)
+    return {
+        "distance_to_b": d_b,
+        "distance_to_a": d_a,
+        "mean_distance_to_b": _finite_mean(d_b),
+        "mean_distance_to_a": _finite_mean(d_a),
+        "fraction_b_not_a": float(success.sum() / n) if n else float("nan"),
+        "frames_without_face": int(n - face.sum()),
+    }
+
+
+# --------------------------------------------------------------------------- image fidelity
+
+
+def _mask_like(a: np.ndarray, b: np.ndarray, mask) -> np.ndarray:
+    if a.shape != b.shape:
+        raise ValueError(f"images of different shapes {a.shape} and {b.shape}")
+    mask = np.asarray(mask, dtype=bool)
+    if mask.shape != a.shape[:2]:
+        raise ValueError(f"mask {mask.shape} does not match the images {a.shape}")
+    return mask
+
+
+def masked_psnr(a, b, mask) -> float:
+    """PSNR of two images over a mask.
+
+    Parameters
+    ----------
+    a, b : ndarray, shape (h, w, 3) or (h, w), uint8
+    mask : ndarray, shape (h, w), bool
+
+    Returns
+    -------
+    float
+        ``10 log10(255^2 / MSE)`` in dB, the MSE over the masked pixels and all channels;
+        inf for identical images, NaN for an empty mask.
+    """
+    a, b = np.asarray(a), np.asarray(b)
+    mask = _mask_like(a, b, mask)
+    if not mask.any():
+        return float("nan")
+    err = a[mask].astype(np.float64) - b[mask].astype(np.float64)
+    mse = float(np.mean(err * err))
+    if mse == 0:
+        return float("inf")
+    return float(10 * np.log10(255.0**2 / mse))
+
+
+def masked_ssim(a, b, mask) -> float:
+    """Mean structural similarity of two images over a mask.
+
+    Parameters
+    ----------
+    a, b : ndarray, shape (h, w, 3) or (h, w), uint8, at least 7 x 7
+    mask : ndarray, shape (h, w), bool
+
+    Returns
+    -------
+    float
+        The SSIM map of :func:`skimage.metrics.structural_similarity` (``full=True``,
+        ``data_range=255``, per channel) averaged over the masked pixels (and channels);
+        1 for identical images, NaN for an empty mask.
+    """
+    from skimage.metrics import structural_similarity
+
+    a, b = np.asarray(a), np.asarray(b)
+    mask = _mask_like(a, b, mask)
+    if not mask.any():
+        return float("nan")
+    channel_axis = -1 if a.ndim == 3 else None
+    _, full = structural_similarity(a, b, full=True, channel_axis=channel_axis, data_range=255)
+    return float(np.mean(full[mask], dtype=np.float64))
+
+
+# --------------------------------------------------------------------------- driver vs output
+
+
+def compare_videos(driver_landmarks, output_landmarks, *, driver_frames=None, driver_masks=None,
+                   output_frames=None, output_masks=None) -> dict:
+    """Expression transfer and stability of a puppet video against its driving video.
+
+    Parameters
+    ----------
+    driver_landmarks, output_landmarks : ndarray, shape (n, 68, 2)
+        Landmarks of the driving video (A) and of the puppet video (B), frame-aligned;
+        NaN for a frame without a face.
+    driver_frames, output_frames : ndarray, shape (n, h, w, 3), uint8, optional
+        RGB frames, for the colour flicker; each needs its masks.
+    driver_masks, output_masks : ndarray, shape (n, h, w), bool, optional
+        Face region of each frame.
+
+    Returns
+    -------
+    dict
+        ``expression``: ``{"mouth_open", "eye_open", "brow_height"}``, the Pearson
+        correlation between the driver's and the output's signal (see
+        :func:`expression_signals`);
+        ``stability``: ``jitter_driver``, ``jitter_output``, ``jitter_ratio``
+        (output / driver), and, when the frames are given, ``colour_change_driver``,
+        ``colour_change_output`` and ``colour_change_ratio``. All plain floats.
+    """
+    driver = _track(driver_landmarks)
+    output = _track(output_landmarks)
+    if len(driver) != len(output):
+        raise ValueError(f"driver has {len(driver)} frames, output {len(output)}: align them first")
+    sd, so = expression_signals(driver), expression_signals(output)
+    expression = {k: pearson(sd[k], so[k]) for k in sd}
+    jd, jo = jitter(driver), jitter(output)
+    stability = {"jitter_driver": jd, "jitter_output": jo, "jitter_ratio": _ratio(jo, jd)}
+    for who, frames, masks in (("driver", driver_frames, driver_masks),
+                               ("output", output_frames, output_masks)):
+        if frames is None:
+            continue
+        if masks is None:
+            raise ValueError(f"{who}_frames need {who}_masks (the face region)")
+        stability[f"colour_change_{who}"] = colour_change(frames, masks)
+    if "colour_change_driver" in stability and "colour_change_output" in stability:
+        stability["colour_change_ratio"] = _ratio(stability["colour_change_output"],
+                                                  stability["colour_change_driver"])
+    return {"expression": expression, "stability": stability}

@@ -1,0 +1,74 @@
+"""The paper's 2D baseline renderer (§6, Fig. 5): one static average face, TPS-warped to
+the target expression, placed in the driver's frame at the driver's head pose."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import cv2
+import numpy as np
+from pydantic import Field
+
+from ..base import Params
+from ..face.mesh import cast
+from ..face.warp import tps_map
+from ..hookspecs import hookimpl
+from ..kinds import Pose, Puppet, RenderBackend, Rendered
+from .frontalize import template_scene
+
+
+def canonical_coordinates(pose: Pose, frame_size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """For every pixel of a frame, the canonical (x, y) of the posed template seen there.
+
+    Casts a ray from the camera through each pixel (K⁻¹[j, i, 1], OpenCV pixel centres)
+    onto the template. Returns the map (h, w, 2) float32 and a hit mask (h, w) bool.
+    """
+    h, w = frame_size
+    rotation = cv2.Rodrigues(pose.rvec)[0]
+    centre = -rotation.T @ pose.tvec
+    ys, xs = np.mgrid[0:h, 0:w]
+    pixels = np.stack([xs.ravel(), ys.ravel(), np.ones(h * w)], axis=1)
+    directions = (np.linalg.solve(pose.camera, pixels.T).T) @ rotation  # R^T d for each row d
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    t_hit = cast(template_scene(), np.broadcast_to(centre, directions.shape), directions)["t_hit"]
+    hit = np.isfinite(t_hit)
+    points = centre + directions * np.where(hit, t_hit, 0)[:, None]
+    return points[:, :2].reshape(h, w, 2).astype(np.float32), hit.reshape(h, w)
+
+
+class Tps2dRender(RenderBackend):
+    name = "tps2d"
+    description = "the paper's 2D baseline: the puppet's average face TPS-warped to the target fiducials, at the driver's pose"
+    default = True
+
+    class Params(Params):
+        tps_lambda: float = Field(10.0, ge=0, description="λ of the smoothing TPS (Eq. 1; paper: 10)")
+        tps_scaling: Literal["objective", "diagonal", "wahba"] = Field(
+            "objective", description="how λ enters the TPS system: 8πλ (the written objective), "
+            "λ on the diagonal, or Wahba's 8πnλ (ALGORITHMS §5.2)")
+        min_coverage: float = Field(0.3, ge=0, le=1, description="canonical pixels seen in fewer "
+                                    "than this fraction of the puppet's photos are left out")
+        feather: float = Field(3.0, ge=0, description="Gaussian σ (frame px) of the soft face edge")
+        background: Literal["driver", "grey"] = Field(
+            "driver", description="what surrounds the face: the driver's frame or plain grey")
+
+    def render(self, puppet, target, pose, frame):
+        h, w = frame.shape[:2]
+        warp = tps_map(target, puppet.fiducials, puppet.coverage.shape,
+                       lam=self.params.tps_lambda, scaling=self.params.tps_scaling)
+        face = cv2.remap(puppet.appearance, warp[..., 0], warp[..., 1], cv2.INTER_LINEAR)
+        seen = cv2.remap((puppet.coverage >= self.params.min_coverage).astype(np.float32),
+                         warp[..., 0], warp[..., 1], cv2.INTER_LINEAR)
+        where, hit = canonical_coordinates(pose, (h, w))
+        rgb = cv2.remap(face, where[..., 0], where[..., 1], cv2.INTER_LINEAR)
+        mask = cv2.remap(seen, where[..., 0], where[..., 1], cv2.INTER_LINEAR) * hit
+        if self.params.feather > 0:
+            mask = cv2.GaussianBlur(mask, (0, 0), self.params.feather) * (mask > 0.5)
+        back = frame.astype(np.float32) if self.params.background == "driver" else np.full_like(rgb, 128.0)
+        out = rgb * mask[..., None] + back * (1 - mask[..., None])
+        return Rendered(rgb=np.clip(out, 0, 255).round().astype(np.uint8), mask=mask.astype(np.float32))
+
+
+@hookimpl
+def persona_register_backends(register):
+    register(Tps2dRender)

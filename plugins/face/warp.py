@@ -1,0 +1,69 @@
+"""Smoothing thin-plate splines (paper Eq. 1) and warps kept as sampling maps."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import numpy as np
+from scipy.interpolate import RBFInterpolator
+
+Scaling = Literal["objective", "diagonal", "wahba"]
+
+
+def tps_smoothing(lam: float, n_points: int, scaling: Scaling = "objective") -> float:
+    """The diagonal term s of the TPS system (K + sI) for the paper's λ (ALGORITHMS §5.2).
+
+    ``objective``: s = 8πλ, faithful to the written objective (the bending energy of a
+    fitted spline is 8π aᵀKa); ``diagonal``: s = λ (λ put on the diagonal, Bookstein style);
+    ``wahba``: s = 8πnλ (Wahba's normalised data term).
+    """
+    if scaling == "objective":
+        return 8 * np.pi * lam
+    if scaling == "diagonal":
+        return float(lam)
+    if scaling == "wahba":
+        return 8 * np.pi * n_points * lam
+    raise ValueError(f"unknown TPS scaling {scaling!r}: use objective, diagonal or wahba")
+
+
+def tps_map(target: np.ndarray, source: np.ndarray, shape: tuple[int, int], *, lam: float = 10.0,
+            scaling: Scaling = "objective") -> np.ndarray:
+    """Backward sampling map of the smoothing TPS r with r(target_k) ≈ source_k.
+
+    Parameters
+    ----------
+    target, source : ndarray, shape (k, 2)
+        Corresponding (x, y) points: where each point must land, and where it is now.
+    shape : (H, W)
+        The grid the map is evaluated on.
+    lam : float
+        λ of Eq. 1 (paper: 10), in the points' pixel units.
+
+    Returns
+    -------
+    map : ndarray, shape (H, W, 2), float32
+        For each output pixel, the (x, y) to sample the source image at (``cv2.remap``).
+    """
+    spline = RBFInterpolator(np.asarray(target, float), np.asarray(source, float), kernel="thin_plate_spline",
+                             smoothing=tps_smoothing(lam, len(target), scaling), degree=1)
+    h, w = shape
+    ys, xs = np.mgrid[0:h, 0:w]
+    return spline(np.c_[xs.ravel(), ys.ravel()]).reshape(h, w, 2).astype(np.float32)
+
+
+def eye_mouth_scale(fiducials: np.ndarray) -> np.ndarray:
+    """(sx, sy) size of a face from its 49 fiducials: the inter-ocular distance, and the
+    distance from the eyes' midpoint to the mouth's centre."""
+    eyes_r, eyes_l = fiducials[19:25].mean(0), fiducials[25:31].mean(0)  # 36-41, 42-47 in the 49 order
+    mouth = fiducials[31:43].mean(0)  # outer lips 48-59
+    return np.array([np.linalg.norm(eyes_l - eyes_r), np.linalg.norm(mouth - (eyes_l + eyes_r) / 2)])
+
+
+def retarget(driver: np.ndarray, driver_neutral: np.ndarray, puppet_neutral: np.ndarray) -> np.ndarray:
+    """Target fiducials for the puppet: its neutral plus the driver's offsets from the driver's
+    neutral, scaled per axis by the two faces' proportions (ALGORITHMS §16.7).
+
+    driver : (n, 49, 2); driver_neutral, puppet_neutral : (49, 2) -> (n, 49, 2)
+    """
+    scale = eye_mouth_scale(puppet_neutral) / eye_mouth_scale(driver_neutral)
+    return puppet_neutral + (driver - driver_neutral) * scale

@@ -1,0 +1,251 @@
+"""Evaluation figures (paper §6) on cases with known answers, and dlib's face descriptor."""
+
+import itertools
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from pydantic import ValidationError
+
+from persona.plugins.base import Rejected
+from persona.plugins.builtin.evaluate import (DlibIdentity, IdentityBackend, centroid, colour_change,
+                                              compare_videos, expression_signals, identity_figures,
+                                              interocular, jitter, masked_psnr, masked_ssim, pearson)
+from persona.plugins.manager import default_registry
+
+SHARED_DATA = Path(__file__).resolve().parents[3] / "shared" / "data"
+
+
+def hand_face(angle_deg=0.0, scale=1.0, shift=(0.0, 0.0)):
+    """68 landmarks with IOD 40, inner-lip gap 6, eye openings 4 and 2, brows 20 above the eyes,
+    then rotated, scaled and shifted (the normalised signals do not change)."""
+    p = np.zeros((68, 2))
+    p[:17] = np.c_[np.linspace(10, 90, 17), np.full(17, 70.0)]  # jaw (unused)
+    p[17:27] = np.c_[np.linspace(20, 80, 10), np.full(10, 30.0)]  # brows, y = 30
+    p[27:36] = np.c_[np.linspace(45, 55, 9), np.linspace(50, 70, 9)]  # nose (unused)
+    for centre, first, gap in ((30.0, 36, 4.0), (70.0, 42, 2.0)):
+        # 36/42 corner, 37-38 upper lid, 39/45 corner, 40-41 lower lid: centre (centre, 50)
+        p[first:first + 6] = [[centre - 5, 50], [centre - 2, 50 - gap / 2], [centre + 2, 50 - gap / 2],
+                              [centre + 5, 50], [centre + 2, 50 + gap / 2], [centre - 2, 50 + gap / 2]]
+    p[48:60] = np.c_[np.linspace(35, 65, 12), np.full(12, 83.0)]  # outer lips (unused)
+    p[60], p[64] = [38, 83], [62, 83]  # inner-lip corners
+    p[61:64] = np.c_[[44, 50, 56], np.full(3, 80.0)]  # inner upper lip
+    p[65:68] = np.c_[[56, 50, 44], np.full(3, 86.0)]  # inner lower lip: 65 under 63, 67 under 61
+    a = np.radians(angle_deg)
+    rotation = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+    return scale * p @ rotation.T + np.asarray(shift)
+
+
+def talking_track(n=60, seed=0):
+    """A face whose mouth opens and closes (period 20 frames), eyes blink, brows move, plus noise."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(n)
+    track = np.repeat(hand_face()[None], n, axis=0)
+    track[:, 65:68, 1] += (4 * (1 - np.cos(2 * np.pi * t / 20)))[:, None]  # lower lip drops
+    track[:, [37, 38, 43, 44], 1] += (0.8 * np.sin(2 * np.pi * t / 13))[:, None]
+    track[:, 17:27, 1] -= (2 * np.sin(2 * np.pi * t / 31))[:, None]
+    return track + rng.normal(0, 0.2, track.shape)
+
+
+# --------------------------------------------------------------------------- expression
+
+
+def test_expression_signals_of_a_hand_made_face():
+    for face, scale in ((hand_face(), 1.0), (hand_face(angle_deg=30, scale=2.5, shift=(100, -40)), 2.5)):
+        np.testing.assert_allclose(interocular(face[None]), [40 * scale], rtol=1e-12)
+        s = expression_signals(face[None])
+        assert set(s) == {"mouth_open", "eye_open", "brow_height"}
+        np.testing.assert_allclose(s["mouth_open"], [6 / 40], rtol=1e-12)
+        np.testing.assert_allclose(s["eye_open"], [(4 + 2) / 2 / 40], rtol=1e-12)
+        np.testing.assert_allclose(s["brow_height"], [20 / 40], rtol=1e-12)
+
+
+def test_expression_signals_are_nan_without_a_face():
+    track = np.stack([hand_face(), np.full((68, 2), np.nan), hand_face()])
+    assert np.isnan(interocular(track)).tolist() == [False, True, False]
+    for name, signal in expression_signals(track).items():
+        assert signal.shape == (3,)
+        assert np.isnan(signal).tolist() == [False, True, False], name
+
+
+def test_pearson_ignores_nan_frames_and_needs_three_frames_with_variance():
+    a = np.array([1.0, 2.0, np.nan, 4.0, 5.0, 0.0])
+    b = np.array([2.0, 4.0, 100.0, 8.0, np.nan, 7.0])
+    # frames 0, 1, 3, 5 are finite in both
+    assert pearson(a, b) == pytest.approx(np.corrcoef([1, 2, 4, 0], [2, 4, 8, 7])[0, 1], abs=1e-12)
+    assert pearson([1.0, 2.0, 3.0], [2.0, 4.0, 6.0]) == 1.0
+    assert pearson([1.0, 2.0, 3.0], [3.0, 2.0, 1.0]) == -1.0
+    assert np.isnan(pearson([1.0, 2.0, np.nan], [1.0, 2.0, 3.0]))  # two frames only
+    assert np.isnan(pearson([1.0, 1.0, 1.0, 1.0], [1.0, 2.0, 3.0, 4.0]))  # zero variance
+    assert isinstance(pearson(a, b), float)
+
+
+def test_a_track_against_itself_correlates_exactly_and_has_jitter_ratio_one():
+    track = talking_track()
+    figures = compare_videos(track, track.copy())
+    assert figures["expression"] == {"mouth_open": 1.0, "eye_open": 1.0, "brow_height": 1.0}
+    stability = figures["stability"]
+    assert stability["jitter_ratio"] == 1.0
+    assert stability["jitter_driver"] == stability["jitter_output"] > 0
+    assert "colour_change_ratio" not in stability
+    json.dumps(figures)  # plain floats
+
+
+def test_a_time_shifted_copy_correlates_less():
+    driver = talking_track()
+    k = 5  # a quarter of the mouth period: the shifted signal is nearly uncorrelated
+    output = np.full_like(driver, np.nan)
+    output[k:] = driver[:-k]  # the output lags by k frames; its first k frames have no face
+    mouth = expression_signals(driver)["mouth_open"]
+    expected = np.corrcoef(mouth[k:], mouth[:-k])[0, 1]
+    got = compare_videos(driver, output)["expression"]["mouth_open"]
+    assert got == pytest.approx(expected, abs=1e-12)
+    assert got < 0.5
+
+
+# --------------------------------------------------------------------------- stability
+
+
+def test_jitter_of_constant_linear_and_alternating_tracks():
+    face = hand_face()  # IOD 40
+    n = 12
+    t = np.arange(n)[:, None, None]
+    assert jitter(np.repeat(face[None], n, axis=0)) == 0.0
+    linear = face[None] + t * np.array([1.5, -0.75])  # uniform motion: no acceleration
+    assert jitter(linear) == pytest.approx(0.0, abs=1e-12)
+    d = 0.5
+    alternating = face[None] + (-1.0) ** t * np.array([d, 0.0])
+    # x[t+1] - 2 x[t] + x[t-1] = (-1)^(t+1) d (1 + 2 + 1): |.| = 4 d for every point
+    assert jitter(alternating) == pytest.approx(4 * d / 40, rel=1e-12)
+    with_gap = alternating.copy()
+    with_gap[6] = np.nan  # the three triples that touch frame 6 are skipped
+    assert jitter(with_gap) == pytest.approx(4 * d / 40, rel=1e-12)
+    assert np.isnan(jitter(alternating[:2]))
+    assert np.isnan(jitter(np.full((5, 68, 2), np.nan)))
+
+
+def test_colour_change_of_a_known_step():
+    rng = np.random.default_rng(1)
+    n, h, w = 5, 24, 32
+    frames = rng.integers(0, 256, (n, h, w, 3), dtype=np.uint8)  # background: noise
+    masks = np.zeros((n, h, w), bool)
+    for i in range(n):
+        masks[i, 4 + i:14 + i, 6:20] = True  # the face moves
+        frames[i][masks[i]] = [100 + 3 * i, 50 + 4 * i, 20]  # and brightens by (3, 4, 0): 5 per frame
+    assert colour_change(frames, masks) == pytest.approx(5.0, rel=1e-12)
+    masks[2] = False  # no face in frame 2: pairs (1, 2) and (2, 3) are skipped
+    assert colour_change(frames, masks) == pytest.approx(5.0, rel=1e-12)
+    still = np.repeat(frames[:1], n, axis=0)
+    figures = compare_videos(talking_track(n), talking_track(n, seed=1),
+                             driver_frames=frames, driver_masks=np.repeat(masks.any(0)[None], n, axis=0),
+                             output_frames=still, output_masks=np.repeat(masks[:1], n, axis=0))
+    assert figures["stability"]["colour_change_output"] == 0.0
+    assert figures["stability"]["colour_change_ratio"] == 0.0
+    json.dumps(figures)
+
+
+# --------------------------------------------------------------------------- image fidelity
+
+
+def test_masked_psnr_and_ssim():
+    rng = np.random.default_rng(2)
+    a = rng.integers(10, 240, (40, 50, 3), dtype=np.uint8)
+    mask = np.zeros((40, 50), bool)
+    mask[5:30, 10:40] = True
+    b = a.copy()
+    b[~mask] = 255 - b[~mask]  # outside the mask: ignored
+    assert masked_psnr(a, b, mask) == float("inf")
+    assert masked_ssim(a, a, mask) == pytest.approx(1.0, abs=1e-12)
+    e = 5
+    c = b.copy()
+    c[mask] += e
+    assert masked_psnr(a, c, mask) == pytest.approx(20 * np.log10(255 / e), rel=1e-12)
+    assert masked_ssim(a, c, mask) < 1
+    assert np.isnan(masked_psnr(a, c, np.zeros_like(mask)))
+
+
+# --------------------------------------------------------------------------- identity
+
+
+def test_identity_figures_count_successes_and_faceless_frames_as_failures():
+    b = np.zeros(128)
+    a = np.zeros(128)
+    a[0] = 1.0  # |a - b| = 1
+    e1, e2 = np.eye(128)[0], np.eye(128)[1]
+    descriptors = np.stack([
+        b + 0.1 * e2,  # d_b 0.1, d_a 1.005: B and not A
+        b + 0.3 * e2,  # d_b 0.3, d_a 1.04: B and not A
+        0.5 * e1,  # d_b = d_a = 0.5: like both (not "not A")
+        a,  # like A
+        np.full(128, np.nan),  # no face: a failure
+    ])
+    figures = identity_figures(descriptors, b, a, threshold=0.6)
+    assert figures["fraction_b_not_a"] == 2 / 5
+    assert figures["frames_without_face"] == 1
+    np.testing.assert_allclose(figures["distance_to_b"], [0.1, 0.3, 0.5, 1.0, np.nan])
+    np.testing.assert_allclose(figures["distance_to_a"], [np.sqrt(1.01), np.sqrt(1.09), 0.5, 0.0, np.nan])
+    assert figures["mean_distance_to_b"] == pytest.approx((0.1 + 0.3 + 0.5 + 1.0) / 4)
+    assert isinstance(figures["frames_without_face"], int)
+    assert isinstance(figures["fraction_b_not_a"], float)
+    none = identity_figures(np.full((3, 128), np.nan), b, a)
+    assert none["fraction_b_not_a"] == 0.0 and none["frames_without_face"] == 3
+    assert np.isnan(none["mean_distance_to_b"])
+    np.testing.assert_array_equal(centroid(descriptors), descriptors[:4].mean(axis=0))
+
+
+def test_identity_backend_is_registered_with_strict_params():
+    registry = default_registry()
+    assert registry.default("identity") == "dlib_resnet"
+    cls = registry.get("identity", "dlib_resnet")
+    assert cls is DlibIdentity and issubclass(cls, IdentityBackend)
+    assert cls({"jitters": 3}).params.jitters == 3
+    with pytest.raises(ValidationError):
+        cls({"jiters": 3})
+    with pytest.raises(ValidationError):
+        cls({"jitters": -1})
+    with pytest.raises(Rejected, match="no face"):
+        cls().describe(np.zeros((50, 50, 3), np.uint8), np.full((68, 2), np.nan))
+
+
+@pytest.fixture(scope="module")
+def lfw_descriptors():
+    collections = SHARED_DATA / "collections"
+    if not collections.is_dir():
+        pytest.skip(f"real data not found at {collections}")
+    from persona.plugins.builtin.landmarks import DlibLandmarks
+
+    detector, backend = DlibLandmarks(), DlibIdentity()
+    out = {}
+    for person, prefix in (("george_w_bush", "George_W_Bush"), ("colin_powell", "Colin_Powell")):
+        rows = []
+        for i in range(1, 5):
+            image = cv2.cvtColor(cv2.imread(str(collections / person / f"{prefix}_{i:04d}.jpg")),
+                                 cv2.COLOR_BGR2RGB)
+            landmarks = detector.detect(image).points
+            descriptor = backend.describe(image, landmarks)
+            assert descriptor.shape == (128,) and descriptor.dtype == np.float64
+            rows.append((image, landmarks, descriptor))
+        out[person] = rows
+    return out
+
+
+@pytest.mark.realdata
+def test_descriptors_separate_bush_from_powell(lfw_descriptors):
+    bush = [d for _, _, d in lfw_descriptors["george_w_bush"]]
+    powell = [d for _, _, d in lfw_descriptors["colin_powell"]]
+    for group in (bush, powell):
+        for x, y in itertools.combinations(group, 2):
+            assert np.linalg.norm(x - y) < 0.6
+    for x, y in itertools.product(bush, powell):
+        assert np.linalg.norm(x - y) > 0.6
+    figures = identity_figures(np.stack(bush), centroid(bush), centroid(powell))
+    assert figures["fraction_b_not_a"] == 1.0
+
+
+@pytest.mark.realdata
+def test_descriptor_of_a_photo_is_at_distance_zero_from_itself(lfw_descriptors):
+    image, landmarks, descriptor = lfw_descriptors["george_w_bush"][0]
+    again = DlibIdentity().describe(image, landmarks)
+    assert np.linalg.norm(again - descriptor) == 0.0
