@@ -27,6 +27,8 @@ from persona.stores.provenance import Provenance, cache_key
 
 from . import stages as st
 from .drive import run_drive, write_videos
+from .evaluate import evaluate
+from .report import write_report
 from .workflow import IngestParams, VideoRange, Workflow
 
 log = logging.getLogger(__name__)
@@ -326,15 +328,53 @@ class Runner:
                 raise RunError(f"{path}: no photo of the {coll.n} got through to an aligned face; "
                                f"see `persona inspect {self.wf.store}` for each photo's reason")
             mean = self.mean_face(coll)
+            accepted = int((coll.state("frontalize") == OK).sum())
             report["collections"][path] = {
-                "n_photos": coll.n, "accepted": int((coll.state("frontalize") == OK).sum()),
+                "n_photos": coll.n, "accepted": accepted, "rejected": coll.n - accepted,
                 "pictures": self.pictures(coll, mean)}
+        series = None
         if self.wf.driver is not None and self.wf.driver.video is not None:
+            t0 = time.perf_counter()
             drive = run_drive(self)
+            drive_seconds = time.perf_counter() - t0
             report["videos"] = write_videos(drive, Collection(self.root, "driver/frames"), Path(self.wf.output))
+            render = [r for r in self.timer.records if r["stage"] == "render"][-1]
+            report["speed"] = {}
+            if render["n_done"] == drive.n:  # timed only when this run rendered every frame
+                report["speed"] = {"ms_per_driver_frame": 1000 * drive_seconds / drive.n,
+                                   "render_ms_per_frame_one_worker": 1000 * render["task_seconds"] / drive.n}
+            t0 = time.perf_counter()
+            evaluation = self.evaluate()
+            report["speed"]["evaluate_seconds"] = time.perf_counter() - t0
+            series = evaluation.pop("series")
+            report["evaluation"] = evaluation
         report["stages"] = self.timer.records
         _write_json(Path(self.wf.output) / "metrics.json", report)
+        self.report(report, series)
         return report
+
+    def evaluate(self) -> dict:
+        e = self.wf.evaluate
+        return evaluate(self.wf.store, self.executor, identity=self.wf.stage("identity"), threshold=e.threshold,
+                        collection_sample=e.collection_sample, self_reenactment=e.self_reenactment)
+
+    def report(self, report: dict, series: dict | None) -> Path:
+        """report.html beside metrics.json: figures, pictures, frames and plots."""
+        out = Path(self.wf.output)
+        pictures = {}
+        for path, c in report["collections"].items():
+            for kind, file in c["pictures"].items():
+                pictures[f"{path}: {kind.replace('_', ' ')}"] = media.decode_image(file, max_side=4000)
+        strip = None
+        if self.root.get("drive") is not None:
+            drive, frames = Collection(self.root, "drive"), Collection(self.root, "driver/frames")
+            chosen = np.linspace(0, drive.n - 1, min(6, drive.n)).round().astype(int)
+            top = np.concatenate([frames.array("photos/rgb")[i] for i in chosen], axis=1)
+            bottom = np.concatenate([drive.array("render/rgb")[i] for i in chosen], axis=1)
+            strip = np.concatenate([top, bottom], axis=0)
+        fps = float(self.root["driver/frames"].attrs["fps"]) if strip is not None else 25.0
+        return write_report(out / "report.html", metrics=report, pictures=pictures, strip=strip, series=series,
+                            threshold=self.wf.evaluate.threshold, fps=fps, video=out / "side_by_side.mp4")
 
 
 def _stat(path: str) -> tuple[int, int]:

@@ -70,6 +70,13 @@ class Cluster(Strict):
         return v
 
 
+class Evaluation(Strict):
+    threshold: float = Field(0.6, gt=0, description="descriptor distance under which two faces are the same person")
+    collection_sample: int = Field(100, ge=1, description="photos per collection whose descriptors make its centroid")
+    self_reenactment: bool = Field(False, description="B and A are the same person and A's frames are not in "
+                                   "B's collection: also compare the output with A's real frames (PSNR, SSIM)")
+
+
 class Workflow(Strict):
     version: Literal[1] = Field(1, description="workflow format version")
     name: str = Field(description="a short name for the run")
@@ -79,6 +86,7 @@ class Workflow(Strict):
     driver: Actor | None = Field(None, description="actor A, whose video drives the puppet")
     stages: dict[str, StageConfig] = Field(default_factory=dict, description="backend and params per kind")
     cluster: Cluster = Field(default_factory=Cluster)
+    evaluate: Evaluation = Field(default_factory=Evaluation, description="how `persona evaluate` judges the output")
     photos_per_shard: int = Field(16, ge=1, le=4096, description="photos per Zarr shard: the unit of work and of writing")
 
     #: the folder relative paths were resolved against (not part of the YAML)

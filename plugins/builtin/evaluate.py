@@ -303,7 +303,12 @@ def colour_change(frames, masks) -> float:
         region at t+1 and at t, in 0-255 units; pairs with an empty mask are skipped,
         NaN when no pair is left.
     """
-    colours = masked_mean_colours(frames, masks)
+    return flicker(masked_mean_colours(frames, masks))
+
+
+def flicker(colours) -> float:
+    """Mean Euclidean change between consecutive rows of (n, 3) mean colours (NaN rows skipped)."""
+    colours = np.asarray(colours, dtype=np.float64)
     if len(colours) < 2:
         return float("nan")
     return _finite_mean(np.linalg.norm(np.diff(colours, axis=0), axis=-1))

@@ -1,0 +1,123 @@
+"""``persona evaluate``: how much the output looks like B, moves like A, and holds still.
+
+Figures (paper §6, with dlib's descriptor and landmarks only; nothing downloaded):
+
+- identity: descriptor distance of every output frame to the centroid of B's photos and
+  to that of A's; the fraction of frames that are "B and not A";
+- expression: Pearson correlation of mouth opening, eye openness and brow height
+  between A's video and the output (landmarks found anew in the output frames);
+- stability: landmark jitter and face-colour flicker, output over driver;
+- self-reenactment (when asked): PSNR and SSIM of the output against A's real frames
+  inside the rendered face.
+
+Descriptors are computed by Dask tasks over shards; only small per-frame figures come back.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from persona.plugins.builtin import evaluate as ev
+from persona.plugins.builtin.landmarks import DlibLandmarks
+from persona.plugins.base import Rejected
+from persona.plugins.manager import default_registry
+from persona.stores.layout import OK, Collection, open_store
+
+
+def _identity(spec: tuple[str, dict]):
+    return default_registry().get("identity", spec[0])(spec[1])
+
+
+def describe_photos(url: str, path: str, indices: list[int], identity: tuple[str, dict]) -> np.ndarray:
+    """Descriptors (k, 128) of accepted photos ``indices`` of a collection, from their stored landmarks."""
+    coll = Collection(open_store(url, mode="r"), path)
+    backend = _identity(identity)
+    out = []
+    for i in indices:
+        h, w = coll.array("photos/size")[i]
+        image = coll.array("photos/rgb")[i][:h, :w]
+        out.append(backend.describe(image, coll.array("landmarks/points")[i].astype(np.float64)))
+    return np.array(out).reshape(len(out), -1)
+
+
+def analyse_frames(url: str, start: int, stop: int, identity: tuple[str, dict], compare: bool) -> dict:
+    """For output frames [start, stop): landmarks found anew, descriptors, the mean face colour of
+    output and driver inside the rendered face, and (``compare``) PSNR and SSIM against the driver."""
+    root = open_store(url, mode="r")
+    drive, frames = Collection(root, "drive"), Collection(root, "driver/frames")
+    rendered = drive.array("render/rgb")[start:stop]
+    masks = drive.array("render/mask")[start:stop] > 127
+    original = frames.array("photos/rgb")[start:stop]
+    detector, backend = DlibLandmarks(), _identity(identity)
+    n = stop - start
+    landmarks = np.full((n, 68, 2), np.nan)
+    descriptors = np.full((n, 128), np.nan)
+    psnr, ssim = np.full(n, np.nan), np.full(n, np.nan)
+    for j in range(n):
+        try:
+            landmarks[j] = detector.detect(rendered[j]).points
+            descriptors[j] = backend.describe(rendered[j], landmarks[j])
+        except Rejected:
+            pass
+        if compare and masks[j].any():
+            psnr[j] = ev.masked_psnr(rendered[j], original[j], masks[j])
+            ssim[j] = ev.masked_ssim(rendered[j], original[j], masks[j])
+    return {"start": start, "landmarks": landmarks, "descriptors": descriptors, "psnr": psnr, "ssim": ssim,
+            "colour_output": ev.masked_mean_colours(rendered, masks),
+            "colour_driver": ev.masked_mean_colours(original, masks)}
+
+
+def _sample(ok: np.ndarray, k: int) -> list[int]:
+    idx = np.flatnonzero(ok)
+    return [int(i) for i in idx[np.linspace(0, len(idx) - 1, min(k, len(idx))).round().astype(int)]] if len(idx) else []
+
+
+def evaluate(store: str, executor, *, identity: tuple[str, dict], threshold: float = 0.6,
+             collection_sample: int = 100, self_reenactment: bool = False) -> dict:
+    """Every figure of a finished run, as a JSON-ready dict (plus per-frame series under "series")."""
+    root = open_store(store, mode="r")
+    centroids = {}
+    for actor in ("puppet", "driver"):
+        coll = Collection(root, actor)
+        chosen = _sample(coll.state("frontalize") == OK, collection_sample)
+        parts = list(executor.run(describe_photos, [(store, actor, chosen[i::2], identity) for i in range(2)]))
+        centroids[actor] = ev.centroid(np.concatenate(parts))
+    drive = Collection(root, "drive")
+    tasks = [(store, s, e, identity, self_reenactment) for s, e in drive.shard_ranges()]
+    parts = sorted(executor.run(analyse_frames, tasks), key=lambda p: p["start"])
+    joined = {k: np.concatenate([p[k] for p in parts]) for k in parts[0] if k != "start"}
+
+    frames = Collection(root, "driver/frames")
+    driver_landmarks = frames.array("landmarks/points")[:].astype(np.float64)
+    driver_landmarks[frames.state("landmarks") != OK] = np.nan
+    identity_figures = ev.identity_figures(joined["descriptors"], centroids["puppet"], centroids["driver"], threshold)
+    video = ev.compare_videos(driver_landmarks, joined["landmarks"])
+    stability = video["stability"]
+    stability["colour_change_driver"] = ev.flicker(joined["colour_driver"])
+    stability["colour_change_output"] = ev.flicker(joined["colour_output"])
+    stability["colour_change_ratio"] = _ratio(stability["colour_change_output"], stability["colour_change_driver"])
+    result = {
+        "identity": {k: v for k, v in identity_figures.items() if not isinstance(v, np.ndarray)},
+        "expression": video["expression"],
+        "stability": stability,
+        "frames": drive.n,
+        "bridged_frames": int(drive.array("bridged")[:].sum()),
+        "series": {
+            "distance_to_b": identity_figures["distance_to_b"],
+            "distance_to_a": identity_figures["distance_to_a"],
+            **{f"driver_{k}": v for k, v in ev.expression_signals(driver_landmarks).items()},
+            **{f"output_{k}": v for k, v in ev.expression_signals(joined["landmarks"]).items()},
+        },
+    }
+    if self_reenactment:
+        result["self_reenactment"] = {"psnr_db": _nanmean(joined["psnr"]), "ssim": _nanmean(joined["ssim"])}
+    return result
+
+
+def _ratio(a: float, b: float) -> float:
+    return a / b if np.isfinite(a) and np.isfinite(b) and b != 0 else float("nan")
+
+
+def _nanmean(values: np.ndarray) -> float:
+    finite = values[np.isfinite(values)]
+    return float(finite.mean()) if len(finite) else float("nan")

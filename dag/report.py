@@ -1,0 +1,123 @@
+"""report.html: one self-contained page a person reads in a browser.
+
+Pictures are embedded as PNG data URIs, plots are drawn with matplotlib, and the
+side-by-side video is embedded when it is small enough to keep the page light.
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import io
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+
+MAX_EMBEDDED_VIDEO = 40 * 2**20
+
+
+def _png(image: np.ndarray) -> str:
+    from PIL import Image
+
+    buf = io.BytesIO()
+    Image.fromarray(image).save(buf, format="PNG")
+    return "data:image/png;base64," + base64.b64encode(buf.getvalue()).decode()
+
+
+def _figure(fig) -> str:
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=90, bbox_inches="tight")
+    return "data:image/png;base64," + base64.b64encode(buf.getvalue()).decode()
+
+
+def _img(src: str, alt: str, width: int | None = None) -> str:
+    w = f' width="{width}"' if width else ""
+    return f'<img src="{src}" alt="{html.escape(alt)}"{w}>'
+
+
+def plots(series: dict, threshold: float, fps: float) -> dict[str, str]:
+    """Per-frame identity distances and expression signals, driver against output."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out = {}
+    t = np.arange(len(series["distance_to_b"])) / fps
+    fig, ax = plt.subplots(figsize=(9, 2.8))
+    ax.plot(t, series["distance_to_b"], label="to B (puppet)", lw=1)
+    ax.plot(t, series["distance_to_a"], label="to A (driver)", lw=1)
+    ax.axhline(threshold, color="k", ls="--", lw=0.8, label=f"same-person threshold {threshold:g}")
+    ax.set(xlabel="seconds", ylabel="descriptor distance", title="Identity of each output frame")
+    ax.legend(loc="upper right", fontsize=8)
+    out["identity"] = _figure(fig)
+    plt.close(fig)
+    names = ("mouth_open", "eye_open", "brow_height")
+    fig, axes = plt.subplots(len(names), 1, figsize=(9, 6), sharex=True)
+    for ax, name in zip(axes, names):
+        ax.plot(t, series[f"driver_{name}"], label="driver (A)", lw=1)
+        ax.plot(t, series[f"output_{name}"], label="output (B)", lw=1)
+        ax.set_ylabel(name.replace("_", " ") + " / IOD", fontsize=8)
+    axes[0].legend(loc="upper right", fontsize=8)
+    axes[0].set_title("Expression: driver against output")
+    axes[-1].set_xlabel("seconds")
+    out["expression"] = _figure(fig)
+    plt.close(fig)
+    return out
+
+
+def _table(rows: list[tuple[str, object]]) -> str:
+    def fmt(v):
+        if isinstance(v, float):
+            return f"{v:.3f}"
+        return html.escape(str(v))
+
+    body = "".join(f"<tr><th>{html.escape(k)}</th><td>{fmt(v)}</td></tr>" for k, v in rows)
+    return f"<table>{body}</table>"
+
+
+def write_report(path: Path, *, metrics: dict, pictures: dict[str, np.ndarray], strip: np.ndarray | None,
+                 series: dict | None, threshold: float, fps: float, video: Path | None) -> Path:
+    """Write the page atomically; ``pictures`` are titled images (means, contact sheets)."""
+    parts = [f"<h1>Persona — {html.escape(str(metrics.get('workflow', '')))}</h1>"]
+    ev = metrics.get("evaluation")
+    if ev:
+        rows = [("frames", ev["frames"]), ("frames bridged (no face in the driver)", ev["bridged_frames"]),
+                ("frames that are B and not A", ev["identity"]["fraction_b_not_a"]),
+                ("mean distance to B", ev["identity"]["mean_distance_to_b"]),
+                ("mean distance to A", ev["identity"]["mean_distance_to_a"]),
+                ("output frames without a face", ev["identity"]["frames_without_face"])]
+        rows += [(f"expression correlation: {k.replace('_', ' ')}", v) for k, v in ev["expression"].items()]
+        rows += [(k.replace("_", " "), v) for k, v in ev["stability"].items()]
+        rows += [(f"self-reenactment {k}", v) for k, v in ev.get("self_reenactment", {}).items()]
+        parts += ["<h2>Figures</h2>", _table(rows)]
+    if video is not None and video.is_file() and video.stat().st_size <= MAX_EMBEDDED_VIDEO:
+        data = base64.b64encode(video.read_bytes()).decode()
+        parts += ["<h2>Driver and puppet</h2>",
+                  f'<video controls loop muted width="720" src="data:video/mp4;base64,{data}"></video>']
+    if strip is not None:
+        parts += ["<h2>Driver frames (top) and output frames (bottom)</h2>", _img(_png(strip), "frames", 960)]
+    if series:
+        for name, src in plots(series, threshold, fps).items():
+            parts.append(_img(src, name))
+    for title, image in pictures.items():
+        parts += [f"<h2>{html.escape(title)}</h2>", _img(_png(image), title, min(960, image.shape[1]))]
+    counts = [(f"{c}: photos aligned", f"{v['accepted']} of {v['n_photos']}")
+              for c, v in metrics.get("collections", {}).items()]
+    timing = [(f"{r['collection']} {r['stage']} (wall s)", r["wall_seconds"]) for r in metrics.get("stages", [])]
+    extra = [(k, v) for k, v in metrics.get("speed", {}).items()]
+    parts += ["<h2>Counts and timing</h2>", _table(counts + extra + timing),
+              "<details><summary>metrics.json</summary><pre>"
+              + html.escape(json.dumps(metrics, indent=2, default=str)) + "</pre></details>"]
+    page = ("<!doctype html><html><head><meta charset='utf-8'><title>Persona report</title><style>"
+            "body{font-family:sans-serif;max-width:1000px;margin:2em auto;color:#222}"
+            "table{border-collapse:collapse}th,td{border-bottom:1px solid #ddd;padding:3px 10px;text-align:left}"
+            "img,video{display:block;margin:0.5em 0;max-width:100%}</style></head><body>"
+            + "\n".join(parts) + "</body></html>")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(page)
+    os.replace(tmp, path)
+    return path
