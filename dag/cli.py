@@ -73,6 +73,31 @@ def _cmd_demo(args) -> int:
     return 0
 
 
+def _cmd_evaluate(args) -> int:
+    from persona.stores.layout import open_store
+
+    from .runner import RunError, executor_for, Runner
+    from .workflow import load_workflow
+
+    wf = load_workflow(args.workflow, args.set)
+    if open_store(wf.store, mode="r").get("drive") is None:
+        raise RunError(f"{wf.store} holds no rendered output yet: run `persona run {args.workflow}` first")
+    with executor_for(wf, args.scheduler, args.workers) as ex:
+        result = Runner(wf, ex, progress=False).evaluate()
+    result.pop("series")
+    if args.json:
+        print(json.dumps(result, indent=2))
+        return 0
+    for group, figures in result.items():
+        if isinstance(figures, dict):
+            print(f"{group}:")
+            for k, v in figures.items():
+                print(f"  {k:<24} {v:.3f}" if isinstance(v, float) else f"  {k:<24} {v}")
+        else:
+            print(f"{group}: {figures}")
+    return 0
+
+
 def _cmd_validate(args) -> int:
     from .workflow import load_workflow
 
@@ -158,6 +183,13 @@ def build_parser() -> argparse.ArgumentParser:
     common_run(p)
     p.set_defaults(func=_cmd_demo)
 
+    p = sub.add_parser("evaluate", help="identity, expression and stability figures of a finished run")
+    p.add_argument("workflow")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    common_run(p)
+    p.set_defaults(func=_cmd_evaluate)
+
     p = sub.add_parser("validate", help="check a workflow without running it")
     p.add_argument("workflow")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
@@ -184,6 +216,8 @@ def main(argv: list[str] | None = None) -> int:
     except (PersonaError, PluginError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    except BrokenPipeError:  # e.g. `persona plugins | head`
+        return 0
 
 
 if __name__ == "__main__":

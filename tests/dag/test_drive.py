@@ -1,0 +1,69 @@
+"""End to end on synthetic faces: a puppet video, its evaluation and its report."""
+
+import json
+
+import numpy as np
+import pytest
+import yaml
+
+from persona.dag.cli import main as cli
+from persona.dag.demo import make_demo_data
+from persona.dag.runner import run_workflow
+from persona.dag.workflow import load_workflow
+from persona.plugins.face import synthetic
+from persona.stores import media
+
+
+@pytest.fixture(scope="module")
+def drive_run(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("drive")
+    path = make_demo_data(folder, n_photos=10, n_frames=16)
+    frames = [f.image for f in synthetic.make_driver_video(16, seed=2)]
+    frames[6] = np.full_like(frames[6], 90)  # the driver leaves the frame: no face
+    media.write_video_mp4(folder / "data" / "driver.mp4", frames, fps=25)
+    wf = yaml.safe_load(path.read_text())
+    wf["photos_per_shard"] = 4
+    path.write_text(yaml.safe_dump(wf))
+    report = run_workflow(load_workflow(path), scheduler="sync", progress=False)
+    return folder, path, report
+
+
+def test_outputs_keep_the_drivers_timing(drive_run):
+    folder, _, report = drive_run
+    out = folder / "output"
+    with media.VideoReader(out / "puppet.mp4") as puppet, media.VideoReader(out / "side_by_side.mp4") as both:
+        assert puppet.n_frames == both.n_frames == 16
+        assert puppet.fps == pytest.approx(25) and both.fps == pytest.approx(25)
+        assert both.width == 2 * puppet.width
+    assert report["evaluation"]["bridged_frames"] >= 1  # the blank frame was bridged, not dropped
+
+
+def test_metrics_json_has_counts_times_and_figures(drive_run):
+    folder, _, _ = drive_run
+    metrics = json.loads((folder / "output" / "metrics.json").read_text())
+    assert metrics["collections"]["puppet"]["n_photos"] == 10
+    assert {"accepted", "rejected"} <= set(metrics["collections"]["driver"])
+    assert metrics["speed"]["ms_per_driver_frame"] > 0
+    assert {r["stage"] for r in metrics["stages"]} >= {"ingest", "landmarks", "pose", "frontalize", "render"}
+    ev = metrics["evaluation"]
+    assert set(ev["expression"]) == {"mouth_open", "eye_open", "brow_height"}
+    assert 0 <= ev["identity"]["fraction_b_not_a"] <= 1
+    assert ev["stability"]["jitter_ratio"] > 0
+
+
+def test_report_is_one_self_contained_page(drive_run):
+    folder, _, _ = drive_run
+    page = (folder / "output" / "report.html").read_text()
+    assert page.count("data:image/png;base64,") >= 5  # means, sheets, strip, plots
+    assert "data:video/mp4;base64," in page
+    assert "B and not A" in page
+    assert 'src="http' not in page  # nothing fetched from elsewhere
+
+
+def test_evaluate_command_prints_json(drive_run, capsys):
+    _, path, report = drive_run
+    capsys.readouterr()
+    assert cli(["evaluate", str(path), "--json", "--scheduler", "sync"]) == 0
+    result = json.loads(capsys.readouterr().out)
+    assert result["identity"]["fraction_b_not_a"] == pytest.approx(report["evaluation"]["identity"]["fraction_b_not_a"])
+    assert result["expression"]["mouth_open"] == pytest.approx(report["evaluation"]["expression"]["mouth_open"], nan_ok=True)

@@ -1,0 +1,108 @@
+"""Smoothing TPS (Eq. 1), retargeting, bridging and the baseline renderer's geometry."""
+
+import cv2
+import numpy as np
+import pytest
+
+from persona.plugins.builtin.frontalize import project, template_points
+from persona.plugins.builtin.render import Tps2dRender, canonical_coordinates
+from persona.plugins.face.template import IDX49, generic_template
+from persona.plugins.face.tracks import bridge
+from persona.plugins.face.warp import eye_mouth_scale, retarget, tps_map, tps_smoothing
+from persona.plugins.kinds import Pose, Puppet
+
+
+def smooth_warp(points):
+    x, y = points[:, 0], points[:, 1]
+    return np.c_[1.02 * x + 0.05 * y + 3 + 2 * np.sin(y / 30), -0.03 * x + 0.98 * y - 2 + 1.5 * np.cos(x / 25)]
+
+
+def test_tps_interpolates_without_smoothing_and_tends_to_affine_with_a_lot():
+    target = generic_template().landmarks3d[list(IDX49), :2]
+    source = smooth_warp(target)
+    exact = tps_map(target, source, (244, 194), lam=0.0)
+    sampled = np.stack([cv2.remap(exact[..., c], target[:, 0].astype(np.float32)[None],
+                                  target[:, 1].astype(np.float32)[None], cv2.INTER_LINEAR)[0] for c in (0, 1)], 1)
+    integer = np.abs(target - target.round()).max(axis=1) < 1e-9
+    np.testing.assert_allclose(sampled[integer], source[integer], atol=1e-3)
+    stiff = tps_map(target, source, (244, 194), lam=1e9)
+    design = np.c_[np.ones(len(target)), target]
+    coef = np.linalg.lstsq(design, source, rcond=None)[0]
+    ys, xs = np.mgrid[0:244, 0:194]
+    affine = (np.c_[np.ones(xs.size), xs.ravel(), ys.ravel()] @ coef).reshape(244, 194, 2)
+    assert np.abs(stiff - affine).max() < 1e-2
+
+
+def test_tps_matches_the_hand_built_system():
+    """(K + sI) a + P b = d with K = r² log r and s = 8πλ (ALGORITHMS §5)."""
+    rng = np.random.default_rng(0)
+    target = rng.uniform(20, 170, (12, 2))
+    source = smooth_warp(target)
+    lam = 10.0
+    s = tps_smoothing(lam, len(target))
+    assert s == pytest.approx(8 * np.pi * 10)
+    r = np.linalg.norm(target[:, None] - target[None], axis=2)
+    k = np.where(r > 0, r ** 2 * np.log(np.where(r > 0, r, 1)), 0)
+    p = np.c_[np.ones(len(target)), target]
+    system = np.block([[k + s * np.eye(len(target)), p], [p.T, np.zeros((3, 3))]])
+    coef = np.linalg.solve(system, np.r_[source, np.zeros((3, 2))])
+    query = np.array([[50.0, 60.0], [120.0, 200.0]])
+    rq = np.linalg.norm(query[:, None] - target[None], axis=2)
+    expected = (rq ** 2 * np.log(rq)) @ coef[:-3] + np.c_[np.ones(2), query] @ coef[-3:]
+    got = tps_map(target, source, (244, 194), lam=lam)[[60, 200], [50, 120]]
+    np.testing.assert_allclose(got, expected, atol=1e-3)
+    assert tps_smoothing(lam, 12, "diagonal") == 10 and tps_smoothing(lam, 12, "wahba") == pytest.approx(8 * np.pi * 120)
+
+
+def test_retarget_scales_offsets_to_the_puppets_proportions():
+    driver_neutral = generic_template().landmarks3d[list(IDX49), :2]
+    puppet_neutral = (driver_neutral - 97) * [1.2, 0.9] + 97
+    assert np.allclose(eye_mouth_scale(puppet_neutral) / eye_mouth_scale(driver_neutral), [1.2, 0.9])
+    offsets = np.zeros((3, 49, 2))
+    offsets[1, 40, 1] = 5.0  # the lip moves down 5 px
+    target = retarget(driver_neutral + offsets, driver_neutral, puppet_neutral)
+    np.testing.assert_allclose(target[0], puppet_neutral)
+    assert target[1, 40, 1] - puppet_neutral[40, 1] == pytest.approx(4.5)
+
+
+def test_bridge_interpolates_gaps_and_holds_the_ends():
+    values = np.array([np.nan, 1.0, np.nan, np.nan, 4.0, np.nan])
+    found = np.isfinite(values)
+    np.testing.assert_allclose(bridge(values, found), [1, 1, 2, 3, 4, 4])
+    with pytest.raises(ValueError, match="no frame"):
+        bridge(values, np.zeros(6, bool))
+
+
+def pose(yaw=15.0):
+    template = generic_template()
+    rvec = np.radians([5.0, yaw, 0.0])
+    rotation = cv2.Rodrigues(rvec)[0]
+    tvec = np.array([0, 0, 700.0]) - rotation @ template.landmarks3d.mean(axis=0)
+    camera = np.array([[400.0, 0, 127.5], [0, 400.0, 127.5], [0, 0, 1]])
+    return Pose(rvec, tvec, camera, 0.0)
+
+
+def test_canonical_coordinates_round_trip():
+    """Each frame pixel's canonical point projects back onto that pixel."""
+    p = pose()
+    where, hit = canonical_coordinates(p, (256, 256))
+    assert 0.1 < hit.mean() < 0.9
+    template = generic_template()
+    rows, cols = np.nonzero(hit)
+    back = project(template_points(template.depth, where[rows, cols].astype(np.float64)), p)[0]
+    error = np.hypot(back[:, 0] - cols, back[:, 1] - rows)
+    assert np.median(error) < 0.05 and np.percentile(error, 95) < 0.5  # bilinear depth at steep parts
+
+
+def test_render_shows_the_puppet_where_the_face_is_and_the_driver_elsewhere():
+    template = generic_template()
+    appearance = np.zeros((244, 194, 3), np.float32)
+    appearance[..., 0] = 200  # a red face
+    puppet = Puppet(appearance, template.mask.astype(np.float32), template.landmarks3d[list(IDX49), :2])
+    frame = np.full((256, 256, 3), (0, 90, 0), np.uint8)
+    out = Tps2dRender().render(puppet, puppet.fiducials, pose(), frame)
+    assert out.rgb.shape == frame.shape and out.rgb.dtype == np.uint8
+    inside, outside = out.mask > 0.99, out.mask == 0
+    assert inside.sum() > 5000 and outside.sum() > 5000
+    assert np.abs(out.rgb[inside].astype(int) - [200, 0, 0]).max() <= 3  # mask > 0.99: at most 1 % of the frame
+    assert (out.rgb[outside] == [0, 90, 0]).all()
