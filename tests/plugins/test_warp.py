@@ -106,3 +106,12 @@ def test_render_shows_the_puppet_where_the_face_is_and_the_driver_elsewhere():
     assert inside.sum() > 5000 and outside.sum() > 5000
     assert np.abs(out.rgb[inside].astype(int) - [200, 0, 0]).max() <= 3  # mask > 0.99: at most 1 % of the frame
     assert (out.rgb[outside] == [0, 90, 0]).all()
+
+
+def test_coarse_tps_evaluation_is_close_to_exact():
+    target = generic_template().landmarks3d[list(IDX49), :2]
+    source = smooth_warp(target)
+    exact = tps_map(target, source, (244, 194), lam=10)
+    coarse = tps_map(target, source, (244, 194), lam=10, step=4)
+    assert coarse.shape == exact.shape
+    assert np.abs(coarse - exact).max() < 0.05
