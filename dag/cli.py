@@ -63,13 +63,21 @@ def _print_report(report: dict) -> None:
         print(f"{path}: {c['accepted']} of {c['n_photos']} photos aligned")
         for name, file in c["pictures"].items():
             print(f"  {name}: {file}")
+    for name, file in report.get("videos", {}).items():
+        print(f"{name} video: {file}")
+    if "evaluation" in report:
+        ev = report["evaluation"]
+        print(f"frames that are B and not A: {ev['identity']['fraction_b_not_a']:.1%}; "
+              f"mouth-opening correlation {ev['expression']['mouth_open']:.2f}")
+    print(f"report: {report['report']}")
 
 
 def _cmd_demo(args) -> int:
     from .demo import run_demo
 
-    run_demo(Path(args.folder), n_photos=args.photos, n_frames=args.frames, workers=args.workers,
-             scheduler=args.scheduler, progress=not args.quiet)
+    report = run_demo(Path(args.folder), n_photos=args.photos, n_frames=args.frames, workers=args.workers,
+                      scheduler=args.scheduler, progress=not args.quiet)
+    _print_report(report)
     return 0
 
 

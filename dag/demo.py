@@ -53,7 +53,4 @@ def run_demo(folder: Path, *, n_photos: int = 24, n_frames: int = 30, workers: i
     if not path.exists():
         print(f"making synthetic faces in {folder / 'data'} ...")
         path = make_demo_data(folder, n_photos=n_photos, n_frames=n_frames)
-    report = run_workflow(load_workflow(path), scheduler=scheduler, workers=workers, progress=progress)
-    for coll, c in report["collections"].items():
-        print(f"{coll}: {c['accepted']} of {c['n_photos']} aligned; " + ", ".join(c["pictures"].values()))
-    return report
+    return run_workflow(load_workflow(path), scheduler=scheduler, workers=workers, progress=progress)

@@ -349,6 +349,7 @@ class Runner:
             series = evaluation.pop("series")
             report["evaluation"] = evaluation
         report["stages"] = self.timer.records
+        report["report"] = str(Path(self.wf.output) / "report.html")
         _write_json(Path(self.wf.output) / "metrics.json", report)
         self.report(report, series)
         return report
