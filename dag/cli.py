@@ -157,6 +157,11 @@ def _cmd_inspect(args) -> int:
               + (f", {c['pending']} pending" if c["pending"] else ""))
         for reason, count in c["rejected_by_reason"].items():
             print(f"  {count:5d} × {reason}")
+        rejected = list(c["rejections"].items())
+        for photo, reason in rejected[:20]:
+            print(f"        {photo}: {reason}")
+        if len(rejected) > 20:
+            print(f"        ... and {len(rejected) - 20} more (--json lists all)")
         if c["attrs"]:
             print("  " + ", ".join(f"{k}: {v}" for k, v in c["attrs"].items()))
         for name, a in c["arrays"].items():
