@@ -29,7 +29,7 @@ from . import stages as st
 from .drive import run_drive, write_videos
 from .evaluate import evaluate
 from .report import write_report
-from .workflow import IngestParams, VideoRange, Workflow
+from .workflow import BACKENDLESS, VideoRange, Workflow
 
 log = logging.getLogger(__name__)
 
@@ -161,8 +161,14 @@ class Runner:
         self.version = persona_version()
 
     def _ingest_params(self) -> dict:
-        config = self.wf.stages.get("ingest")
-        return IngestParams.model_validate(config.params if config else {}).model_dump()
+        return self._backendless("ingest")
+
+    def align_params(self) -> dict:
+        return self._backendless("align")
+
+    def _backendless(self, kind: str) -> dict:
+        config = self.wf.stages.get(kind)
+        return BACKENDLESS[kind].model_validate(config.params if config else {}).model_dump()
 
     def collection(self, path: str, spec) -> tuple[Collection, bool]:
         """Open (or create anew, when its sources or ingest params changed) a collection."""

@@ -23,7 +23,10 @@ import cv2
 import numpy as np
 
 from persona.plugins.base import Backend, Rejected
-from persona.plugins.face.template import CANONICAL_HEIGHT, CANONICAL_WIDTH, IDX49
+from persona.plugins.builtin.frontalize import frontalizing_map
+from persona.plugins.face.subspace import project
+from persona.plugins.face.template import CANONICAL_HEIGHT, CANONICAL_WIDTH, IDX49, generic_template
+from persona.plugins.face.warp import tps_map
 from persona.plugins.kinds import POSE_FIELDS, Pose, Puppet
 from persona.plugins.manager import default_registry
 from persona.stores import media
@@ -49,8 +52,8 @@ class PhotoStage:
     ``compute(backend, params, inputs, context)`` gets one photo's inputs by array name
     and returns its outputs by array name, or raises :class:`Rejected`. Input names are
     relative to the collection, or absolute ("/driver/frames/photos/rgb") for another
-    collection's arrays with the same photo axis. ``context(root)`` loads what every photo
-    shares (the collection's canvas is always in it). ``kind`` is the backend kind, or None
+    collection's arrays with the same photo axis. ``context(root, path)`` loads what every
+    photo shares (the collection's canvas is always in it). ``kind`` is the backend kind, or None
     for a stage without backends (ingest).
     """
 
@@ -135,7 +138,44 @@ PHOTO_STAGES = {s.name: s for s in (
 )}
 
 
-def _puppet(root) -> dict:
+def _subspace(root, path) -> dict:
+    group = root[f"{path}/subspace"]
+    return {"basis": group["basis"][...], "mean_fiducials": root[f"{path}/aligned/mean_fiducials"][...],
+            "tps_lambda": float(group.attrs["tps_lambda"])}
+
+
+def _align(backend, params, inputs, context):
+    """Collection flow ([15]): TPS to the mean fiducials, then dense flow to the photo's own
+    rank-k projection; the maps are composed and the raw photo is sampled once."""
+    h, w = inputs["photos/size"]
+    photo = inputs["photos/rgb"][:h, :w]
+    fmap = frontalizing_map(generic_template().depth, Pose.from_vector(inputs["pose"]))[0]
+    tps = tps_map(context["mean_fiducials"], inputs["aligned/fiducials"], (H, W), lam=context["tps_lambda"], step=4)
+    to_photo = cv2.remap(fmap, tps[..., 0], tps[..., 1], cv2.INTER_LINEAR)
+    warped = cv2.remap(photo, to_photo[..., 0], to_photo[..., 1], cv2.INTER_LINEAR).astype(np.float32) / 255
+    seen = cv2.remap(inputs["aligned/mask"].astype(np.float32), tps[..., 0], tps[..., 1], cv2.INTER_LINEAR) > 0.99
+    target = np.clip(project(warped, context["basis"], seen), 0, 1).astype(np.float32)
+    flow = backend.flow(target, warped, seen)
+    ys, xs = np.mgrid[0:H, 0:W].astype(np.float32)
+    fx, fy = xs + flow[..., 0], ys + flow[..., 1]
+    composed = cv2.remap(to_photo, fx, fy, cv2.INTER_LINEAR)
+    rgb = cv2.remap(photo, composed[..., 0], composed[..., 1], cv2.INTER_LINEAR)
+    mask = cv2.remap(seen.astype(np.float32), fx, fy, cv2.INTER_LINEAR) > 0.99
+    rgb[~mask] = 0
+    return {"collection/rgb": rgb, "collection/mask": mask, "collection/map": composed}
+
+
+#: non-rigid alignment by collection flow: runs after the subspace of the frontalized faces
+ALIGN = PhotoStage(
+    "align", "flow", "frontalize", ("photos/rgb", "photos/size", "pose", "aligned/fiducials", "aligned/mask"), (
+        Output("collection/rgb", (H, W, 3), "uint8", ("photo", "y", "x", "channel")),
+        Output("collection/mask", (H, W), "bool", ("photo", "y", "x")),
+        Output("collection/map", (H, W, 2), "float32", ("photo", "y", "x", "xy")),
+    ), _align, _subspace)
+PHOTO_STAGES["align"] = ALIGN
+
+
+def _puppet(root, path) -> dict:
     group = root["puppet/aligned"]
     return {"puppet": Puppet(appearance=group["mean"][...], coverage=group["coverage"][...],
                              fiducials=group["mean_fiducials"][...].astype(np.float64))}
@@ -202,7 +242,7 @@ def run_chain(url: str, path: str, start: int, stop: int, steps: list[tuple[str,
             summaries[stage_name] = _summary(get(status), 0.0, skipped=True)
             continue
         backend = _backend(stage, backend_name, params)
-        context = {"canvas": canvas, **(stage.context(root) if stage.context else {})}
+        context = {"canvas": canvas, **(stage.context(root, path) if stage.context else {})}
         ready = np.ones(n, bool) if stage.upstream is None else get(f"status/{stage.upstream}/state") == OK
         inputs = {name: get(name) for name in stage.inputs}
         outputs = {o.name: _empty(o, n, canvas) for o in stage.outputs}

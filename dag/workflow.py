@@ -109,7 +109,13 @@ class IngestParams(Strict):
     min_side: int = Field(32, ge=1, description="photos smaller than this (px, shorter side) are rejected")
 
 
-BACKENDLESS = {"ingest": IngestParams}
+class AlignParams(Strict):
+    rank: int = Field(4, ge=1, le=16, description="rank k of the appearance subspace (paper: 4, the "
+                      "dimension of Lambertian faces under first-order spherical-harmonic light)")
+    tps_lambda: float = Field(10.0, ge=0, description="λ of the smoothing TPS to the mean fiducials (Eq. 1; paper: 10)")
+
+
+BACKENDLESS = {"ingest": IngestParams, "align": AlignParams}
 
 
 def _resolve(path: str, base: Path) -> str:

@@ -130,3 +130,46 @@ class RenderBackend(Backend):
         """target: (49, 2) canonical fiducials to show; pose: the driver's head pose in this
         frame; frame: the driver's frame (h, w, 3) uint8 (its size, and a background)."""
         raise NotImplementedError
+
+
+@dataclass(frozen=True)
+class Shape:
+    """The average shape of a collection, in the canonical frame (ALGORITHMS §8).
+
+    normals : ndarray, shape (H, W, 3), float64 — unit normals ``(Z_x, Z_y, -1)/|.|`` (n_z < 0), NaN off the mask
+    albedo : ndarray, shape (H, W), float64 — grey albedo ρ, NaN off the mask
+    lighting : ndarray, shape (n, 4), float64 — per-image first-order SH light ``(l0, lx, ly, lz)``:
+        image i ≈ ρ (l0 + l·n)
+    depth : ndarray, shape (H, W), float64, or None — Z in canonical px (NaN off the mask); None when
+        the backend leaves the integration to an ``integrate`` backend
+    """
+
+    normals: np.ndarray
+    albedo: np.ndarray
+    lighting: np.ndarray
+    depth: np.ndarray | None = None
+
+
+class ShapeBackend(Backend):
+    """Kind ``shape``: photometric stereo over an aligned collection (ALGORITHMS §8)."""
+
+    kind = "shape"
+
+    def reconstruct(self, images: np.ndarray, mask: np.ndarray, visibility: np.ndarray | None,
+                    template_normals: np.ndarray, template_depth: np.ndarray) -> Shape:
+        """images: (n, H, W) grey or (n, H, W, 3) RGB float in [0, 1], aligned to the canonical frame;
+        mask: (H, W) bool; visibility: (n, H, W) bool (False = pixel not seen) or None;
+        template_normals: (H, W, 3); template_depth: (H, W)."""
+        raise NotImplementedError
+
+
+class IntegrateBackend(Backend):
+    """Kind ``integrate``: depth from a normal field (ALGORITHMS §8.3)."""
+
+    kind = "integrate"
+
+    def integrate(self, normals: np.ndarray, mask: np.ndarray, *, reference: np.ndarray | None = None) -> np.ndarray:
+        """normals: (H, W, 3) ``(Z_x, Z_y, -1)/|.|``; mask: (H, W) bool -> depth Z (H, W) float64,
+        NaN off the mask. The free offset of each connected part of the mask is set so that its
+        mean equals that of ``reference`` (H, W) there, or 0 when ``reference`` is None."""
+        raise NotImplementedError
