@@ -10,10 +10,11 @@ import base64
 import html
 import io
 import json
-import os
 from pathlib import Path
 
 import numpy as np
+
+from persona.stores import media
 
 MAX_EMBEDDED_VIDEO = 40 * 2**20
 
@@ -116,8 +117,5 @@ def write_report(path: Path, *, metrics: dict, pictures: dict[str, np.ndarray], 
             "table{border-collapse:collapse}th,td{border-bottom:1px solid #ddd;padding:3px 10px;text-align:left}"
             "img,video{display:block;margin:0.5em 0;max-width:100%}</style></head><body>"
             + "\n".join(parts) + "</body></html>")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(page)
-    os.replace(tmp, path)
+    media.write_bytes(path, page.encode())
     return path

@@ -27,6 +27,7 @@ from persona.stores.provenance import Provenance, cache_key
 
 from . import stages as st
 from .drive import run_drive, write_videos
+from .shape import run_alignment, run_shape
 from .evaluate import evaluate
 from .report import write_report
 from .workflow import BACKENDLESS, VideoRange, Workflow
@@ -334,10 +335,13 @@ class Runner:
                 raise RunError(f"{path}: no photo of the {coll.n} got through to an aligned face; "
                                f"see `persona inspect {self.wf.store}` for each photo's reason")
             mean = self.mean_face(coll)
+            pictures = self.pictures(coll, mean)
+            if path != "driver/frames":  # the 3D shape comes from photo collections, not video frames
+                pictures.update(run_shape(self, coll, run_alignment(self, coll)))
             accepted = int((coll.state("frontalize") == OK).sum())
             report["collections"][path] = {
                 "n_photos": coll.n, "accepted": accepted, "rejected": coll.n - accepted,
-                "pictures": self.pictures(coll, mean)}
+                "pictures": pictures}
         series = None
         if self.wf.driver is not None and self.wf.driver.video is not None:
             t0 = time.perf_counter()
@@ -371,7 +375,8 @@ class Runner:
         pictures = {}
         for path, c in report["collections"].items():
             for kind, file in c["pictures"].items():
-                pictures[f"{path}: {kind.replace('_', ' ')}"] = media.decode_image(file, max_side=4000)
+                if str(file).endswith(".png"):
+                    pictures[f"{path}: {kind.replace('_', ' ')}"] = media.decode_image(file, max_side=4000)
         strip = None
         if self.root.get("drive") is not None:
             drive, frames = Collection(self.root, "drive"), Collection(self.root, "driver/frames")
@@ -406,10 +411,7 @@ def _canvas(sources, params) -> list[int]:
 
 
 def _write_json(path: Path, data: dict) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".tmp")
-    tmp.write_text(json.dumps(data, indent=2, default=str))
-    os.replace(tmp, path)
+    media.write_bytes(path, json.dumps(data, indent=2, default=str).encode())
 
 
 @contextmanager

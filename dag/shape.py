@@ -10,6 +10,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 
 from persona.plugins.face.template import CANONICAL_HEIGHT as H, CANONICAL_WIDTH as W
@@ -48,7 +50,7 @@ def compute_subspace(runner, coll: Collection, *, source: str, state: str, rank:
     return prov
 
 
-def run_alignment(runner, coll: Collection) -> None:
+def run_alignment(runner, coll: Collection) -> Provenance:
     """Subspace of the frontalized faces, then collection flow of every photo."""
     config = runner.align_params()
     frontalized = coll.provenance("status/frontalize/state")
@@ -56,3 +58,57 @@ def run_alignment(runner, coll: Collection) -> None:
                            tps_lambda=config["tps_lambda"], upstream=frontalized.key)
     align = runner.prepare_stage(coll, st.ALIGN, {"frontalize": frontalized.key, "subspace": sub.key})
     runner.run_stage_tasks(coll, [("align", align.backend, align.params)])
+    return align
+
+
+def run_shape(runner, coll: Collection, aligned: Provenance) -> dict[str, str]:
+    """Photometric stereo over the aligned collection -> normals, albedo, lighting, depth;
+    the textured mesh (PLY, OBJ) and shaded previews into the output folder."""
+    from persona.plugins.builtin.shape import as_grey
+    from persona.plugins.face.meshing import depth_to_mesh, shaded_previews
+    from persona.plugins.face.template import generic_template
+    from persona.stores import media
+    from persona.stores.meshes import clean_mesh, write_mesh
+
+    shape_name, shape_params = runner.wf.stage("shape")
+    integrate_name, integrate_params = runner.wf.stage("integrate")
+    registry = st.default_registry()
+    prov = Provenance.make(stage="shape", backend=f"{shape_name}+{integrate_name}",
+                           backend_version=registry.get("shape", shape_name).version,
+                           params={"shape": shape_params, "integrate": integrate_params},
+                           inputs={"align": aligned.key}, persona_version=runner.version)
+    out, slug = Path(runner.wf.output), coll.path.replace("/", "_")
+    files = {"mesh_ply": out / f"{slug}_mesh.ply", "mesh_obj": out / f"{slug}_mesh.obj",
+             "mesh_previews": out / f"{slug}_mesh_previews.png"}
+    current = coll.provenance("shape/depth")
+    if current is not None and current.key == prov.key and all(f.is_file() for f in files.values()):
+        return {k: str(v) for k, v in files.items()}
+    ok = coll.state("align") == OK
+    tasks = [(runner.wf.store, coll.path, s, e, "collection", "align") for s, e in coll.shard_ranges() if ok[s:e].any()]
+    parts = list(runner.executor.run(st.aligned_sum, tasks))
+    count = sum(p["count"] for p in parts)
+    texture = (sum(p["sum"] for p in parts) / np.maximum(count, 1)[..., None]).clip(0, 255).astype(np.uint8)
+    template = generic_template()
+    mask = template.mask & (count >= 0.3 * ok.sum())
+    images, seen = [], []
+    for start, stop in coll.shard_ranges():  # the aligned collection, grey, float32: n x H x W
+        keep = ok[start:stop]
+        if keep.any():
+            images.append(as_grey(coll.array("collection/rgb")[start:stop][keep].astype(np.float32) / 255))
+            seen.append(coll.array("collection/mask")[start:stop][keep])
+    result = registry.get("shape", shape_name)(shape_params).reconstruct(
+        np.concatenate(images), mask, np.concatenate(seen), template.normals, template.depth)
+    depth = registry.get("integrate", integrate_name)(integrate_params).integrate(
+        result.normals, mask, reference=template.depth)
+    lighting = np.full((coll.n, result.lighting.shape[1]), np.nan)
+    lighting[ok] = result.lighting
+    for name, value, dims in (("shape/depth", depth, ("y", "x")), ("shape/normals", result.normals, ("y", "x", "xyz")),
+                              ("shape/albedo", result.albedo, ("y", "x")), ("shape/mask", mask, ("y", "x")),
+                              ("shape/texture", texture, ("y", "x", "channel")),
+                              ("shape/lighting", lighting, ("photo", "sh"))):
+        coll.create_single(name, np.asarray(value), dims, prov)
+    mesh = clean_mesh(depth_to_mesh(depth, mask, texture))
+    written = write_mesh(out, f"{slug}_mesh", mesh, texture, y_up=True)
+    previews = shaded_previews(depth, mask)
+    media.write_png(files["mesh_previews"], np.concatenate(previews, axis=1))
+    return {"mesh_ply": str(written["ply"]), "mesh_obj": str(written["obj"]), "mesh_previews": str(files["mesh_previews"])}

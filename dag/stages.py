@@ -275,13 +275,13 @@ def _summary(state: np.ndarray, seconds: float, skipped: bool = False) -> dict:
             "seconds": seconds, "skipped": skipped}
 
 
-def aligned_sum(url: str, path: str, start: int, stop: int) -> dict:
-    """Sum of the accepted aligned faces of photos [start, stop), weighted by visibility,
-    and the per-pixel count: one shard's part of the mean face."""
+def aligned_sum(url: str, path: str, start: int, stop: int, group: str = "aligned", stage: str = "frontalize") -> dict:
+    """Sum of the accepted faces ``group``/rgb of photos [start, stop), weighted by visibility,
+    and the per-pixel count: one shard's part of a mean face."""
     coll = Collection(open_store(url, mode="r"), path)
-    ok = coll.array("status/frontalize/state")[start:stop] == OK
-    mask = coll.array("aligned/mask")[start:stop] & ok[:, None, None]
-    rgb = coll.array("aligned/rgb")[start:stop]
+    ok = coll.array(f"status/{stage}/state")[start:stop] == OK
+    mask = coll.array(f"{group}/mask")[start:stop] & ok[:, None, None]
+    rgb = coll.array(f"{group}/rgb")[start:stop]
     return {"sum": np.einsum("nyxc,nyx->yxc", rgb, mask, dtype=np.float64),
             "count": mask.sum(axis=0, dtype=np.int64)}
 

@@ -173,3 +173,19 @@ class IntegrateBackend(Backend):
         NaN off the mask. The free offset of each connected part of the mask is set so that its
         mean equals that of ``reference`` (H, W) there, or 0 when ``reference`` is None."""
         raise NotImplementedError
+
+
+class FlowBackend(Backend):
+    """Kind ``flow``: dense optical flow between two images (ALGORITHMS §6)."""
+
+    kind = "flow"
+
+    def flow(self, image0: np.ndarray, image1: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
+        """image0, image1: (H, W) or (H, W, 3), float32/float64 in [0, 1] (uint8 accepted and
+        scaled); mask: optional (H, W) bool of image0's pixels that matter (outside it the images
+        are filled so that the flow does not latch onto the mask edge, ALGORITHMS §6.5).
+
+        Returns w: (H, W, 2) float32, channels (dx, dy), on image0's grid, with
+        ``image0(x) ≈ image1(x + w(x))``, the OpenCV / Ce Liu convention (ALGORITHMS §0).
+        Mismatched or malformed inputs raise ValueError."""
+        raise NotImplementedError

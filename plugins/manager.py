@@ -31,6 +31,9 @@ DEFAULT_PLUGINS = (
     "persona.plugins.builtin.frontalize",
     "persona.plugins.builtin.render",
     "persona.plugins.builtin.evaluate",
+    "persona.plugins.builtin.flow",
+    "persona.plugins.builtin.shape",
+    "persona.plugins.builtin.integrate",
 )
 
 ENTRY_POINT_GROUP = "persona"

@@ -57,6 +57,7 @@ __all__ = [
     "read_landmark_sidecar",
     "write_landmark_sidecar",
     "write_png",
+    "write_bytes",
     "contact_sheet",
     "write_video_mp4",
 ]
@@ -815,7 +816,9 @@ def read_landmark_sidecar(image_path) -> np.ndarray | None:
     return xy
 
 
-def _atomic_write_bytes(path: Path, data: bytes) -> None:
+def write_bytes(path, data: bytes) -> None:
+    """Write a file atomically (a temporary file in the same folder, then os.replace)."""
+    path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
@@ -842,7 +845,7 @@ def write_landmark_sidecar(image_path, landmarks: np.ndarray) -> Path:
     lines += [f"{float(x)!r} {float(y)!r}" for x, y in xy]
     lines += ["}", ""]
     out = _sidecar_path(image_path)
-    _atomic_write_bytes(out, "\n".join(lines).encode("utf-8"))
+    write_bytes(out, "\n".join(lines).encode("utf-8"))
     return out
 
 
@@ -871,7 +874,7 @@ def write_png(path, image: np.ndarray) -> None:
     ok, buf = cv2.imencode(".png", np.ascontiguousarray(a))
     if not ok:
         raise OSError(f"OpenCV could not encode a PNG for {path}")
-    _atomic_write_bytes(Path(path), buf.tobytes())
+    write_bytes(Path(path), buf.tobytes())
 
 
 def contact_sheet(

@@ -6,15 +6,12 @@ import numpy as np
 import yaml
 import zarr
 
-from persona.stores import media
+from persona.dag.demo import write_collection
 
 
 def write_photos(folder: Path, photos) -> Path:
-    folder.mkdir(parents=True, exist_ok=True)
-    for i, photo in enumerate(photos):
-        path = folder / f"face{i:03d}.png"
-        media.write_png(path, photo.image)
-        media.write_landmark_sidecar(path, photo.landmarks)
+    """Synthetic photos as PNGs with their ground-truth landmark sidecars, as the demo writes them."""
+    write_collection(folder, photos)
     return folder
 
 

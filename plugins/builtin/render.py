@@ -13,7 +13,7 @@ from ..base import Params
 from ..face.mesh import cast
 from ..face.warp import tps_map
 from ..hookspecs import hookimpl
-from ..kinds import Pose, Puppet, RenderBackend, Rendered
+from ..kinds import Pose, RenderBackend, Rendered
 from ..face.template import generic_template
 from .frontalize import project, template_scene
 
