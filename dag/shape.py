@@ -98,6 +98,7 @@ def run_shape(runner, coll: Collection, aligned: Provenance) -> dict[str, str]:
             seen.append(coll.array("collection/mask")[start:stop][keep])
     result = registry.get("shape", shape_name)(shape_params).reconstruct(
         np.concatenate(images), mask, np.concatenate(seen), template.normals, template.depth)
+    mask &= np.isfinite(result.normals).all(axis=-1)  # pixels seen by too few photos have no normal
     depth = registry.get("integrate", integrate_name)(integrate_params).integrate(
         result.normals, mask, reference=template.depth)
     lighting = np.full((coll.n, result.lighting.shape[1]), np.nan)

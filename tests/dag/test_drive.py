@@ -51,6 +51,28 @@ def test_metrics_json_has_counts_times_and_figures(drive_run):
     assert ev["stability"]["jitter_ratio"] > 0
 
 
+def test_shape_stage_writes_meshes_and_previews(drive_run):
+    import open3d as o3d
+
+    from persona.stores.layout import Collection, open_store
+
+    folder, path, report = drive_run
+    out = folder / "output"
+    for actor in ("puppet", "driver"):
+        pictures = report["collections"][actor]["pictures"]
+        mesh = o3d.io.read_triangle_mesh(pictures["mesh_ply"])
+        assert len(mesh.triangles) > 10000 and mesh.has_vertex_colors()
+        assert (out / f"{actor}_mesh.obj").is_file() and (out / f"{actor}_mesh.png").is_file()
+        previews = media.decode_image(pictures["mesh_previews"])
+        assert previews.shape[1] == 3 * previews.shape[0]  # three views side by side
+        coll = Collection(open_store(str(folder / "run.zarr"), mode="r"), actor)
+        assert coll.array("subspace/basis").shape == (4, 244, 194, 3)
+        assert (coll.state("align") == 1).sum() >= 8
+        depth, mask = coll.array("shape/depth")[...], coll.array("shape/mask")[...]
+        assert np.isfinite(depth[mask]).all() and mask.sum() > 20000
+        assert coll.array("collection/map").shape[1:] == (244, 194, 2)
+
+
 def test_report_is_one_self_contained_page(drive_run):
     folder, _, _ = drive_run
     page = (folder / "output" / "report.html").read_text()
