@@ -336,12 +336,15 @@ class Runner:
                                f"see `persona inspect {self.wf.store}` for each photo's reason")
             mean = self.mean_face(coll)
             pictures = self.pictures(coll, mean)
+            shape_seconds = None
             if path != "driver/frames":  # the 3D shape comes from photo collections, not video frames
+                t0 = time.perf_counter()
                 pictures.update(run_shape(self, coll, run_alignment(self, coll)))
+                shape_seconds = round(time.perf_counter() - t0, 3)
             accepted = int((coll.state("frontalize") == OK).sum())
             report["collections"][path] = {
                 "n_photos": coll.n, "accepted": accepted, "rejected": coll.n - accepted,
-                "pictures": pictures}
+                "pictures": pictures, "shape_seconds": shape_seconds}
         series = None
         if self.wf.driver is not None and self.wf.driver.video is not None:
             t0 = time.perf_counter()
