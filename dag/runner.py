@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from persona.plugins.base import Rejected
 from persona.plugins.hookspecs import hookimpl
 from persona.plugins.manager import get_plugin_manager
 from persona.stores import media
@@ -339,7 +340,11 @@ class Runner:
             shape_seconds = None
             if path != "driver/frames":  # the 3D shape comes from photo collections, not video frames
                 t0 = time.perf_counter()
-                pictures.update(run_shape(self, coll, run_alignment(self, coll)))
+                try:
+                    pictures.update(run_shape(self, coll, run_alignment(self, coll)))
+                except Rejected as exc:  # e.g. too few photos for photometric stereo: the run goes on
+                    log.warning("%s: no 3D shape: %s", path, exc.reason)
+                    report.setdefault("warnings", []).append(f"{path}: no 3D shape: {exc.reason}")
                 shape_seconds = round(time.perf_counter() - t0, 3)
             accepted = int((coll.state("frontalize") == OK).sum())
             report["collections"][path] = {
