@@ -39,15 +39,34 @@ def compute_subspace(runner, coll: Collection, *, source: str, state: str, rank:
     mean = coll.array("aligned/mean")[...].astype(np.float32) / 255
     # pixels a photo does not see take the collection's mean (its unseen parts carry no light)
     rows = da.where(mask[..., None], rgb.astype(np.float32) / 255, mean)[ok].reshape(len(ok), H * W * 3)
-    _, singular, basis = da.linalg.svd_compressed(rows.rechunk((chunks, -1)), k=rank, n_power_iter=2, seed=0)
-    singular, basis = runner.executor.compute(singular, basis)
-    basis = np.asarray(basis, np.float32).reshape(rank, H, W, 3)
+    singular, basis = streamed_svd(rows.rechunk((chunks, -1)), rank, runner.executor.compute)
+    basis = basis.astype(np.float32).reshape(rank, H, W, 3)
     if basis[0].sum() < 0:  # the first component is the average face: keep it positive
         basis[0] *= -1
     coll.create_single("subspace/basis", basis, ("component", "y", "x", "channel"), prov)
     coll.create_single("subspace/singular_values", np.asarray(singular, np.float64), ("component",), prov)
     coll.root[f"{coll.path}/subspace"].attrs.update({"rank": rank, "tps_lambda": tps_lambda})
     return prov
+
+
+def streamed_svd(rows, rank: int, compute, *, oversample: int = 10, power_iterations: int = 2,
+                 seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Top ``rank`` singular values and right singular vectors (rank, p) of a tall dask array.
+
+    A randomised SVD (Halko et al. 2011) in which every product with ``rows`` is its own
+    computation: each pass streams the shards once and keeps only small (n, l) or (p, l)
+    results, so memory does not grow with the number of rows (dask's ``svd_compressed``
+    computes all passes in one graph and holds every shard between them).
+    """
+    p = rows.shape[1]
+    omega = np.random.default_rng(seed).standard_normal((p, rank + oversample)).astype(np.float32)
+    q = np.linalg.qr(compute(rows @ omega)[0])[0]
+    for _ in range(power_iterations):
+        z = np.linalg.qr(compute(rows.T @ q.astype(np.float32))[0])[0]
+        q = np.linalg.qr(compute(rows @ z.astype(np.float32))[0])[0]
+    projected = compute(rows.T @ q.astype(np.float32))[0].T  # Qᵀ A, (l, p)
+    _, singular, vt = np.linalg.svd(projected.astype(np.float64), full_matrices=False)
+    return singular[:rank], vt[:rank]
 
 
 def run_alignment(runner, coll: Collection) -> Provenance:
