@@ -24,23 +24,9 @@ from pathlib import Path
 import numpy as np
 import open3d as o3d
 
-from .media import write_png
+from .media import write_bytes, write_png
 
 __all__ = ["clean_mesh", "write_mesh"]
-
-
-def _atomic_write_bytes(path: Path, data: bytes) -> None:
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
 
 
 def _check_name(name: str) -> str:
@@ -145,9 +131,9 @@ def write_mesh(folder, name: str, mesh: o3d.geometry.TriangleMesh, texture: np.n
         paths["mtl"] = folder / f"{name}.mtl"
         mtl = (f"# Persona mesh material\nnewmtl {name}\nKa 1.000 1.000 1.000\nKd 1.000 1.000 1.000\n"
                f"Ks 0.000 0.000 0.000\nd 1.0\nillum 1\nmap_Kd {name}.png\n")
-        _atomic_write_bytes(paths["mtl"], mtl.encode("utf-8"))
+        write_bytes(paths["mtl"], mtl.encode("utf-8"))
     paths["obj"] = folder / f"{name}.obj"
-    _atomic_write_bytes(paths["obj"], _obj_text(m, name, textured).encode("utf-8"))
+    write_bytes(paths["obj"], _obj_text(m, name, textured).encode("utf-8"))
     paths["ply"] = folder / f"{name}.ply"
     _write_ply(paths["ply"], m)
     return paths
