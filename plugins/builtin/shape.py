@@ -119,10 +119,11 @@ class TemplatePhotometricStereo(ShapeBackend):
             30.0, gt=0, le=180, description="normals further than this (degrees) from the template's "
             "are taken as outliers and replaced by the template's (real collections: shadowed sides, "
             "hair, glasses); 180 keeps every recovered normal. Not in [14]: a robustness choice")
-        regularised: bool = Field(False, description="template-regularised alternating least squares "
+        regularised: bool = Field(True, description="template-regularised alternating least squares "
                                   "instead of SVD + template lights (ALGORITHMS §8.2, §16.9): more robust "
                                   "to residual misalignment, pulls towards the template where the "
-                                  "images say little")
+                                  "images say little. The default: through the whole pipeline it beat "
+                                  "plain SVD on synthetic faces (3.4° vs 3.9°) and on real ones")
         als_iterations: int = Field(30, ge=1, le=1000, description="regularised variant: ALS rounds")
         regularisation: float = Field(0.01, ge=0, description="regularised variant: g = regularisation · "
                                       "trace(LᵀL)/4, the weight of ||S - [ρ; ρ n_t]||²")
