@@ -510,7 +510,22 @@ def coarse2fine_flow(im1: np.ndarray, im2: np.ndarray, alpha: float, ratio: floa
     return u, v
 
 
-class LiuFlow(FlowBackend):
+class PreparedFlow(FlowBackend):
+    """The built-ins' common entry: inputs checked and converted, the outside of the mask
+    filled (ALGORITHMS §6.5); subclasses implement ``compute`` on the prepared pair."""
+
+    def flow(self, image0, image1, mask=None):
+        pair = _prepared(image0, image1, mask)
+        if pair is None:  # an empty mask: nothing to align
+            return np.zeros(np.shape(image0)[:2] + (2,), np.float32)
+        return self.compute(*pair)
+
+    def compute(self, image0: np.ndarray, image1: np.ndarray) -> np.ndarray:
+        """image0, image1: (H, W, C) float64 in [0, 1], masks already filled -> (H, W, 2) float32."""
+        raise NotImplementedError
+
+
+class LiuFlow(PreparedFlow):
     """Ce Liu's ``Coarse2FineTwoFrames`` (OpticalFlow.cpp, GaussianPyramid.cpp), ALGORITHMS §6.1-6.2.
 
     Kept from Liu: feature channels (im2feature, [1,-8,0,8,-1]/12 derivatives), the
@@ -554,11 +569,8 @@ class LiuFlow(FlowBackend):
         sor: int = Field(40, ge=1, le=1000, description="nSORIterations: SOR sweeps per inner "
                          "iteration at the finest level; level k runs sor + 3k (paper: 40)")
 
-    def flow(self, image0, image1, mask=None):
-        pair = _prepared(image0, image1, mask)
-        if pair is None:
-            return np.zeros(np.shape(image0)[:2] + (2,), np.float32)
-        i0, i1 = pair
+    def compute(self, image0, image1):
+        i0, i1 = image0, image1
         p = self.params
         u, v = coarse2fine_flow(np.ascontiguousarray(i0.transpose(2, 0, 1)),
                                 np.ascontiguousarray(i1.transpose(2, 0, 1)),
@@ -575,7 +587,7 @@ _DIS_PRESETS = {"ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST,
                 "medium": cv2.DISOPTICAL_FLOW_PRESET_MEDIUM}
 
 
-class DISFlow(FlowBackend):
+class DISFlow(PreparedFlow):
     name = "dis"
     description = ("OpenCV DIS (Kroeger et al. 2016) on 8-bit grey, with its built-in variational "
                    "refinement; fast")
@@ -618,12 +630,9 @@ class DISFlow(FlowBackend):
                                  f"patch_size ({self.patch_size})")
             return self
 
-    def flow(self, image0, image1, mask=None):
-        pair = _prepared(image0, image1, mask)
-        if pair is None:
-            return np.zeros(np.shape(image0)[:2] + (2,), np.float32)
+    def compute(self, image0, image1):
         p = self.params
-        g0, g1 = to_uint8_pair(to_grey(pair[0]), to_grey(pair[1]), p.stretch)
+        g0, g1 = to_uint8_pair(to_grey(image0), to_grey(image1), p.stretch)
         dis = cv2.DISOpticalFlow.create(_DIS_PRESETS[p.preset])
         for value, setter in ((p.finest_scale, dis.setFinestScale),
                               (p.patch_size, dis.setPatchSize),
@@ -645,7 +654,7 @@ class DISFlow(FlowBackend):
         return _finish(dis.calc(g0, g1, None)[:h, :w])
 
 
-class TVL1Flow(FlowBackend):
+class TVL1Flow(PreparedFlow):
     name = "tvl1"
     description = "OpenCV dual TV-L1 (Zach et al. 2007; Wedel et al. 2009) on grey, brightness constancy only"
 
@@ -670,12 +679,9 @@ class TVL1Flow(FlowBackend):
 
         model_config = ConfigDict(populate_by_name=True)
 
-    def flow(self, image0, image1, mask=None):
-        pair = _prepared(image0, image1, mask)
-        if pair is None:
-            return np.zeros(np.shape(image0)[:2] + (2,), np.float32)
+    def compute(self, image0, image1):
         p = self.params
-        g0, g1 = to_float255_pair(to_grey(pair[0]), to_grey(pair[1]), p.stretch)
+        g0, g1 = to_float255_pair(to_grey(image0), to_grey(image1), p.stretch)
         tv = cv2.optflow.DualTVL1OpticalFlow_create(
             tau=p.tau, lambda_=p.lambda_, theta=p.theta, nscales=p.scales, warps=p.warps,
             epsilon=p.epsilon, innnerIterations=p.inner_iterations,
@@ -684,7 +690,7 @@ class TVL1Flow(FlowBackend):
         return _finish(tv.calc(g0, g1, None))
 
 
-class DeepFlow(FlowBackend):
+class DeepFlow(PreparedFlow):
     name = "deepflow"
     description = ("OpenCV DeepFlow (Weinzaepfel et al. 2013) variational flow on 8-bit grey; "
                    "OpenCV's Python binding exposes no parameters")
@@ -693,15 +699,12 @@ class DeepFlow(FlowBackend):
         stretch: bool = Field(True, description="map the pair's joint intensity range to [0, 255] "
                               "before quantising to 8 bits")
 
-    def flow(self, image0, image1, mask=None):
-        pair = _prepared(image0, image1, mask)
-        if pair is None:
-            return np.zeros(np.shape(image0)[:2] + (2,), np.float32)
-        g0, g1 = to_uint8_pair(to_grey(pair[0]), to_grey(pair[1]), self.params.stretch)
+    def compute(self, image0, image1):
+        g0, g1 = to_uint8_pair(to_grey(image0), to_grey(image1), self.params.stretch)
         return _finish(cv2.optflow.createOptFlow_DeepFlow().calc(g0, g1, None))
 
 
-class FarnebackFlow(FlowBackend):
+class FarnebackFlow(PreparedFlow):
     name = "farneback"
     description = "OpenCV Farneback (2003) polynomial-expansion flow on grey"
 
@@ -718,18 +721,15 @@ class FarnebackFlow(FlowBackend):
                                       "(OPTFLOW_FARNEBACK_GAUSSIAN)")
         stretch: bool = Field(True, description="map the pair's joint intensity range to [0, 255]")
 
-    def flow(self, image0, image1, mask=None):
-        pair = _prepared(image0, image1, mask)
-        if pair is None:
-            return np.zeros(np.shape(image0)[:2] + (2,), np.float32)
+    def compute(self, image0, image1):
         p = self.params
-        g0, g1 = to_float255_pair(to_grey(pair[0]), to_grey(pair[1]), p.stretch)
+        g0, g1 = to_float255_pair(to_grey(image0), to_grey(image1), p.stretch)
         flags = cv2.OPTFLOW_FARNEBACK_GAUSSIAN if p.gaussian_window else 0
         return _finish(cv2.calcOpticalFlowFarneback(g0, g1, None, p.pyr_scale, p.levels, p.winsize,
                                                     p.iterations, p.poly_n, p.poly_sigma, flags))
 
 
-class VariationalRefinementFlow(FlowBackend):
+class VariationalRefinementFlow(PreparedFlow):
     name = "varref"
     description = ("coarse-to-fine pyramid (Liu's ratio and minWidth) over OpenCV's single-level "
                    "Brox-type cv2.VariationalRefinement, on grey in [0, 255]")
@@ -747,12 +747,9 @@ class VariationalRefinementFlow(FlowBackend):
         omega: float = Field(1.6, gt=0, lt=2, description="SOR relaxation factor")
         stretch: bool = Field(True, description="map the pair's joint intensity range to [0, 255]")
 
-    def flow(self, image0, image1, mask=None):
-        pair = _prepared(image0, image1, mask)
-        if pair is None:
-            return np.zeros(np.shape(image0)[:2] + (2,), np.float32)
+    def compute(self, image0, image1):
         p = self.params
-        g0, g1 = to_float255_pair(to_grey(pair[0]), to_grey(pair[1]), p.stretch)
+        g0, g1 = to_float255_pair(to_grey(image0), to_grey(image1), p.stretch)
         h0, w0 = g0.shape
         n_levels = pyramid_levels(w0, p.ratio, p.min_width)
         vr = cv2.VariationalRefinement.create()
