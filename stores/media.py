@@ -58,6 +58,7 @@ __all__ = [
     "write_landmark_sidecar",
     "write_png",
     "write_bytes",
+    "atomic_path",
     "contact_sheet",
     "write_video_mp4",
 ]
@@ -816,21 +817,28 @@ def read_landmark_sidecar(image_path) -> np.ndarray | None:
     return xy
 
 
-def write_bytes(path, data: bytes) -> None:
-    """Write a file atomically (a temporary file in the same folder, then os.replace)."""
+@contextlib.contextmanager
+def atomic_path(path, suffix: str | None = None) -> Iterator[str]:
+    """A temporary file beside ``path`` to write; it replaces ``path`` only if the block
+    succeeds, and is removed otherwise, so an interrupted write never leaves half a file.
+    ``suffix`` (default: the path's own) lets writers that pick a format by extension work."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=suffix or path.suffix or ".tmp")
+    os.close(fd)
     try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
+        yield tmp
         os.replace(tmp, path)
     except BaseException:
-        try:
+        with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
-        except FileNotFoundError:
-            pass
         raise
+
+
+def write_bytes(path, data: bytes) -> None:
+    """Write a file atomically (a temporary file in the same folder, then os.replace)."""
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        f.write(data)
 
 
 def write_landmark_sidecar(image_path, landmarks: np.ndarray) -> Path:
@@ -926,10 +934,7 @@ def write_video_mp4(path, frames: Iterable[np.ndarray], fps: float) -> None:
 
     path = Path(path)
     rate = _rate(float(fps))
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=".mp4")
-    os.close(fd)
-    try:
+    with atomic_path(path, ".mp4") as tmp:
         container = av.open(tmp, mode="w", format="mp4", options={"movflags": "+faststart"})
         try:
             stream = None
@@ -965,10 +970,3 @@ def write_video_mp4(path, frames: Iterable[np.ndarray], fps: float) -> None:
                 container.mux(packet)
         finally:
             container.close()
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise

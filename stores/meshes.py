@@ -18,13 +18,12 @@ from __future__ import annotations
 
 import io
 import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 import open3d as o3d
 
-from .media import write_bytes, write_png
+from .media import atomic_path, write_bytes, write_png
 
 __all__ = ["clean_mesh", "write_mesh"]
 
@@ -78,9 +77,7 @@ def _obj_text(mesh: o3d.geometry.TriangleMesh, name: str, textured: bool) -> str
 
 
 def _write_ply(path: Path, mesh: o3d.geometry.TriangleMesh) -> None:
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=".ply")
-    os.close(fd)
-    try:
+    with atomic_path(path, ".ply") as tmp:
         plain = o3d.geometry.TriangleMesh(mesh.vertices, mesh.triangles)
         plain.vertex_normals = mesh.vertex_normals
         if mesh.has_vertex_colors():
@@ -90,13 +87,6 @@ def _write_ply(path: Path, mesh: o3d.geometry.TriangleMesh) -> None:
                                         write_triangle_uvs=False, print_progress=False)
         if not ok:
             raise OSError(f"open3d could not write {path}")
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
 
 
 def write_mesh(folder, name: str, mesh: o3d.geometry.TriangleMesh, texture: np.ndarray | None = None, *,
