@@ -32,11 +32,12 @@ def describe_photos(url: str, path: str, indices: list[int], identity: tuple[str
     """Descriptors (k, 128) of accepted photos ``indices`` of a collection, from their stored landmarks."""
     coll = Collection(open_store(url, mode="r"), path)
     backend = _identity(identity)
+    sizes, points = coll.array("photos/size")[:], coll.array("landmarks/points")[:]  # small: read once
     out = []
     for i in indices:
-        h, w = coll.array("photos/size")[i]
-        image = coll.array("photos/rgb")[i][:h, :w]
-        out.append(backend.describe(image, coll.array("landmarks/points")[i].astype(np.float64)))
+        h, w = sizes[i]
+        image = coll.array("photos/rgb")[i][:h, :w]  # one chunk per photo
+        out.append(backend.describe(image, points[i].astype(np.float64)))
     return np.array(out).reshape(len(out), -1)
 
 

@@ -118,10 +118,10 @@ def to_grey(image: np.ndarray) -> np.ndarray:
     return image[:, :, 0] * 0.299 + image[:, :, 1] * 0.587 + image[:, :, 2] * 0.114
 
 
-def to_uint8_pair(g0: np.ndarray, g1: np.ndarray, stretch: bool) -> tuple[np.ndarray, np.ndarray]:
-    """Two grey float images -> uint8. With ``stretch``, the pair's joint range is mapped to
-    [0, 255] (one affine map for both, so the flow is unchanged and low-contrast texture is not
-    lost to quantisation); otherwise [0, 1] -> [0, 255]."""
+def _stretched(g0: np.ndarray, g1: np.ndarray, stretch: bool) -> tuple[np.ndarray, np.ndarray]:
+    """Two grey float images in [0, 255] units, float64. With ``stretch``, the pair's joint
+    range is mapped to [0, 255] (one affine map for both, so the flow is unchanged and
+    low-contrast texture is not lost to quantisation); otherwise [0, 1] -> [0, 255]."""
     lo, hi = 0.0, 1.0
     if stretch:
         lo = min(g0.min(), g1.min())
@@ -129,20 +129,19 @@ def to_uint8_pair(g0: np.ndarray, g1: np.ndarray, stretch: bool) -> tuple[np.nda
         if hi - lo < 1e-12:
             lo, hi = lo - 0.5, lo + 0.5
     scale = 255.0 / (hi - lo)
-    q = [np.clip(np.rint((g - lo) * scale), 0, 255).astype(np.uint8) for g in (g0, g1)]
+    return (g0 - lo) * scale, (g1 - lo) * scale
+
+
+def to_uint8_pair(g0: np.ndarray, g1: np.ndarray, stretch: bool) -> tuple[np.ndarray, np.ndarray]:
+    """Two grey float images -> uint8, mapped as :func:`_stretched` maps them."""
+    q = [np.clip(np.rint(g), 0, 255).astype(np.uint8) for g in _stretched(g0, g1, stretch)]
     return q[0], q[1]
 
 
 def to_float255_pair(g0: np.ndarray, g1: np.ndarray, stretch: bool) -> tuple[np.ndarray, np.ndarray]:
     """As :func:`to_uint8_pair` but float32 without quantisation."""
-    lo, hi = 0.0, 1.0
-    if stretch:
-        lo = min(g0.min(), g1.min())
-        hi = max(g0.max(), g1.max())
-        if hi - lo < 1e-12:
-            lo, hi = lo - 0.5, lo + 0.5
-    scale = 255.0 / (hi - lo)
-    return (((g0 - lo) * scale).astype(np.float32), ((g1 - lo) * scale).astype(np.float32))
+    f0, f1 = _stretched(g0, g1, stretch)
+    return f0.astype(np.float32), f1.astype(np.float32)
 
 
 def _prepared(image0, image1, mask):

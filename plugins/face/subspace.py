@@ -34,7 +34,3 @@ def project(image: np.ndarray, basis: np.ndarray, weights: np.ndarray | None = N
         coef = np.linalg.lstsq((b * w).T, x * w, rcond=None)[0]
     return (coef @ b).reshape(image.shape)
 
-
-def fill_unseen(image: np.ndarray, seen: np.ndarray, fill: np.ndarray) -> np.ndarray:
-    """``image`` where ``seen``, else ``fill`` (e.g. the collection mean): the rows of the SVD."""
-    return np.where(seen[..., None] if image.ndim == seen.ndim + 1 else seen, image, fill)

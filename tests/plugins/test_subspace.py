@@ -1,6 +1,6 @@
 import numpy as np
 
-from persona.plugins.face.subspace import fill_unseen, project
+from persona.plugins.face.subspace import project
 
 
 def orthonormal_basis(k, shape, seed=0):
@@ -26,9 +26,3 @@ def test_masked_projection_ignores_unseen_pixels():
     np.testing.assert_allclose(project(corrupted, basis, seen), image, atol=1e-8)
     assert np.abs(project(corrupted, basis) - image).max() > 0.1  # unmasked, the garbage pulls the fit
 
-
-def test_fill_unseen():
-    image = np.zeros((2, 2, 3))
-    seen = np.array([[True, False], [True, True]])
-    out = fill_unseen(image, seen, np.full((2, 2, 3), 7.0))
-    assert out[0, 1].tolist() == [7, 7, 7] and out[0, 0].tolist() == [0, 0, 0]
