@@ -1,0 +1,151 @@
+"""Expression-dependent multi-scale blending of aligned photos (paper §5, Eq. 2 and 3).
+
+Every photo i, aligned to the target expression, contributes to each level of a Laplacian
+pyramid with the weight
+
+    W^i_l = (e_i + τ l^-β) · (L^i_l)^α,        e_i = exp(-||F^T - F^i||² / 2σ²)
+
+normalised over the photos per pixel and level. ``e_i`` says how close photo i's expression
+(its 49 pose-corrected fiducials F^i) is to the target's F^T; ``L^i_l`` is its local detail
+(the response of a Laplacian filter) at level l; ``l`` counts from the coarsest level (0).
+At l = 0 the uniform term τ·0^-β is infinite: the expression weight drops out and the
+coarsest level is the detail-weighted mean of all photos (one consistent colour). At l = 1
+the two terms are comparable, and from l = 2 on, τ l^-β (≤ 1e-6 at β = 20) is negligible:
+fine detail comes from the photos with the target's expression (ALGORITHMS §12.3-§12.4).
+
+Since ``e_i`` is one number per photo, a level's blend is two matrix-vector products,
+``Σ_i W^i lap^i = e @ P + c Σ_i P^i`` and ``Σ_i W^i = e @ Q + c Σ_i Q^i`` with ``P^i = Q^i lap^i``,
+``Q^i = (L^i)^α`` and ``c = τ l^-β``: :class:`BlendCache` keeps P and Q, so a new target (a video
+frame) costs only these products (the paper's puppetry mode, §6).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+
+def expression_weights(fiducials: np.ndarray, target: np.ndarray, sigma: float, *,
+                       relative: bool = False) -> np.ndarray:
+    """e_i = exp(-||F^T - F^i||² / 2σ²) for fiducials (n, 49, 2) and a target (49, 2), in
+    canonical px (σ = 10 in the paper: a mean displacement of 2 px per point gives 0.14).
+
+    ``relative``: divided by the largest (the nearest photo gets 1), for averages that are
+    normalised anyway; it keeps them defined when every e_i underflows (a target far from
+    every photo)."""
+    d2 = np.sum((np.asarray(fiducials, np.float64) - np.asarray(target, np.float64)) ** 2, axis=(1, 2))
+    return np.exp(-(d2 - (d2.min() if relative else 0.0)) / (2.0 * sigma ** 2))
+
+
+def level_bias(levels: int, beta: float, tau: float) -> np.ndarray:
+    """τ l^-β for each pyramid array index k (finest k = 0, so l = levels-1-k); inf at l = 0."""
+    l = np.arange(levels - 1, -1, -1, dtype=np.float64)
+    with np.errstate(divide="ignore"):
+        return tau * l ** -beta
+
+
+def gaussian_pyramid(image: np.ndarray, levels: int) -> list[np.ndarray]:
+    """[image, pyrDown(image), ...], ``levels`` arrays, finest first."""
+    pyramid = [image]
+    for _ in range(levels - 1):
+        pyramid.append(cv2.pyrDown(pyramid[-1]))
+    return pyramid
+
+
+def laplacian_pyramid(image: np.ndarray, levels: int) -> list[np.ndarray]:
+    """Band-pass levels, finest first; the last is the coarsest Gaussian level. ``pyrUp`` gets
+    the finer level's size (``pyrDown`` rounds odd sizes up: 97 -> 49 -> 25; ALGORITHMS §12.4)."""
+    gauss = gaussian_pyramid(np.asarray(image, np.float32), levels)
+    bands = [fine - cv2.pyrUp(coarse, dstsize=(fine.shape[1], fine.shape[0]))
+             for fine, coarse in zip(gauss[:-1], gauss[1:])]
+    return bands + [gauss[-1]]
+
+
+def collapse(pyramid: list[np.ndarray]) -> np.ndarray:
+    """The image whose Laplacian pyramid this is (exact inverse of :func:`laplacian_pyramid`)."""
+    image = pyramid[-1]
+    for band in pyramid[-2::-1]:
+        image = cv2.pyrUp(image, dstsize=(band.shape[1], band.shape[0])) + band
+    return image
+
+
+def detail_pyramid(grey: np.ndarray, valid: np.ndarray, levels: int, *, blur: float = 1.0,
+                   floor: float = 1e-6) -> list[np.ndarray]:
+    """L^i per level: |Laplacian| of the blurred grey image at full resolution, plus ``floor``
+    (flat regions keep a weight), zero where the photo is not valid, reduced to each level by
+    the Gaussian pyramid, i.e. the local detail energy there (ALGORITHMS §12.3's proposal)."""
+    g = np.asarray(grey, np.float32)
+    if blur > 0:
+        g = cv2.GaussianBlur(g, (0, 0), blur)
+    response = (np.abs(cv2.Laplacian(g, cv2.CV_32F, ksize=3)) + np.float32(floor)) * valid.astype(np.float32)
+    return gaussian_pyramid(response, levels)
+
+
+@dataclass
+class BlendCache:
+    """The per-photo terms of Eq. 3 that do not depend on the target, level by level.
+
+    weighted[k] : (n, h_k, w_k, C) float32 — P = (L^i)^α · lap^i
+    detail[k] : (n, h_k, w_k, 1) float32 — Q = (L^i)^α
+    bias : (levels,) — τ l^-β per array index (inf at the coarsest)
+    """
+
+    weighted: list[np.ndarray]
+    detail: list[np.ndarray]
+    bias: np.ndarray
+
+    def __post_init__(self):
+        # the uniform term's sums over all photos, shared by every target
+        self._weighted_sum = [p.sum(axis=0) for p in self.weighted]
+        self._detail_sum = [q.sum(axis=0) for q in self.detail]
+
+    @classmethod
+    def build(cls, images: np.ndarray, valid: np.ndarray, *, levels: int, alpha: float, beta: float,
+              tau: float, blur: float = 1.0, floor: float = 1e-6) -> "BlendCache":
+        """images: (n, H, W, C) float aligned photos; valid: (n, H, W) bool."""
+        n = len(images)
+        weighted, detail = [], []
+        for i in range(n):
+            q = detail_pyramid(images[i].mean(axis=-1), valid[i], levels, blur=blur, floor=floor)
+            bands = laplacian_pyramid(images[i], levels)
+            if i == 0:
+                weighted = [np.empty((n, *b.shape), np.float32) for b in bands]
+                detail = [np.empty((n, *d.shape, 1), np.float32) for d in q]
+            for k in range(levels):
+                detail[k][i, ..., 0] = q[k] ** np.float32(alpha)
+                weighted[k][i] = bands[k] * detail[k][i]
+        return cls(weighted, detail, level_bias(levels, beta, tau))
+
+    @property
+    def levels(self) -> int:
+        return len(self.weighted)
+
+    def blend(self, e: np.ndarray, *, skip: float = 1e-6) -> np.ndarray:
+        """The blended image (H, W, C) for expression weights e (n,). Photos whose e is below
+        ``skip`` × max(e) are left out of the products: whatever their detail, their share of
+        every level but the two coarsest is below ``skip`` × (their detail / the best photo's)."""
+        e = np.asarray(e, np.float64)
+        keep = np.flatnonzero(e >= skip * e.max()) if e.max() > 0 else np.zeros(0, int)
+        ek = e[keep].astype(np.float32)
+        pyramid = []
+        for k in range(self.levels):
+            c = self.bias[k]
+            if np.isinf(c):  # l = 0: uniform, the expression weight drops out
+                num, den = self._weighted_sum[k], self._detail_sum[k]
+            else:
+                num = np.tensordot(ek, self.weighted[k][keep], axes=1) + np.float32(c) * self._weighted_sum[k]
+                den = np.tensordot(ek, self.detail[k][keep], axes=1) + np.float32(c) * self._detail_sum[k]
+            pyramid.append(num / np.where(den > 0, den, np.inf))  # 0 where no photo sees the pixel
+        return collapse(pyramid)
+
+    def weights(self, e: np.ndarray) -> list[np.ndarray]:
+        """The normalised W̃^i_l per level, (n, h_k, w_k): for tests and pictures."""
+        out = []
+        for k in range(self.levels):
+            q, c = self.detail[k][..., 0], self.bias[k]
+            w = q if np.isinf(c) else (np.asarray(e, np.float32)[:, None, None] + np.float32(c)) * q
+            total = w.sum(axis=0)
+            out.append(w / np.where(total > 0, total, np.inf))
+        return out

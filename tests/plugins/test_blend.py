@@ -1,0 +1,92 @@
+"""Multi-scale expression-dependent blending (paper Eq. 3, ALGORITHMS §12.3-§12.4, §12.7)."""
+
+import cv2
+import numpy as np
+import pytest
+
+from persona.plugins.face.blend import (BlendCache, collapse, expression_weights, gaussian_pyramid,
+                                        laplacian_pyramid, level_bias)
+
+H, W = 244, 194
+
+
+def _texture(rng, shape=(H, W, 3)):
+    return cv2.GaussianBlur(rng.random(shape).astype(np.float32), (0, 0), 1.5) * 255
+
+
+@pytest.mark.parametrize("levels", [3, 5, 7])
+def test_laplacian_pyramid_reconstructs_exactly_with_odd_sizes(levels):
+    image = _texture(np.random.default_rng(0))
+    pyramid = laplacian_pyramid(image, levels)
+    assert [p.shape[:2] for p in pyramid][:5] == [(244, 194), (122, 97), (61, 49), (31, 25), (16, 13)][:levels]
+    assert np.abs(collapse(pyramid) - image).max() < 1e-3  # float32 rounding on 0-255 values
+
+
+def test_level_bias_is_infinite_only_at_the_coarsest_level():
+    bias = level_bias(5, beta=20, tau=1)
+    assert np.isinf(bias[-1]) and np.isfinite(bias[:-1]).all()
+    assert bias[-2] == 1.0 and bias[-3] == pytest.approx(2.0 ** -20)  # l = 1, l = 2
+
+
+def test_expression_weights_follow_the_paper_and_relative_ones_never_vanish():
+    target = np.zeros((49, 2))
+    fid = np.stack([target + 2.0, target + 40.0])  # 2 px and 40 px per coordinate
+    e = expression_weights(fid, target, sigma=10)
+    assert e[0] == pytest.approx(np.exp(-98 * 4 / 200))  # 0.14, ALGORITHMS §12.3
+    assert e[1] == 0.0  # underflows
+    r = expression_weights(fid, target, sigma=10, relative=True)
+    assert r[0] == 1.0 and 0 <= r[1] < 1
+
+
+def _collection(rng, n=6):
+    images = np.stack([_texture(rng) for _ in range(n)])
+    valid = np.ones((n, H, W), bool)
+    valid[0, :40] = False  # one photo misses the top rows
+    return images, valid
+
+
+def test_weights_sum_to_one_at_every_level_and_nothing_is_nan():
+    rng = np.random.default_rng(1)
+    images, valid = _collection(rng)
+    cache = BlendCache.build(images, valid, levels=5, alpha=1, beta=20, tau=1)
+    for e in (rng.random(6), np.zeros(6), np.array([1.0, 0, 0, 0, 0, 0])):
+        weights = cache.weights(e)
+        for k, w in enumerate(weights):
+            assert np.isfinite(w).all()
+            np.testing.assert_allclose(w.sum(axis=0), 1.0, atol=1e-5, err_msg=f"level {k}")
+        out = cache.blend(e)
+        assert np.isfinite(out).all()
+        # the blend is the normalised weighted sum of the Laplacian levels
+        bands = [np.stack(b) for b in zip(*(laplacian_pyramid(im, 5) for im in images))]
+        expected = collapse([np.einsum("nhw,nhwc->hwc", w, b) for w, b in zip(weights, bands)])
+        np.testing.assert_allclose(out, expected, atol=1e-2)
+    # the photo missing the top rows has no weight there at the finest level
+    assert cache.weights(np.ones(6))[0][0, :38].max() == 0
+
+
+def test_coarse_band_is_the_mean_and_fine_detail_comes_from_the_target_photos():
+    """All photos share their detail up to the coarse-band lighting (ALGORITHMS §12.7 test 1),
+    except two that carry a fine pattern: the low frequencies are the collection's mean
+    whatever the target, the pattern appears only when those photos have the weight."""
+    rng = np.random.default_rng(2)
+    base = cv2.GaussianBlur(_texture(rng), (0, 0), 4) * 4 - 2 * 127  # smooth, full range
+    n = 8
+    gains = rng.uniform(0.85, 1.15, (n, 1, 1, 3)).astype(np.float32)
+    images = np.repeat(base[None], n, axis=0) * gains  # colour casts: ±15 %
+    stripes = (8 * np.sign(np.sin(np.arange(W) * np.pi / 2))).astype(np.float32)[None, :, None]
+    images[:2] += stripes  # 4-px period: only in the finest band
+    cache = BlendCache.build(images, np.ones((n, H, W), bool), levels=5, alpha=0, beta=20, tau=1)
+    smile = cache.blend(np.r_[1.0, 1.0, np.zeros(n - 2)])
+    neutral = cache.blend(np.r_[0.0, 0.0, np.ones(n - 2)])
+
+    def low(img):
+        return gaussian_pyramid(img, 5)[-1]
+
+    def stripe_amplitude(img):
+        residual = img - cv2.GaussianBlur(img, (0, 0), 3)
+        return np.abs(np.mean(residual * np.sign(stripes), axis=(0, 2))).mean()
+
+    mean_low = low(images.mean(axis=0))
+    for out in (smile, neutral):  # α = 0: uniform weights at the coarsest level
+        np.testing.assert_allclose(low(out), mean_low, atol=1.0)  # of 0-255 (pyrDown∘pyrUp is not exact)
+    assert stripe_amplitude(smile) > 0.6 * 8 > 10 * stripe_amplitude(neutral)
