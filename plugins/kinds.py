@@ -189,3 +189,19 @@ class FlowBackend(Backend):
         ``image0(x) ≈ image1(x + w(x))``, the OpenCV / Ce Liu convention (ALGORITHMS §0).
         Mismatched or malformed inputs raise ValueError."""
         raise NotImplementedError
+
+
+class DenoiseBackend(Backend):
+    """Kind ``denoise``: edge-preserving denoising of a scalar field (ALGORITHMS §11), e.g. the
+    magnitude f of the deformation transfer (ALGORITHMS §10, paper Sec. 4)."""
+
+    kind = "denoise"
+
+    def denoise(self, f: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
+        """f: (H, W) float, in the units the backend's parameters assume (canonical px for the
+        transfer magnitude); mask: (H, W) bool of the pixels whose value is data, or None for all.
+        Pixels off the mask, and non-finite values of f, carry no data: the backend fills them
+        from their neighbours (inpainting) or returns them as given (``none``).
+
+        Returns u: (H, W) float64. Malformed inputs raise ValueError (TypeError for a non-bool mask)."""
+        raise NotImplementedError

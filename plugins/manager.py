@@ -34,6 +34,7 @@ DEFAULT_PLUGINS = (
     "persona.plugins.builtin.flow",
     "persona.plugins.builtin.shape",
     "persona.plugins.builtin.integrate",
+    "persona.plugins.builtin.denoise",
 )
 
 ENTRY_POINT_GROUP = "persona"
