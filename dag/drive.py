@@ -2,7 +2,8 @@
 
 ``retarget`` (in this process): the driver's per-frame pose and pose-corrected fiducials,
 frames without a face bridged by interpolation, and the target fiducials for the puppet
-(its neutral plus the driver's offsets, scaled to its proportions). ``render`` (Dask
+(its neutral plus the driver's offsets, scaled to its proportions). ``texture``: B's face
+for each frame's expression (video mode, :mod:`.texture`). ``render`` (Dask
 tasks over shards of frames): the chosen render backend draws each frame. Both live in
 the ``drive`` collection, whose photo axis is the driver's frame axis.
 """
@@ -20,6 +21,7 @@ from persona.stores.layout import OK, Collection
 from persona.stores.provenance import Provenance
 
 from . import stages as st
+from .texture import run_frame_textures
 
 
 def run_drive(runner) -> Collection:
@@ -35,7 +37,8 @@ def run_drive(runner) -> Collection:
     current = drive.provenance("status/retarget/state") if drive.exists() else None
     if current is None or current.key != prov.key:
         _retarget(runner, drive, frames, puppet, found, prov)
-    render = runner.prepare_stage(drive, st.RENDER, {"retarget": prov.key})
+    textures = run_frame_textures(runner, drive, puppet, prov)
+    render = runner.prepare_stage(drive, st.RENDER, {"retarget": prov.key, "texture": textures.key})
     steps = [("render", render.backend, render.params)]
     runner.run_stage_tasks(drive, steps)
     return drive

@@ -29,6 +29,7 @@ from persona.stores.provenance import Provenance, cache_key
 from . import stages as st
 from .drive import run_drive, write_videos
 from .shape import run_alignment, run_shape
+from .texture import run_texture
 from .evaluate import evaluate
 from .report import write_report
 from .workflow import BACKENDLESS, VideoRange, Workflow
@@ -341,7 +342,10 @@ class Runner:
             if path != "driver/frames":  # the 3D shape comes from photo collections, not video frames
                 t0 = time.perf_counter()
                 try:
-                    pictures.update(run_shape(self, coll, run_alignment(self, coll)))
+                    aligned = run_alignment(self, coll)
+                    pictures.update(run_shape(self, coll, aligned))
+                    if path == "puppet":  # B's expression-dependent texture (video mode)
+                        pictures.update(run_texture(self, coll, aligned))
                 except Rejected as exc:  # e.g. too few photos for photometric stereo: the run goes on
                     log.warning("%s: no 3D shape: %s", path, exc.reason)
                     report.setdefault("warnings", []).append(f"{path}: no 3D shape: {exc.reason}")

@@ -177,13 +177,14 @@ PHOTO_STAGES["align"] = ALIGN
 
 def _puppet(root, path) -> dict:
     group = root["puppet/aligned"]
-    return {"puppet": Puppet(appearance=group["mean"][...], coverage=group["coverage"][...],
-                             fiducials=group["mean_fiducials"][...].astype(np.float64))}
+    return {"coverage": group["coverage"][...], "fiducials": group["mean_fiducials"][...].astype(np.float64)}
 
 
 def _render(backend, params, inputs, context):
     h, w = inputs["/driver/frames/photos/size"]
-    out = backend.render(context["puppet"], inputs["target"].astype(np.float64),
+    puppet = Puppet(appearance=inputs["texture/rgb"].astype(np.float32), coverage=context["coverage"],
+                    fiducials=context["fiducials"])
+    out = backend.render(puppet, inputs["target"].astype(np.float64),
                          Pose.from_vector(inputs["pose"]), inputs["/driver/frames/photos/rgb"][:h, :w])
     return {"render/rgb": out.rgb, "render/mask": np.round(out.mask * 255).astype(np.uint8)}
 
@@ -191,7 +192,7 @@ def _render(backend, params, inputs, context):
 #: the puppet performing the driver's video: one "photo" per driver frame, in the ``drive`` collection
 RENDER = PhotoStage(
     "render", "render", "retarget",
-    ("target", "pose", "/driver/frames/photos/rgb", "/driver/frames/photos/size"), (
+    ("target", "pose", "texture/rgb", "/driver/frames/photos/rgb", "/driver/frames/photos/size"), (
         Output("render/rgb", (), "uint8", ("frame", "y", "x", "channel")),  # tail = the canvas
         Output("render/mask", (), "uint8", ("frame", "y", "x")),
     ), _render, _puppet)

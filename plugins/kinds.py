@@ -103,7 +103,8 @@ class FrontalizeBackend(Backend):
 class Puppet:
     """What a renderer knows of the puppet (actor B), in the canonical frame.
 
-    appearance : ndarray, shape (H, W, 3), float32 — B's face (e.g. the average), 0-255
+    appearance : ndarray, shape (H, W, 3), float32 — B's face for this frame, 0-255: its expression-dependent
+        texture at the neutral fiducials (paper §5, video mode), or the static average
     coverage : ndarray, shape (H, W), float32 — fraction of photos that saw each pixel
     fiducials : ndarray, shape (49, 2) — B's neutral (mean) fiducials
     """
@@ -204,4 +205,45 @@ class DenoiseBackend(Backend):
         from their neighbours (inpainting) or returns them as given (``none``).
 
         Returns u: (H, W) float64. Malformed inputs raise ValueError (TypeError for a non-bool mask)."""
+        raise NotImplementedError
+
+
+@dataclass(frozen=True)
+class TexturePhotos:
+    """The puppet's photo collection as texture synthesis sees it, in the canonical frame.
+
+    photos : sequence of n raw photos (h_i, w_i, 3) uint8 — sampled once, through composed maps
+    maps : ndarray, shape (n, H, W, 2), float32 — canonical pixel -> photo (x, y) (frontalizing map)
+    visible : ndarray, shape (n, H, W), bool — canonical pixels each photo sees
+    fiducials : ndarray, shape (n, 49, 2) — each photo's pose-corrected fiducials F^i
+    """
+
+    photos: tuple
+    maps: np.ndarray
+    visible: np.ndarray
+    fiducials: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.photos)
+
+
+@dataclass(frozen=True)
+class Texture:
+    """A synthesized face texture: rgb (H, W, 3) float32 in [0, 255]; mask (H, W) bool where
+    any photo contributed."""
+
+    rgb: np.ndarray
+    mask: np.ndarray
+
+
+class TextureBackend(Backend):
+    """Kind ``texture``: the puppet's face with a target expression (paper §5, ALGORITHMS §12)."""
+
+    kind = "texture"
+
+    def synthesize(self, photos: TexturePhotos, target: np.ndarray, flow: FlowBackend,
+                   reference: np.ndarray | None = None) -> Texture:
+        """target: (49, 2) canonical fiducials F^T of the expression to show; flow: the backend
+        of the dense warps; reference: the frontalized reference photo (H, W, 3) whose expression
+        F^T is (the paper's reference mode, Fig. 5), or None."""
         raise NotImplementedError

@@ -35,6 +35,7 @@ DEFAULT_PLUGINS = (
     "persona.plugins.builtin.shape",
     "persona.plugins.builtin.integrate",
     "persona.plugins.builtin.denoise",
+    "persona.plugins.builtin.texture",
 )
 
 ENTRY_POINT_GROUP = "persona"

@@ -103,13 +103,22 @@ class BlendCache:
 
     @classmethod
     def build(cls, images: np.ndarray, valid: np.ndarray, *, levels: int, alpha: float, beta: float,
-              tau: float, blur: float = 1.0, floor: float = 1e-6) -> "BlendCache":
-        """images: (n, H, W, C) float aligned photos; valid: (n, H, W) bool."""
+              tau: float, blur: float = 1.0, floor: float = 1e-6, margin: int = 2) -> "BlendCache":
+        """images: (n, H, W, C) float aligned photos; valid: (n, H, W) bool.
+
+        A photo's unseen pixels are filled with the mean of the photos that see them before its
+        pyramid is built, so its bands carry no edge where its view ends; its weight there is
+        zero, and ``margin`` px inside that edge too (resampling blurs the last pixels)."""
         n = len(images)
+        seen = valid.sum(axis=0)
+        fill = np.einsum("nhw,nhwc->hwc", valid.astype(np.float32), images) / np.maximum(seen, 1)[..., None]
+        kernel = np.ones((2 * margin + 1, 2 * margin + 1), np.uint8)
         weighted, detail = [], []
         for i in range(n):
-            q = detail_pyramid(images[i].mean(axis=-1), valid[i], levels, blur=blur, floor=floor)
-            bands = laplacian_pyramid(images[i], levels)
+            image = np.where(valid[i][..., None], images[i], fill).astype(np.float32)
+            inner = cv2.erode(valid[i].astype(np.uint8), kernel, borderValue=1) > 0 if margin else valid[i]
+            q = detail_pyramid(image.mean(axis=-1), inner, levels, blur=blur, floor=floor)
+            bands = laplacian_pyramid(image, levels)
             if i == 0:
                 weighted = [np.empty((n, *b.shape), np.float32) for b in bands]
                 detail = [np.empty((n, *d.shape, 1), np.float32) for d in q]

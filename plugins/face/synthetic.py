@@ -651,3 +651,51 @@ def make_driver_video(n_frames: int, *, seed: int, identity: FaceIdentity | None
                                    image_size=image_size, background=bg, noise_sigma=noise_sigma, rng=rng,
                                    supersample=supersample))
     return frames
+
+
+# ----------------------------------------------------------------------------- texture ground truth
+
+def smile_crease(identity: FaceIdentity, thickness: int = 2) -> np.ndarray:
+    """A smile crease (a nasolabial fold on each side: from beside the nose wing to outside the
+    mouth corner) on the canonical parameter grid of ``identity``: (244, 194) bool."""
+    lm = make_face(identity).landmarks3d[:, :2]  # neutral: parameter = canonical position
+    crease = np.zeros((H, W), np.uint8)
+    for wing, corner, side in ((31, 48, -1), (35, 54, 1)):
+        top = lm[wing] + (side * 6, -2)
+        bottom = lm[corner] + (side * 7, 9)
+        cv2.line(crease, tuple(np.round(top).astype(int)), tuple(np.round(bottom).astype(int)), 1, thickness)
+    return crease > 0
+
+
+def crease_collection(n: int, *, seed: int, identity: FaceIdentity | None = None, smile_fraction: float = 0.5,
+                      cast: float = 0.15, darkening: float = 0.5, yaw_range: float = 20.0,
+                      image_size: tuple[int, int] = (250, 250)) -> tuple[list[SyntheticPhoto], np.ndarray]:
+    """Ground truth for expression-dependent texture (ALGORITHMS §12.7 test 2).
+
+    A fraction ``smile_fraction`` of the photos smile (smile 0.7-1), the rest do not (smile
+    within ±0.1); only the smiling ones carry :func:`smile_crease` in their albedo (multiplied by
+    ``1 - darkening``). Every photo gets a random per-channel colour cast, gains within
+    ``1 ± cast``. Returns the photos (``expression`` records the smile) and the crease mask on
+    the parameter grid.
+    """
+    rng = np.random.default_rng(seed)
+    identity = FaceIdentity.random(rng) if identity is None else identity
+    crease = smile_crease(identity)
+    photos = []
+    for i in range(n):
+        smiling = i < round(smile_fraction * n)
+        expr = Expression(smile=float(rng.uniform(0.7, 1.0) if smiling else rng.uniform(-0.1, 0.1)),
+                          open=float(rng.uniform(0, 0.2)))
+        face = make_face(identity, expr)
+        if smiling:
+            face.vert_albedo = np.where(crease[..., None], face.vert_albedo * (1 - darkening), face.vert_albedo)
+        yaw, pitch = rng.uniform(-1, 1, 2) * (yaw_range, 10.0)
+        rvec, tvec, K = look_at_pose(yaw, pitch, 0.0, face_px=110 * rng.uniform(0.95, 1.05), image_size=image_size)
+        photo = render_photo(face, rvec=rvec, tvec=tvec, camera=K, light=Light.random(rng), image_size=image_size,
+                             background=random_background(rng, image_size), noise_sigma=0.01, rng=rng,
+                             supersample=2)
+        gains = rng.uniform(1 - cast, 1 + cast, 3)
+        photo.image = np.clip(photo.image * gains, 0, 255).round().astype(np.uint8)
+        photos.append(photo)
+    order = rng.permutation(n)  # smiling and neutral photos interleaved
+    return [photos[i] for i in order], crease

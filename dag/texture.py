@@ -1,0 +1,127 @@
+"""Expression-dependent texture in the run (paper §5-§6).
+
+Video mode, the paper's way for puppetry: the collection is warped once to the puppet's mean
+fiducials (the ``align`` stage's collection flow already does exactly this), the target-
+independent terms of Eq. 3 (Laplacian pyramids times detail weights) are cached in the store
+under ``texture/``, and each driver frame only changes the expression weights. The textures
+keep the neutral geometry with the target's detail; the renderer moves the geometry.
+
+Stored: ``<puppet>/texture/weighted_<k>``, ``texture/detail_<k>`` (per photo and level),
+``texture/neutral`` (the texture at the mean fiducials) and ``drive/texture/rgb`` (per frame).
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from persona.plugins.builtin.frontalize import frontalizing_map
+from persona.plugins.face.blend import BlendCache, level_bias
+from persona.plugins.face.template import generic_template
+from persona.plugins.face.texture import Aligned
+from persona.plugins.kinds import Pose, TexturePhotos
+from persona.stores import media
+from persona.stores.layout import OK, Collection
+from persona.stores.provenance import Provenance
+
+from . import stages as st
+
+log = logging.getLogger(__name__)
+
+
+def texture_photos(coll: Collection, rows: np.ndarray) -> TexturePhotos:
+    """The photos ``rows`` of a collection as texture backends see them: raw photos, frontalizing
+    maps (from each photo's pose and the generic template), visibility, pose-corrected fiducials."""
+    rows = np.asarray(rows)
+    sizes, poses = coll.array("photos/size")[:], coll.array("pose")[:]
+    fiducials, depth = coll.array("aligned/fiducials")[:], generic_template().depth
+    photos, maps, visible = [], [], []
+    for i in rows:
+        h, w = sizes[i]
+        photos.append(coll.array("photos/rgb")[i][:h, :w])
+        maps.append(frontalizing_map(depth, Pose.from_vector(poses[i]))[0])
+        visible.append(coll.array("aligned/mask")[i])
+    return TexturePhotos(tuple(photos), np.stack(maps), np.stack(visible), fiducials[rows].astype(np.float64))
+
+
+def texture_backend(runner):
+    name, params = runner.wf.stage("texture")
+    return name, params, st.default_registry().get("texture", name)(params)
+
+
+def run_texture(runner, coll: Collection, aligned: Provenance) -> dict[str, str]:
+    """The video-mode cache of the aligned collection and its neutral texture; returns the
+    picture written (``texture_neutral``)."""
+    name, params, backend = texture_backend(runner)
+    prov = Provenance.make(stage="texture", backend=name, backend_version=backend.version, params=params,
+                           inputs={"align": aligned.key}, persona_version=runner.version)
+    out = Path(runner.wf.output) / f"{coll.path.replace('/', '_')}_texture_neutral.png"
+    current = coll.provenance("texture/neutral")
+    if current is not None and current.key == prov.key and out.is_file():
+        return {"texture_neutral": str(out)}
+    ok = np.flatnonzero(coll.state("align") == OK)
+    try:
+        cache = backend.cache(Aligned(coll.array("collection/rgb")[:][ok].astype(np.float32),
+                                      coll.array("collection/mask")[:][ok]))
+    except NotImplementedError:
+        log.warning("texture backend %s has no video mode: the drive shows the static average", name)
+        if coll.has("texture/neutral"):  # another backend's, from an earlier run
+            del coll.group["texture/neutral"]
+        return {}
+    row = np.full(coll.n, -1)
+    row[ok] = np.arange(len(ok))
+    for k in range(cache.levels):
+        for kind, level in (("weighted", cache.weighted[k]), ("detail", cache.detail[k])):
+            array = coll.create(f"texture/{kind}_{k}", level.shape[1:], np.float32, ("photo", "y", "x", "channel"),
+                                prov)
+            for start, stop in coll.shard_ranges():  # a shard at a time; rejected photos stay NaN
+                rows = row[start:stop]
+                block = np.full((stop - start, *level.shape[1:]), np.nan, np.float32)
+                block[rows >= 0] = level[rows[rows >= 0]]
+                array[start:stop] = block
+    mean_fiducials = coll.array("aligned/mean_fiducials")[...].astype(np.float64)
+    neutral = backend.blend(cache, coll.array("aligned/fiducials")[:][ok], mean_fiducials)
+    coll.create_single("texture/neutral", neutral.round().astype(np.uint8), ("y", "x", "channel"), prov)
+    media.write_png(out, np.kron(neutral.round().astype(np.uint8), np.ones((2, 2, 1), np.uint8)))
+    return {"texture_neutral": str(out)}
+
+
+def load_cache(coll: Collection) -> tuple[BlendCache, np.ndarray]:
+    """The stored video-mode cache and the fiducials of its photos."""
+    ok = np.flatnonzero(coll.state("align") == OK)
+    levels = sum(1 for key in coll.group["texture"].array_keys() if key.startswith("weighted_"))
+    params = coll.provenance("texture/neutral").params
+    weighted = [coll.array(f"texture/weighted_{k}").oindex[ok] for k in range(levels)]
+    detail = [coll.array(f"texture/detail_{k}").oindex[ok] for k in range(levels)]
+    cache = BlendCache(weighted, detail, level_bias(levels, params["beta"], params["tau"]))
+    return cache, coll.array("aligned/fiducials")[:][ok].astype(np.float64)
+
+
+def run_frame_textures(runner, drive: Collection, puppet: Collection, retargeted: Provenance) -> Provenance:
+    """B's texture for every driver frame: ``drive/texture/rgb`` (frame, H, W, 3) uint8, from the
+    video-mode cache and the frame's target fiducials, or B's static mean face when the texture
+    backend has no video mode."""
+    _, _, backend = texture_backend(runner)
+    texture = puppet.provenance("texture/neutral")
+    source = texture if texture is not None else puppet.provenance("aligned/mean")
+    prov = Provenance.make(stage="frame_texture", backend=source.backend, backend_version=source.backend_version,
+                           params=source.params, inputs={"texture": source.key, "retarget": retargeted.key},
+                           persona_version=runner.version)
+    current = drive.provenance("texture/rgb")
+    if current is not None and current.key == prov.key:
+        return prov
+    targets = drive.array("target")[:]
+    array = drive.create("texture/rgb", puppet.array("aligned/mean").shape, np.uint8, ("frame", "y", "x", "channel"),
+                         prov)
+    if texture is None:
+        mean = np.clip(puppet.array("aligned/mean")[...], 0, 255).round().astype(np.uint8)
+        for start, stop in drive.shard_ranges():
+            array[start:stop] = np.broadcast_to(mean, (stop - start, *mean.shape))
+        return prov
+    cache, fiducials = load_cache(puppet)
+    for start, stop in drive.shard_ranges():
+        array[start:stop] = np.stack([backend.blend(cache, fiducials, t).round().astype(np.uint8)
+                                      for t in targets[start:stop]])
+    return prov

@@ -1,0 +1,134 @@
+"""Kind ``texture``: the puppet's face with a target expression (paper §5 and its Fig. 5 baselines).
+
+* ``multiscale`` (the paper, the default): every photo TPS- and flow-aligned to the target, then
+  the Laplacian-pyramid weighted average of Eq. 3: coarse levels from all photos (one consistent
+  colour), fine levels from the photos whose expression is nearest the target (sharp, the
+  person's own creases). The maths is in :mod:`persona.plugins.face.blend`.
+* ``static`` (baseline ii): one static average of the aligned collection, TPS-warped to the target.
+* ``weighted`` (baseline iii): the expression-weighted average of the rigidly frontalized photos.
+* ``prewarped`` (baseline iv): that average after the TPS and dense pre-warping, at a single scale.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+from pydantic import Field
+
+from ..base import Params
+from ..face import texture as align
+from ..face.blend import BlendCache, expression_weights
+from ..face.template import CANONICAL_HEIGHT as H, CANONICAL_WIDTH as W
+from ..face.warp import tps_map
+from ..hookspecs import hookimpl
+from ..kinds import Texture, TextureBackend
+
+
+class _Weights(Params):
+    sigma: float = Field(10.0, gt=0, description="σ of the expression weight e_i = exp(-||F^T - F^i||² / 2σ²), "
+                         "canonical px over the 49 fiducials (paper: 10)")
+
+
+class _Alignment(_Weights):
+    tps_lambda: float = Field(10.0, ge=0, description="λ of the smoothing thin-plate spline to the target "
+                              "(paper Eq. 1: 10; s = 8πλ, ALGORITHMS §5.2)")
+    rank: int = Field(4, ge=1, le=16, description="rank of the appearance subspace the dense flow aligns "
+                      "each photo to (paper: 4, lighting only)")
+
+
+def _weighted_mean(rgb: np.ndarray, weights: np.ndarray) -> Texture:
+    """Σ_i w_i(x) rgb_i(x) / Σ_i w_i(x) with weights (n, H, W)."""
+    total = weights.sum(axis=0)
+    out = np.einsum("nhw,nhwc->hwc", weights, rgb) / np.where(total > 0, total, np.inf)[..., None]
+    return Texture(out.astype(np.float32), total > 0)
+
+
+class MultiscaleTexture(TextureBackend):
+    name = "multiscale"
+    description = ("expression-dependent texture: photos aligned to the target (TPS + flow), blended in a "
+                   "Laplacian pyramid with expression and detail weights (paper §5, Eq. 3)")
+    default = True
+
+    class Params(_Alignment):
+        levels: int = Field(5, ge=2, le=8, description="pyramid levels p (the paper does not say; 5 gives a "
+                            "16x13 coarsest level at 244x194, ALGORITHMS §16.5)")
+        alpha: float = Field(1.0, ge=0, description="α: exponent of the detail (Laplacian) response in the "
+                             "weight (paper: 1)")
+        beta: float = Field(20.0, gt=0, description="β: fall-off of the uniform term τ l^-β with the level l "
+                            "(paper: 20; l = 0, the coarsest, is uniform)")
+        tau: float = Field(1.0, ge=0, description="τ: weight of the uniform term (paper: 1)")
+        detail_blur: float = Field(1.0, ge=0, description="σ (px) of the Gaussian blur before the Laplacian "
+                                   "filter of the detail response L^i (the paper does not say)")
+        detail_floor: float = Field(1e-6, gt=0, description="added to |Laplacian| so flat regions keep a weight")
+        skip: float = Field(1e-6, ge=0, lt=1, description="photos with e_i below skip · max(e) are left out of "
+                            "the fine levels' sums (their share there is below this); 0 keeps every photo")
+
+    def cache(self, aligned: align.Aligned) -> BlendCache:
+        """The target-independent terms of Eq. 3 for an aligned collection (video mode)."""
+        p = self.params
+        return BlendCache.build(aligned.rgb, aligned.valid, levels=p.levels, alpha=p.alpha, beta=p.beta,
+                                tau=p.tau, blur=p.detail_blur, floor=p.detail_floor)
+
+    def blend(self, cache: BlendCache, fiducials: np.ndarray, target: np.ndarray) -> np.ndarray:
+        """The texture (H, W, 3) float32 for a target (49, 2), from a cache of photos whose fiducials
+        (n, 49, 2) give the expression weights."""
+        e = expression_weights(fiducials, target, self.params.sigma)
+        return np.clip(cache.blend(e, skip=self.params.skip), 0, 255)
+
+    def synthesize(self, photos, target, flow, reference=None):
+        p = self.params
+        aligned = align.align(photos, target, flow, tps_lambda=p.tps_lambda, rank=p.rank, reference=reference)
+        return Texture(self.blend(self.cache(aligned), photos.fiducials, target), aligned.valid.any(axis=0))
+
+
+class StaticTexture(TextureBackend):
+    name = "static"
+    description = "baseline (ii) of the paper's Fig. 5: one static average of the collection, TPS-warped to the target"
+
+    class Params(_Alignment):
+        pass
+
+    def synthesize(self, photos, target, flow, reference=None):
+        p = self.params
+        mean_fiducials = photos.fiducials.mean(axis=0)
+        aligned = align.align(photos, mean_fiducials, flow, tps_lambda=p.tps_lambda, rank=p.rank)
+        average = _weighted_mean(aligned.rgb, aligned.valid.astype(np.float32))
+        warp = tps_map(target, mean_fiducials, (H, W), lam=p.tps_lambda, step=4)
+        rgb = cv2.remap(average.rgb, warp[..., 0], warp[..., 1], cv2.INTER_LINEAR)
+        mask = cv2.remap(average.mask.astype(np.float32), warp[..., 0], warp[..., 1], cv2.INTER_LINEAR) > 0.99
+        return Texture(rgb, mask)
+
+
+class WeightedTexture(TextureBackend):
+    name = "weighted"
+    description = ("baseline (iii) of the paper's Fig. 5: the expression-weighted average of the rigidly "
+                   "frontalized photos, no non-rigid alignment")
+
+    class Params(_Weights):
+        pass
+
+    def synthesize(self, photos, target, flow, reference=None):
+        frontal = align.rigid(photos)
+        e = expression_weights(photos.fiducials, target, self.params.sigma, relative=True)
+        return _weighted_mean(frontal.rgb, e[:, None, None] * frontal.valid)
+
+
+class PrewarpedTexture(TextureBackend):
+    name = "prewarped"
+    description = ("baseline (iv) of the paper's Fig. 5: the expression-weighted average of the photos after "
+                   "TPS and dense pre-warping to the target, at a single scale")
+
+    class Params(_Alignment):
+        pass
+
+    def synthesize(self, photos, target, flow, reference=None):
+        p = self.params
+        aligned = align.align(photos, target, flow, tps_lambda=p.tps_lambda, rank=p.rank, reference=reference)
+        e = expression_weights(photos.fiducials, target, p.sigma, relative=True)
+        return _weighted_mean(aligned.rgb, e[:, None, None] * aligned.valid)
+
+
+@hookimpl
+def persona_register_backends(register):
+    for backend in (MultiscaleTexture, StaticTexture, WeightedTexture, PrewarpedTexture):
+        register(backend)
