@@ -46,7 +46,7 @@ from pydantic import Field
 from scipy.linalg import solveh_banded
 from scipy.ndimage import distance_transform_edt
 
-from ..base import Params
+from ..base import Params, Rejected
 from ..builtin.frontalize import frontalizing_map
 from ..kinds import FlowBackend, Pose
 from .mesh import cast, grid_triangles, raycasting_scene
@@ -401,13 +401,17 @@ def track_frame(model: DriverModel, image: np.ndarray, pose: Pose, flow: FlowBac
 
     image : (h, w, 3) RGB or (h, w) grey, uint8 or float in [0, 1] — the raw video frame
     pose : the frame's head pose (canonical point X -> camera ``R X + t``)
-    flow : the 2D flow backend for reference -> frame
+    flow : the 2D flow backend for reference -> frame; it gets the pair already filled beyond the
+        visible face (:func:`fill_outside`) and no mask
+
+    Raises :class:`Rejected` when fewer than 100 face pixels are visible (the DAG records the frame
+    as rejected and bridges it; :func:`smooth_tracks` accepts None for it).
     """
     grey = as_grey_image(image)
     fmap, _ = frontalizing_map(model.depth, pose)
     seen = model.visible(fmap, pose, grey.shape, params.occlusion_tolerance, params.visibility_step)
     if seen.sum() < 100:
-        raise ValueError(f"only {int(seen.sum())} pixels of the face are visible in the frame")
+        raise Rejected(f"dynamics: only {int(seen.sum())} pixels of the face are visible in the frame")
     frontal = _sample(grey, fmap[..., 0], fmap[..., 1])
     inner = cv2.erode(seen.astype(np.uint8), np.ones((3, 3), np.uint8), iterations=params.rim).astype(bool)
     reference = np.clip(project(frontal, model.basis, weights=inner), 0.0, 1.0)
