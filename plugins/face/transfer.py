@@ -1,0 +1,286 @@
+"""Deformation transfer from driver to puppet with magnitude adjustment (paper Sec. 4, Fig. 3;
+ALGORITHMS §10).
+
+The driver's per-frame meshes ``M_D^t`` and their mean ``M̄_D`` are parametrised on the driver's
+canonical grid, the puppet's base mesh ``M_P`` on the puppet's grid (all ``(H, W, 3)`` arrays of
+(x, y, Z) in canonical px, ALGORITHMS §0). ``phi`` (puppet grid, ``(H, W, 2)``, channels (x, y))
+sends the puppet pixel q to its driver pixel φ(q) (ALGORITHMS §7.3). Per frame, on the puppet
+grid:
+
+1. ``D̄(q) = M̄_D(φ(q))``, ``Δ(q) = M_D^t(φ(q)) - D̄(q)`` (bilinear samples);
+2. the moved point ``D̄(q) + Δ(q)`` lands nearest to the driver vertex ``D̄(q')``; a KD-tree over
+   the ``D̄(q)`` of all valid puppet pixels gives q' directly (no inverse of φ is needed) and is
+   built once per driver sequence, not per frame;
+3. ``Δ' = M_P(q') - M_P(q)`` is how far the puppet must move to reach the same feature, and
+   ``f = Δ̂·Δ'`` the magnitude along the driver's direction ``Δ̂ = Δ/|Δ|``;
+4. ``f* = denoise(f)`` (a ``denoise`` backend; by default Huber-ROF, TV weight 1, ε = 0.05);
+5. ``M_P^t = M_P + Δ̂ f*``.
+
+Methods (``TransferParams.method``):
+
+* ``magnitude`` (default): the paper's method above;
+* ``normal``: ALGORITHMS §10.3's variant. The nearest-vertex construction only sees motion along
+  the surface (a cheek bulging out lands on itself), so Δ is split at the driver's mean surface
+  normal N into ``(Δ·N)N``, added directly, and the tangential rest, which is magnitude-adjusted.
+  Not in the paper; it halves the error on synthetic faces (ALGORITHMS §10.3);
+* ``naive``: ``M_P^t = M_P + Δ``, the unadjusted transfer, for comparison.
+
+Small motions (ALGORITHMS §10.3, §16.10): where |Δ| is below half the spacing of the driver
+vertices the nearest vertex is the point itself, f = 0 and Δ̂ is noise. With
+``small_motion = δ > 0`` the displacement is ``w Δ̂ f* + (1 - w) Δ`` with ``w = min(1, |Δ|/δ)``,
+so that motions well under a pixel are passed on as they are; δ = 0 is the paper's formula.
+
+Validity: a puppet pixel takes part if it is in the puppet mask, its ``M_P`` is finite, and φ(q)
+falls inside the driver's grid with every bilinear corner of non-zero weight in the driver mask
+and finite in ``M̄_D``. Other pixels keep ``M_P`` (they do not move). A frame whose mesh is not
+finite at a valid pixel's corners gives that pixel no data: it is filled by the denoiser and moved
+along ``Δ̂ = 0``, i.e. not at all.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import numba
+import numpy as np
+from pydantic import Field
+from scipy.spatial import cKDTree
+
+from ..base import Params
+from ..kinds import DenoiseBackend
+
+__all__ = ["DeformationTransfer", "TransferFrame", "TransferParams", "grid_normals", "transfer_sequence"]
+
+
+class TransferParams(Params):
+    """Options of :class:`DeformationTransfer`."""
+
+    method: Literal["magnitude", "normal", "naive"] = Field(
+        "magnitude", description="'magnitude': the paper's magnitude-adjusted transfer M_P + Δ̂ f*; "
+        "'normal': the normal part (Δ·N)N added directly and only the tangential part adjusted "
+        "(ALGORITHMS §10.3, not in the paper); 'naive': M_P + Δ")
+    small_motion: float = Field(
+        0.3, ge=0, description="δ in canonical px: the displacement is w Δ̂ f* + (1 - w) Δ with "
+        "w = min(1, |Δ|/δ), so that sub-pixel motions, whose nearest vertex is the point itself, pass "
+        "unadjusted (ALGORITHMS §10.3 suggests 0.3; with 'normal', Δ is the tangential part); 0 gives "
+        "the paper's formula exactly")
+
+
+@dataclass(frozen=True)
+class TransferFrame:
+    """One transferred frame, on the puppet grid.
+
+    mesh : (H, W, 3) float64 — M_P^t (equal to M_P off the valid pixels)
+    displacement : (H, W, 3) float64 — M_P^t - M_P (0 off the valid pixels)
+    f, f_star : (H, W) float64 — the raw and denoised magnitudes (NaN off the valid pixels;
+        for ``naive``, |Δ| and the same)
+    valid : (H, W) bool — pixels that took part (see the module docstring)
+    """
+
+    mesh: np.ndarray
+    displacement: np.ndarray
+    f: np.ndarray
+    f_star: np.ndarray
+    valid: np.ndarray
+
+
+def _check_mesh(mesh, name: str, shape: tuple[int, int] | None = None) -> np.ndarray:
+    m = np.asarray(mesh, dtype=np.float64)
+    if m.ndim != 3 or m.shape[2] != 3:
+        raise ValueError(f"transfer: {name} must have shape (H, W, 3), got {m.shape}")
+    if shape is not None and m.shape[:2] != shape:
+        raise ValueError(f"transfer: {name} must have shape {shape + (3,)}, got {m.shape}")
+    if min(m.shape[:2]) < 2:
+        raise ValueError(f"transfer: {name} must be at least 2 x 2, got {m.shape}")
+    return m
+
+
+def _check_mask(mask, name: str, shape: tuple[int, int]) -> np.ndarray:
+    if mask is None:
+        return np.ones(shape, bool)
+    m = np.asarray(mask)
+    if m.shape != shape:
+        raise ValueError(f"transfer: {name} must have shape {shape}, got {m.shape}")
+    if m.dtype != bool:
+        raise TypeError(f"transfer: {name} must be bool, got {m.dtype}")
+    return m
+
+
+def grid_normals(mesh: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Unit normals (H, W, 3) of a grid-parametrised mesh, oriented towards the camera (n_z <= 0).
+
+    ``normalize(∂M/∂v × ∂M/∂u)`` (= (Z_x, Z_y, -1)/|.| for M = (u, v, Z), ALGORITHMS §0), with
+    central differences between mask neighbours and one-sided ones at the mask's edge; NaN where a
+    pixel has no neighbour along an axis or is off the mask.
+    """
+    m = mask & np.all(np.isfinite(mesh), axis=2)
+    derivs = []
+    for axis in (1, 0):  # ∂/∂u (columns), then ∂/∂v (rows)
+        fwd = np.full(mesh.shape, np.nan)
+        bwd = np.full(mesh.shape, np.nan)
+        both = [slice(None)] * 2
+        a, b = list(both), list(both)
+        a[axis], b[axis] = slice(None, -1), slice(1, None)
+        a, b = tuple(a), tuple(b)
+        ok = m[a] & m[b]
+        diff = np.where(ok[..., None], mesh[b] - mesh[a], np.nan)
+        fwd[a] = diff  # M(x+1) - M(x), stored at x
+        bwd[b] = diff  # M(x) - M(x-1), stored at x
+        d = np.where(np.isnan(fwd), bwd, np.where(np.isnan(bwd), fwd, 0.5 * (fwd + bwd)))
+        derivs.append(d)
+    n = np.cross(derivs[1], derivs[0])
+    n /= np.linalg.norm(n, axis=2, keepdims=True)
+    n = np.where(n[..., 2:3] > 0, -n, n)
+    n[~m] = np.nan
+    return n
+
+
+@numba.njit(cache=True, nogil=True)
+def _bilinear3(flat, idx, wts):
+    """Σ_c wts[k, c] flat[idx[k, c]] for every k: bilinear samples (N, 3) of ``flat`` (P, 3) from
+    the four corners ``idx`` (N, 4) with weights ``wts`` (N, 4). Ten times faster than the numpy
+    gathers, which copy each corner's rows."""
+    n = idx.shape[0]
+    out = np.empty((n, 3))
+    for k in range(n):
+        for c in range(3):
+            out[k, c] = (flat[idx[k, 0], c] * wts[k, 0] + flat[idx[k, 1], c] * wts[k, 1]
+                         + flat[idx[k, 2], c] * wts[k, 2] + flat[idx[k, 3], c] * wts[k, 3])
+    return out
+
+
+class DeformationTransfer:
+    """Transfer of one driver sequence onto one puppet; everything that does not depend on the
+    frame (the sampling weights of φ, ``D̄``, the KD-tree, the normals) is built once here.
+
+    driver_mean : (Hd, Wd, 3) — M̄_D, the mean of the *same* per-frame meshes that will be passed
+        to :meth:`apply` (ALGORITHMS §10.3: another reconstruction's mean leaks its offsets into Δ)
+    phi : (H, W, 2) — φ, puppet pixel -> driver pixel (x, y) on the driver grid
+    puppet_mean : (H, W, 3) — M_P, the puppet's base (average) mesh
+    puppet_mask : (H, W) bool; driver_mask : (Hd, Wd) bool or None (all of the driver grid)
+    params : TransferParams or dict; denoiser : a ``denoise`` backend, used by ``magnitude`` and
+        ``normal``. The default is huber_rof with the paper's TV weight 1 and ε = 0.05 and
+        ``outside='exclude'``: f* is only read on the valid pixels, and leaving the pixels without
+        data out of the problem makes it converge linearly (about 60 iterations to the 1e-3 px
+        stopping rule) where inpainting them needs thousands. On synthetic self-puppetry the two
+        converged solutions differ by 0.01-0.03 px RMS in f* on the valid pixels, and the
+        transferred meshes' errors by under 0.002 px.
+    """
+
+    def __init__(self, driver_mean, phi, puppet_mean, puppet_mask, driver_mask=None, *,
+                 params: TransferParams | dict | None = None, denoiser: DenoiseBackend | None = None):
+        self.params = params if isinstance(params, TransferParams) else TransferParams.model_validate(params or {})
+        if denoiser is None:
+            from ..builtin.denoise import HuberROFDenoise
+
+            denoiser = HuberROFDenoise({"outside": "exclude"})
+        self.denoiser = denoiser
+        dmean = _check_mesh(driver_mean, "driver_mean")
+        self.driver_shape = dmean.shape[:2]
+        self.puppet_mean = _check_mesh(puppet_mean, "puppet_mean")
+        self.shape = self.puppet_mean.shape[:2]
+        phi = np.asarray(phi, dtype=np.float64)
+        if phi.shape != self.shape + (2,):
+            raise ValueError(f"transfer: phi must have shape {self.shape + (2,)} like puppet_mean, got {phi.shape}")
+        pmask = _check_mask(puppet_mask, "puppet_mask", self.shape)
+        dmask = _check_mask(driver_mask, "driver_mask", self.driver_shape)
+        dmask = dmask & np.all(np.isfinite(dmean), axis=2)
+
+        hd, wd = self.driver_shape
+        x, y = phi[..., 0], phi[..., 1]
+        valid = (pmask & np.all(np.isfinite(self.puppet_mean), axis=2) & np.isfinite(x) & np.isfinite(y)
+                 & (x >= 0) & (x <= wd - 1) & (y >= 0) & (y <= hd - 1))
+        q = np.flatnonzero(valid)
+        xq, yq = x.ravel()[q], y.ravel()[q]
+        x0 = np.minimum(np.floor(xq).astype(np.int64), wd - 2)
+        y0 = np.minimum(np.floor(yq).astype(np.int64), hd - 2)
+        fx, fy = xq - x0, yq - y0
+        idx = np.stack([y0 * wd + x0, y0 * wd + x0 + 1, (y0 + 1) * wd + x0, (y0 + 1) * wd + x0 + 1], axis=1)
+        wts = np.stack([(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy], axis=1)
+        used = wts > 0
+        ok = np.all(dmask.ravel()[idx] | ~used, axis=1)
+        # corners of zero weight point at the heaviest corner, so that NaN off the mask cannot leak in
+        idx = np.where(used, idx, idx[np.arange(len(idx)), np.argmax(wts, axis=1)][:, None])
+        q, idx, wts = q[ok], idx[ok], wts[ok]
+        valid = np.zeros(self.shape, bool)
+        valid.ravel()[q] = True
+        self.valid = valid
+        self._q, self._idx, self._wts = q, idx, wts
+
+        self.driver_at_phi = self._sample(dmean)  # D̄(q), (N, 3)
+        self._mp = self.puppet_mean.reshape(-1, 3)[q]  # M_P(q), (N, 3)
+        # |Δ| below half the distance to the nearest other vertex cannot reach another vertex:
+        # those points need no query (their q' is q itself)
+        self._reach = np.full(len(q), np.inf)
+        if self.params.method != "naive" and len(q) > 1:
+            self.tree = cKDTree(self.driver_at_phi)
+            self._reach = 0.5 * self.tree.query(self.driver_at_phi, k=2)[0][:, 1]
+        if self.params.method == "normal":
+            n = self._sample(np.nan_to_num(grid_normals(dmean, dmask)))
+            self._normals = n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+
+    def _sample(self, grid: np.ndarray) -> np.ndarray:
+        """Bilinear samples (N, 3) of a driver-grid array (Hd, Wd, 3) at φ(q) of the valid pixels."""
+        flat = np.ascontiguousarray(grid.reshape(self.driver_shape[0] * self.driver_shape[1], 3))
+        return _bilinear3(flat, self._idx, self._wts)
+
+    def apply(self, driver_mesh) -> TransferFrame:
+        """Transfer one driver frame ``M_D^t`` (Hd, Wd, 3) onto the puppet (see the module docstring)."""
+        mesh = _check_mesh(driver_mesh, "driver_mesh", self.driver_shape)
+        h, w = self.shape
+        q = self._q
+        delta = self._sample(mesh) - self.driver_at_phi  # Δ(q), (N, 3)
+        good = np.all(np.isfinite(delta), axis=1)
+        delta[~good] = 0.0
+        method = self.params.method
+        f_img = np.full((h, w), np.nan)
+        fs_img = np.full((h, w), np.nan)
+        if method == "naive":
+            disp = delta
+            f_img.ravel()[q] = np.linalg.norm(delta, axis=1)
+            fs_img = f_img.copy()
+        else:
+            normal_part = 0.0
+            if method == "normal":
+                normal_part = np.sum(delta * self._normals, axis=1, keepdims=True) * self._normals
+                delta = delta - normal_part
+            size = np.linalg.norm(delta, axis=1)
+            direction = delta / np.where(size > 0, size, 1.0)[:, None]  # Δ̂ (0 where Δ = 0)
+            hit = np.arange(len(q))
+            moving = np.flatnonzero(size >= self._reach)
+            if len(moving):
+                hit[moving] = self.tree.query(self.driver_at_phi[moving] + delta[moving], workers=1)[1]
+            f = np.einsum("ij,ij->i", direction, self._mp[hit] - self._mp)  # f = Δ̂·Δ'
+            f_img.ravel()[q[good]] = f[good]
+            data = np.zeros((h, w), bool)
+            data.ravel()[q[good]] = True
+            f_star = np.asarray(self.denoiser.denoise(np.nan_to_num(f_img), data), dtype=np.float64).ravel()[q]
+            fs_img.ravel()[q] = f_star
+            adjusted = direction * f_star[:, None]
+            delta_s = self.params.small_motion
+            if delta_s > 0:
+                wgt = np.minimum(size / delta_s, 1.0)[:, None]
+                adjusted = wgt * adjusted + (1 - wgt) * delta
+            disp = adjusted + normal_part
+        displacement = np.zeros((h, w, 3))
+        displacement.reshape(-1, 3)[q] = disp
+        return TransferFrame(mesh=self.puppet_mean + displacement, displacement=displacement, f=f_img,
+                             f_star=fs_img, valid=self.valid.copy())
+
+    def __call__(self, driver_mesh) -> np.ndarray:
+        """M_P^t (H, W, 3) for the driver frame ``M_D^t``."""
+        return self.apply(driver_mesh).mesh
+
+
+def transfer_sequence(driver_meshes, phi, puppet_mean, puppet_mask, driver_mask=None, *,
+                      params: TransferParams | dict | None = None,
+                      denoiser: DenoiseBackend | None = None) -> np.ndarray:
+    """M_P^t (T, H, W, 3) for every driver mesh ``M_D^t`` of ``driver_meshes`` (T, Hd, Wd, 3),
+    with ``M̄_D`` their mean (the paper's "average mesh over the entire frame sequence")."""
+    meshes = np.asarray(driver_meshes, dtype=np.float64)
+    if meshes.ndim != 4 or len(meshes) == 0:
+        raise ValueError(f"transfer: driver_meshes must have shape (T, H, W, 3) with T >= 1, got {meshes.shape}")
+    t = DeformationTransfer(meshes.mean(axis=0), phi, puppet_mean, puppet_mask, driver_mask, params=params,
+                            denoiser=denoiser)
+    return np.stack([t(m) for m in meshes])
