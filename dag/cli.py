@@ -88,6 +88,8 @@ def _cmd_evaluate(args) -> int:
     from .workflow import load_workflow
 
     wf = load_workflow(args.workflow, args.set)
+    if args.texture:
+        return _evaluate_texture(wf, args)
     if open_store(wf.store, mode="r").get("drive") is None:
         raise RunError(f"{wf.store} holds no rendered output yet: run `persona run {args.workflow}` first")
     with executor_for(wf, args.scheduler, args.workers) as ex:
@@ -103,6 +105,33 @@ def _cmd_evaluate(args) -> int:
                 print(f"  {k:<24} {v:.3f}" if isinstance(v, float) else f"  {k:<24} {v}")
         else:
             print(f"{group}: {figures}")
+    return 0
+
+
+def _evaluate_texture(wf, args) -> int:
+    from persona.stores.layout import Collection, open_store
+
+    from .runner import RunError, executor_for, Runner
+    from .texture_eval import LABELS, evaluate_texture
+
+    if not Collection(open_store(wf.store, mode="r"), args.collection).has("aligned/fiducials"):
+        raise RunError(f"{wf.store} has no aligned faces in {args.collection!r}: run `persona run {args.workflow}` first")
+    with executor_for(wf, args.scheduler, args.workers) as ex:
+        result = evaluate_texture(Runner(wf, ex, progress=False), args.collection, references=args.references,
+                                  seed=args.seed)
+    if args.json:
+        print(json.dumps(result, indent=2))
+        return 0
+    print(f"{args.collection}: {len(result['references'])} held-out references, {result['collection_photos']} "
+          f"photos, flow {result['flow']['backend']}")
+    print(f"  {'method':<16}{'alignment %IOD':>16}{'no face':>9}{'detail':>9}{'fidelity':>10}{'colour %':>10}")
+    columns = (("alignment_median_pct_iod", 16, ".2f"), ("no_face_found", 9, "d"), ("detail_median", 9, ".3f"),
+               ("fidelity_median", 10, ".3f"), ("colour_spread_pct", 10, ".2f"))
+    for name, row in result["table"].items():
+        cells = [format(row[key], f"{width}{fmt}") if row.get(key) is not None else f"{'-':>{width}}"
+                 for key, width, fmt in columns]
+        print(f"  {LABELS[name]:<16}" + "".join(cells))
+    print(f"  grid: {result['grid']}")
     return 0
 
 
@@ -196,8 +225,14 @@ def build_parser() -> argparse.ArgumentParser:
     common_run(p)
     p.set_defaults(func=_cmd_demo)
 
-    p = sub.add_parser("evaluate", help="identity, expression and stability figures of a finished run")
+    p = sub.add_parser("evaluate", help="identity, expression and stability figures of a finished run; "
+                       "with --texture, leave-one-out scores of texture synthesis")
     p.add_argument("workflow")
+    p.add_argument("--texture", action="store_true", help="hold out reference photos and score every texture "
+                   "method on them (paper Fig. 5): table and picture grid in the output folder")
+    p.add_argument("--collection", default="puppet", help="--texture: the collection (default puppet)")
+    p.add_argument("--references", type=int, default=40, help="--texture: held-out references (default 40)")
+    p.add_argument("--seed", type=int, default=0, help="--texture: seed of the references' draw")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     common_run(p)

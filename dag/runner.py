@@ -80,6 +80,11 @@ class Executor:
                 raise RunError(f"cannot reach the Dask scheduler at {scheduler}: {exc}. Start one with "
                                "`dask scheduler` and `dask worker ADDRESS`, or use --scheduler local") from None
 
+    @property
+    def workers(self) -> int:
+        """Worker processes that run tasks (1 in-process)."""
+        return 1 if self.client is None else max(1, len(self.client.scheduler_info()["workers"]))
+
     def run(self, fn, argument_lists):
         """Run fn(*args) for each args; yield results as they complete."""
         if self.client is None:

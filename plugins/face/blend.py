@@ -24,6 +24,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import cv2
+import numba
 import numpy as np
 
 
@@ -83,6 +84,24 @@ def detail_pyramid(grey: np.ndarray, valid: np.ndarray, levels: int, *, blur: fl
     return gaussian_pyramid(response, levels)
 
 
+@numba.njit(cache=True, nogil=True, fastmath=True)
+def _gemv_rows(stack, rows, weights, out):
+    """out = Σ_r weights[r] · stack[rows[r]] (a matrix-vector product over the chosen rows of a
+    (n, p) matrix, streaming each row once, without gathering them into a copy)."""
+    out[:] = 0
+    for r in range(rows.shape[0]):
+        row, w = stack[rows[r]], weights[r]
+        for j in range(out.shape[0]):
+            out[j] += w * row[j]
+
+
+def _product(stack: np.ndarray, rows: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """Σ_r weights_r stack[rows_r] for a (n, ...) float32 stack."""
+    out = np.empty(int(np.prod(stack.shape[1:])), np.float32)
+    _gemv_rows(stack.reshape(len(stack), -1), rows, weights, out)
+    return out.reshape(stack.shape[1:])
+
+
 @dataclass
 class BlendCache:
     """The per-photo terms of Eq. 3 that do not depend on the target, level by level.
@@ -132,20 +151,22 @@ class BlendCache:
         return len(self.weighted)
 
     def blend(self, e: np.ndarray, *, skip: float = 1e-6) -> np.ndarray:
-        """The blended image (H, W, C) for expression weights e (n,). Photos whose e is below
-        ``skip`` × max(e) are left out of the products: whatever their detail, their share of
-        every level but the two coarsest is below ``skip`` × (their detail / the best photo's)."""
+        """The blended image (H, W, C) for expression weights e (n,).
+
+        Each level is one matrix-vector product over the photos, compiled so that photos whose
+        e is below ``skip`` × max(e) are skipped without copying the others: whatever their
+        detail, their share of every level but the two coarsest is below that."""
         e = np.asarray(e, np.float64)
-        keep = np.flatnonzero(e >= skip * e.max()) if e.max() > 0 else np.zeros(0, int)
-        ek = e[keep].astype(np.float32)
+        rows = np.flatnonzero(e >= skip * e.max()) if e.max() > 0 else np.zeros(0, np.int64)
+        ek = e[rows].astype(np.float32)
         pyramid = []
         for k in range(self.levels):
             c = self.bias[k]
             if np.isinf(c):  # l = 0: uniform, the expression weight drops out
                 num, den = self._weighted_sum[k], self._detail_sum[k]
             else:
-                num = np.tensordot(ek, self.weighted[k][keep], axes=1) + np.float32(c) * self._weighted_sum[k]
-                den = np.tensordot(ek, self.detail[k][keep], axes=1) + np.float32(c) * self._detail_sum[k]
+                num = _product(self.weighted[k], rows, ek) + np.float32(c) * self._weighted_sum[k]
+                den = _product(self.detail[k], rows, ek) + np.float32(c) * self._detail_sum[k]
             pyramid.append(num / np.where(den > 0, den, np.inf))  # 0 where no photo sees the pixel
         return collapse(pyramid)
 

@@ -73,6 +73,27 @@ def test_shape_stage_writes_meshes_and_previews(drive_run):
         assert coll.array("collection/map").shape[1:] == (244, 194, 2)
 
 
+def test_puppet_texture_follows_each_frames_expression(drive_run):
+    from persona.plugins.face.blend import expression_weights
+    from persona.stores.layout import Collection, open_store
+
+    folder, path, report = drive_run
+    root = open_store(str(folder / "run.zarr"), mode="r")
+    puppet, drive = Collection(root, "puppet"), Collection(root, "drive")
+    neutral = media.decode_image(report["collections"]["puppet"]["pictures"]["texture_neutral"])
+    assert neutral.shape == (2 * 244, 2 * 194, 3)
+    assert puppet.array("texture/weighted_0").shape[1:] == (244, 194, 3)
+    textures = drive.array("texture/rgb")[:].astype(np.float32)
+    assert textures.shape == (16, 244, 194, 3)
+    # frames whose targets weigh the photos differently get different textures
+    targets = drive.array("target")[:]
+    fiducials = puppet.array("aligned/fiducials")[:]
+    weights = np.array([expression_weights(fiducials, t, 10.0, relative=True) for t in targets])
+    a, b = np.unravel_index(np.argmax(np.abs(weights[:, None] - weights[None]).sum(-1)), (16, 16))
+    assert np.abs(textures[a] - textures[b]).mean() > 0.5
+    assert drive.provenance("render/rgb").inputs["texture"] == drive.provenance("texture/rgb").key
+
+
 def test_report_is_one_self_contained_page(drive_run):
     folder, _, _ = drive_run
     page = (folder / "output" / "report.html").read_text()
@@ -89,3 +110,20 @@ def test_evaluate_command_prints_json(drive_run, capsys):
     result = json.loads(capsys.readouterr().out)
     assert result["identity"]["fraction_b_not_a"] == pytest.approx(report["evaluation"]["identity"]["fraction_b_not_a"])
     assert result["expression"]["mouth_open"] == pytest.approx(report["evaluation"]["expression"]["mouth_open"], nan_ok=True)
+
+
+def test_texture_evaluation_holds_out_references_and_scores_every_method(drive_run, capsys):
+    folder, path, _ = drive_run
+    assert cli(["evaluate", str(path), "--texture", "--references", "2", "--scheduler", "sync", "--json"]) == 0
+    result = json.loads(capsys.readouterr().out)
+    assert len(result["references"]) == 2 and result["collection_photos"] == 8
+    table = result["table"]
+    assert set(table) == {"static", "weighted", "prewarped", "multiscale", "reference"}
+    for name in ("static", "weighted", "prewarped", "multiscale"):
+        assert table[name]["detail_median"] > 0 and -1 <= table[name]["fidelity_median"] <= 1
+    # one colour for every target (the coarsest level is shared) against the weighted average's drift
+    assert table["multiscale"]["colour_spread_pct"] < table["weighted"]["colour_spread_pct"]
+    grid = media.decode_image(result["grid"])
+    assert grid.shape == (28 + 2 * 244, 5 * 194, 3)
+    saved = json.loads((folder / "output" / "puppet_texture_evaluation.json").read_text())
+    assert saved["table"] == table
