@@ -107,11 +107,16 @@ class Puppet:
         texture at the neutral fiducials (paper §5, video mode), or the static average
     coverage : ndarray, shape (H, W), float32 — fraction of photos that saw each pixel
     fiducials : ndarray, shape (49, 2) — B's neutral (mean) fiducials
+    mesh : ndarray, shape (H, W, 3), float32, or None — B's face surface in this frame (paper §4:
+        M_P^t, the average shape moved by the driver's adjusted motion): the canonical (x, y, Z) of
+        the surface point that carries texture pixel (row v, col u) of ``appearance``, with the
+        rigid head pose removed; NaN off the face. None when only a 2D puppet exists.
     """
 
     appearance: np.ndarray
     coverage: np.ndarray
     fiducials: np.ndarray
+    mesh: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
