@@ -30,6 +30,7 @@ DEFAULT_PLUGINS = (
     "persona.plugins.builtin.pose",
     "persona.plugins.builtin.frontalize",
     "persona.plugins.builtin.render",
+    "persona.plugins.builtin.render3d",
     "persona.plugins.builtin.evaluate",
     "persona.plugins.builtin.flow",
     "persona.plugins.builtin.shape",
