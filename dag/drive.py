@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from persona.plugins.face.dynamics import gaussian_in_time
 from persona.plugins.face.tracks import bridge
 from persona.plugins.face.warp import retarget
 from persona.stores import media
@@ -21,6 +22,7 @@ from persona.stores.layout import OK, Collection
 from persona.stores.provenance import Provenance
 
 from . import stages as st
+from .motion import run_motion
 from .texture import run_frame_textures
 
 
@@ -31,20 +33,26 @@ def run_drive(runner) -> Collection:
     found = frames.state("frontalize") == OK
     inputs = {"frames": frames.provenance("status/frontalize/state").key,
               "puppet": puppet.provenance("aligned/mean").key}
-    prov = Provenance.make(stage="retarget", backend="-", backend_version="1", params={},
+    sigma = runner.motion_params()["pose_sigma"]
+    prov = Provenance.make(stage="retarget", backend="-", backend_version="1", params={"pose_sigma": sigma},
                            inputs=inputs, persona_version=runner.version)
     drive = Collection(runner.root, "drive")
     current = drive.provenance("status/retarget/state") if drive.exists() else None
     if current is None or current.key != prov.key:
-        _retarget(runner, drive, frames, puppet, found, prov)
+        _retarget(runner, drive, frames, puppet, found, prov, sigma)
     textures = run_frame_textures(runner, drive, puppet, prov)
-    render = runner.prepare_stage(drive, st.RENDER, {"retarget": prov.key, "texture": textures.key})
-    steps = [("render", render.backend, render.params)]
-    runner.run_stage_tasks(drive, steps)
+    inputs = {"retarget": prov.key, "texture": textures.key}
+    stage = st.RENDER
+    if st.default_registry().get("render", runner.wf.stage("render")[0]).uses_mesh:
+        inputs["mesh"] = run_motion(runner, drive, prov).key
+        stage = st.RENDER_3D
+    drive.group.attrs["stages"] = ["retarget", stage.name] if stage is st.RENDER else ["retarget", "dynamics", stage.name]
+    render = runner.prepare_stage(drive, stage, inputs)
+    runner.run_stage_tasks(drive, [(stage.name, render.backend, render.params)])
     return drive
 
 
-def _retarget(runner, drive, frames, puppet, found, prov) -> None:
+def _retarget(runner, drive, frames, puppet, found, prov, sigma: float) -> None:
     n = frames.n
     group = runner.root.require_group("drive")
     group.attrs.update({"n_photos": n, "photos_per_shard": runner.wf.photos_per_shard,
@@ -52,6 +60,7 @@ def _retarget(runner, drive, frames, puppet, found, prov) -> None:
                         "stages": ["retarget", "render"]})
     fiducials = frames.array("aligned/fiducials")[:].astype(np.float64)
     pose = bridge(frames.array("pose")[:], found)
+    pose[:, :6] = gaussian_in_time(pose[:, :6], None, sigma, max(1, int(np.ceil(3 * sigma)))) if sigma else pose[:, :6]
     driver_fiducials = bridge(fiducials, found)
     target = retarget(driver_fiducials, fiducials[found].mean(axis=0),
                       puppet.array("aligned/mean_fiducials")[...].astype(np.float64))

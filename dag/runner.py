@@ -174,6 +174,9 @@ class Runner:
     def align_params(self) -> dict:
         return self._backendless("align")
 
+    def motion_params(self) -> dict:
+        return self._backendless("motion")
+
     def _backendless(self, kind: str) -> dict:
         config = self.wf.stages.get(kind)
         return BACKENDLESS[kind].model_validate(config.params if config else {}).model_dump()
@@ -365,7 +368,7 @@ class Runner:
             drive = run_drive(self)
             drive_seconds = time.perf_counter() - t0
             report["videos"] = write_videos(drive, Collection(self.root, "driver/frames"), Path(self.wf.output))
-            render = [r for r in self.timer.records if r["stage"] == "render"][-1]
+            render = [r for r in self.timer.records if r["stage"] in ("render", "render3d")][-1]
             report["speed"] = {}
             if render["n_done"] == drive.n:  # timed only when this run rendered every frame
                 report["speed"] = {"ms_per_driver_frame": 1000 * drive_seconds / drive.n,

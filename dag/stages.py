@@ -183,20 +183,51 @@ def _puppet(root, path) -> dict:
 def _render(backend, params, inputs, context):
     h, w = inputs["/driver/frames/photos/size"]
     puppet = Puppet(appearance=inputs["texture/rgb"].astype(np.float32), coverage=context["coverage"],
-                    fiducials=context["fiducials"])
+                    fiducials=context["fiducials"], mesh=inputs.get("mesh"))
     out = backend.render(puppet, inputs["target"].astype(np.float64),
                          Pose.from_vector(inputs["pose"]), inputs["/driver/frames/photos/rgb"][:h, :w])
     return {"render/rgb": out.rgb, "render/mask": np.round(out.mask * 255).astype(np.uint8)}
 
 
+_RENDER_OUTPUTS = (
+    Output("render/rgb", (), "uint8", ("frame", "y", "x", "channel")),  # tail = the canvas
+    Output("render/mask", (), "uint8", ("frame", "y", "x")),
+)
+_RENDER_INPUTS = ("target", "pose", "texture/rgb", "/driver/frames/photos/rgb", "/driver/frames/photos/size")
+
 #: the puppet performing the driver's video: one "photo" per driver frame, in the ``drive`` collection
-RENDER = PhotoStage(
-    "render", "render", "retarget",
-    ("target", "pose", "texture/rgb", "/driver/frames/photos/rgb", "/driver/frames/photos/size"), (
-        Output("render/rgb", (), "uint8", ("frame", "y", "x", "channel")),  # tail = the canvas
-        Output("render/mask", (), "uint8", ("frame", "y", "x")),
-    ), _render, _puppet)
-PHOTO_STAGES["render"] = RENDER
+RENDER = PhotoStage("render", "render", "retarget", _RENDER_INPUTS, _RENDER_OUTPUTS, _render, _puppet)
+#: the same for renderers of the 3D puppet: B's mesh of each frame (``mesh``, from the motion step) too
+RENDER_3D = PhotoStage("render3d", "render", "retarget", (*_RENDER_INPUTS, "mesh"), _RENDER_OUTPUTS, _render,
+                       _puppet)
+PHOTO_STAGES.update(render=RENDER, render3d=RENDER_3D)
+
+
+def _driver_model(root, path) -> dict:
+    from persona.plugins.face.dynamics import DriverModel, DynamicsParams
+
+    shape, basis = root["driver/shape"], root["driver/subspace/basis"]
+    return {"model": DriverModel.build(shape["depth"][...], shape["albedo"][...], shape["mask"][...], basis[...]),
+            "dynamics": DynamicsParams.model_validate(root[path].attrs["motion"]["dynamics"])}
+
+
+def _dynamics(backend, params, inputs, context):
+    from persona.plugins.face.dynamics import track_frame
+
+    h, w = inputs["/driver/frames/photos/size"]
+    track = track_frame(context["model"], inputs["/driver/frames/photos/rgb"][:h, :w], Pose.from_vector(inputs["pose"]),
+                        backend, context["dynamics"])
+    return {"dynamics/flow": track.flow, "dynamics/delta": track.delta}
+
+
+#: the driver's per-frame 3D flow (ALGORITHMS §9) before temporal smoothing: the flow of the
+#: average face into each frame (``flow`` backend) and the depth change along the ray
+DYNAMICS = PhotoStage(
+    "dynamics", "flow", "retarget", ("pose", "/driver/frames/photos/rgb", "/driver/frames/photos/size"), (
+        Output("dynamics/flow", (H, W, 2), "float32", ("frame", "y", "x", "xy")),
+        Output("dynamics/delta", (H, W), "float32", ("frame", "y", "x")),
+    ), _dynamics, _driver_model)
+PHOTO_STAGES["dynamics"] = DYNAMICS
 
 
 def output_tail(output: Output, canvas) -> tuple[int, ...]:

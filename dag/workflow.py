@@ -13,6 +13,8 @@ from typing import Any, Literal, Union
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
+from persona.plugins.face.dynamics import DynamicsParams
+from persona.plugins.face.transfer import TransferParams
 from persona.plugins.manager import Registry, default_registry, did_you_mean
 from persona.stores.errors import PersonaError
 
@@ -115,7 +117,18 @@ class AlignParams(Strict):
     tps_lambda: float = Field(10.0, ge=0, description="λ of the smoothing TPS to the mean fiducials (Eq. 1; paper: 10)")
 
 
-BACKENDLESS = {"ingest": IngestParams, "align": AlignParams}
+class MotionParams(Strict):
+    pose_sigma: float = Field(1.5, ge=0, le=10, description="σ (frames) of the Gaussian smoothing of the "
+                              "driver's head pose over time (ALGORITHMS §9.2.1: 1-2); 0 = none")
+    dynamics: DynamicsParams = Field(default_factory=DynamicsParams, description="the driver's per-frame "
+                                     "3D flow (ALGORITHMS §9), used by 3D renderers")
+    transfer: TransferParams = Field(default_factory=TransferParams, description="deformation transfer "
+                                     "driver -> puppet (paper §4, ALGORITHMS §10), used by 3D renderers; "
+                                     "its denoiser is stages.denoise (default: huber_rof, off-mask pixels "
+                                     "excluded)")
+
+
+BACKENDLESS = {"ingest": IngestParams, "align": AlignParams, "motion": MotionParams}
 
 
 def _resolve(path: str, base: Path) -> str:

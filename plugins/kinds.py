@@ -7,6 +7,7 @@ the centre of pixel (row i, col j) at (x=j, y=i) as in OpenCV and dlib.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 
@@ -131,6 +132,9 @@ class RenderBackend(Backend):
     """Kind ``render``: the puppet performing one driver frame."""
 
     kind = "render"
+    #: True for renderers of the 3D puppet: the run then computes the driver's 3D motion and its
+    #: transfer to the puppet, and ``puppet.mesh`` holds B's mesh of the frame
+    uses_mesh: ClassVar[bool] = False
 
     def render(self, puppet: Puppet, target: np.ndarray, pose: Pose, frame: np.ndarray) -> Rendered:
         """target: (49, 2) canonical fiducials to show; pose: the driver's head pose in this

@@ -1,0 +1,117 @@
+"""The driver's motion on the puppet's face (paper §4): what 3D renderers draw.
+
+1. ``dynamics`` (Dask tasks over shards of frames): each frame's 3D flow of the driver's
+   average face, before temporal smoothing (:mod:`persona.plugins.face.dynamics`);
+2. in this process, shard by shard: the flows and depth changes smoothed over time (a halo of
+   ``time_radius`` frames each side), the driver's meshes M_D^t and their mean M̄_D;
+3. the correspondence φ puppet -> driver (ALGORITHMS §7.3): the puppet's 2D average projected
+   onto the driver's rank-4 appearance subspace, then a flow between the two;
+4. the magnitude-adjusted deformation transfer of every frame (:mod:`persona.plugins.face.transfer`):
+   B's meshes M_P^t = M_P + Δ̂ f*.
+
+Stored in the ``drive`` collection: ``dynamics/flow``, ``dynamics/delta`` (per frame),
+``motion/driver_mesh`` (M_D^t), ``motion/driver_mean``, ``mesh`` (M_P^t, NaN off B's face) and
+``motion/correspondence`` (φ, written last: its provenance marks the step complete).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from persona.plugins.base import Rejected
+from persona.plugins.face.dynamics import DriverModel, DynamicsParams, FrameTrack, frame_mesh, smooth_tracks
+from persona.plugins.face.subspace import project
+from persona.plugins.face.transfer import DeformationTransfer
+from persona.plugins.kinds import FlowBackend, Pose
+from persona.stores.layout import OK, Collection
+from persona.stores.provenance import Provenance, cache_key
+
+from . import stages as st
+
+_LUMA = np.array([0.299, 0.587, 0.114], np.float32)
+
+
+def correspondence(puppet_average: np.ndarray, puppet_mask: np.ndarray, driver_basis: np.ndarray,
+                   flow: FlowBackend) -> np.ndarray:
+    """φ (H, W, 2): for each puppet pixel, the driver pixel (x, y) that corresponds (ALGORITHMS §7.3).
+
+    The puppet's 2D average A_P (H, W, 3, 0-255) projected onto the driver's basis (k, H, W, 3)
+    keeps A_P's lighting and takes the driver's geometry, so the flow A_P -> Π_D(A_P) is the
+    geometric difference between the two faces."""
+    average = np.asarray(puppet_average, np.float32) / 255
+    projected = np.clip(project(average, driver_basis, puppet_mask), 0, 1).astype(np.float32)
+    w = flow.flow(average @ _LUMA, projected @ _LUMA, puppet_mask)
+    ys, xs = np.mgrid[0:w.shape[0], 0:w.shape[1]].astype(np.float32)
+    return np.stack([xs + w[..., 0], ys + w[..., 1]], axis=-1)
+
+
+def run_motion(runner, drive: Collection, retargeted: Provenance) -> Provenance:
+    """Steps 1-4 (see the module's docstring); returns the provenance of ``mesh``."""
+    root = runner.root
+    driver, puppet = Collection(root, "driver"), Collection(root, "puppet")
+    for coll in (driver, puppet):
+        if not coll.has("shape/depth"):
+            raise Rejected(f"{coll.path}: no 3D shape, so no 3D puppet (see the run's warnings)")
+    motion = runner.motion_params()
+    drive.group.attrs["motion"] = motion
+    dynamics = runner.prepare_stage(drive, st.DYNAMICS, {
+        "retarget": retargeted.key, "driver_shape": driver.provenance("shape/depth").key,
+        "params": cache_key(**motion["dynamics"])})
+    runner.run_stage_tasks(drive, [("dynamics", dynamics.backend, dynamics.params)])
+
+    denoise = runner.wf.stages.get("denoise")
+    prov = Provenance.make(stage="motion", backend="-", backend_version="1",
+                           params={"transfer": motion["transfer"], "dynamics": motion["dynamics"],
+                                   "denoise": runner.wf.stage("denoise") if denoise else None},
+                           inputs={"dynamics": dynamics.key, "puppet_shape": puppet.provenance("shape/depth").key,
+                                   "puppet_texture": puppet.provenance("shape/texture").key},
+                           persona_version=runner.version)
+    done = drive.provenance("motion/correspondence")
+    if done is not None and done.key == prov.key:
+        return prov
+    registry = st.default_registry()
+    flow = registry.get("flow", dynamics.backend)(dynamics.params)
+    model = DriverModel.build(driver.array("shape/depth")[...], driver.array("shape/albedo")[...],
+                              driver.array("shape/mask")[...], driver.array("subspace/basis")[...])
+    params = DynamicsParams.model_validate(motion["dynamics"])
+    mean = _driver_meshes(drive, model, params, prov)
+
+    puppet_mask = puppet.array("shape/mask")[...]
+    phi = correspondence(puppet.array("shape/texture")[...], puppet_mask, driver.array("subspace/basis")[...], flow)
+    depth = puppet.array("shape/depth")[...]
+    ys, xs = np.mgrid[0:depth.shape[0], 0:depth.shape[1]]
+    puppet_mean = np.stack([xs, ys, depth], axis=-1)
+    denoiser = registry.get("denoise", runner.wf.stage("denoise")[0])(runner.wf.stage("denoise")[1]) if denoise else None
+    transfer = DeformationTransfer(mean, phi, puppet_mean, puppet_mask, model.mask, params=motion["transfer"],
+                                   denoiser=denoiser)
+    meshes = drive.create("mesh", puppet_mean.shape, np.float32, ("frame", "y", "x", "xyz"), prov)
+    source = drive.array("motion/driver_mesh")
+    for start, stop in drive.shard_ranges():
+        block = np.stack([transfer(m) for m in source[start:stop]]).astype(np.float32)
+        block[:, ~puppet_mask] = np.nan
+        meshes[start:stop] = block
+    drive.create_single("motion/correspondence", phi.astype(np.float32), ("y", "x", "xy"), prov)
+    return prov
+
+
+def _driver_meshes(drive: Collection, model: DriverModel, params: DynamicsParams, prov: Provenance) -> np.ndarray:
+    """M_D^t of every frame into ``motion/driver_mesh``, shard by shard with a halo for the temporal
+    smoothing; returns (and stores) their mean M̄_D. Frames without a track keep the average."""
+    ok = drive.state("dynamics") == OK
+    poses = drive.array("pose")[:]
+    halo = params.time_radius
+    out = drive.create("motion/driver_mesh", (*model.shape, 3), np.float32, ("frame", "y", "x", "xyz"), prov)
+    total = np.zeros((*model.shape, 3))
+    for start, stop in drive.shard_ranges():
+        lo, hi = max(0, start - halo), min(drive.n, stop + halo)
+        flows, deltas = drive.array("dynamics/flow")[lo:hi], drive.array("dynamics/delta")[lo:hi]
+        tracks = [FrameTrack(flows[i], deltas[i], np.full(4, np.nan), np.zeros(model.shape, bool),
+                             np.zeros(model.shape, bool)) if ok[lo + i] else None for i in range(hi - lo)]
+        smoothed = smooth_tracks(tracks, params)
+        block = np.stack([model.rest_mesh if track is None else frame_mesh(model, track, Pose.from_vector(poses[t]))
+                          for t, track in zip(range(start, stop), smoothed[start - lo:stop - lo])])
+        out[start:stop] = block
+        total += block.sum(axis=0)
+    mean = (total / drive.n).astype(np.float32)
+    drive.create_single("motion/driver_mean", mean, ("y", "x", "xyz"), prov)
+    return mean
