@@ -1,4 +1,4 @@
-"""Speed of the render backends per frame (one core): the 3D ``raycast`` and, for reference, ``tps2d``.
+"""Speed of the render backends per frame (one core): the 3D ``mesh3d`` and, for reference, ``tps2d``.
 
     .venv/bin/python benchmarks/render_speed.py [--size 512] [--face-px 250] [--repeats 30]
 
@@ -86,7 +86,7 @@ def main():
 
     p = puppet()
     frame = np.random.default_rng(0).integers(0, 256, (args.size, args.size, 3), dtype=np.uint8)
-    backends = {"raycast": RaycastRender(), "tps2d": Tps2dRender()}
+    backends = {"mesh3d": RaycastRender(), "tps2d": Tps2dRender()}
     rows = {name: [] for name in (*backends, "open3d visibility only")}
     for yaw, pitch, roll in POSES:
         rvec, tvec, camera = look_at_pose(yaw, pitch, roll, face_px=args.face_px, image_size=(args.size,) * 2)
@@ -94,14 +94,14 @@ def main():
         for name, backend in backends.items():
             rows[name].append(timed(lambda b=backend, q=pose: b.render(p, p.fiducials, q, frame), args.repeats))
         rows["open3d visibility only"].append(timed(lambda q=pose: open3d_visibility(p, q, args.size), args.repeats))
-        face = backends["raycast"].render(p, p.fiducials, pose, frame).mask > 0.5
+        face = backends["mesh3d"].render(p, p.fiducials, pose, frame).mask > 0.5
         cols = np.nonzero(face.any(axis=0))[0]
         print(f"pose yaw {yaw:+.0f} pitch {pitch:+.0f} roll {roll:+.0f}: face {cols[-1] - cols[0] + 1} px wide, "
               f"{face.sum()} face pixels")
     print(f"\n{args.size}x{args.size} frame, one core, median of {args.repeats} renders per pose (ms/frame):")
     for name, ms in rows.items():
         print(f"  {name:24s} " + "  ".join(f"{m:6.1f}" for m in ms) + f"   (median {np.median(ms):.1f})")
-    print("target for raycast: <= 30 ms/frame")
+    print("target for mesh3d: <= 30 ms/frame")
 
 
 if __name__ == "__main__":

@@ -128,10 +128,11 @@ class RaycastRender(RenderBackend):
     returned mask lets a caller composite anyway; "driver" does it here.
     """
 
-    name = "raycast"
+    name = "mesh3d"
     description = ("the paper's final render: the puppet's per-frame 3D mesh with its synthesized "
                    "texture, at the driver's head pose (z-buffered, equal to ray casting pixel centres)")
     default = False
+    uses_mesh = True
 
     class Params(Params):
         min_coverage: float = Field(0.3, ge=0, le=1, description="canonical pixels seen in fewer "
@@ -145,7 +146,7 @@ class RaycastRender(RenderBackend):
     def render(self, puppet: Puppet, target: np.ndarray, pose: Pose, frame: np.ndarray) -> Rendered:
         """target is not used: the expression is already in ``puppet.mesh`` and ``puppet.appearance``."""
         if puppet.mesh is None:
-            raise ValueError("the raycast renderer needs the puppet's 3D mesh; this puppet has none "
+            raise ValueError("the mesh3d renderer needs the puppet's 3D mesh; this puppet has none "
                              "(Puppet.mesh is None: run the 3D pipeline, or use the 2D renderer tps2d)")
         grid = puppet.appearance.shape[:2]
         if puppet.mesh.shape != (*grid, 3) or puppet.coverage.shape != grid:

@@ -492,9 +492,11 @@ def refine_depth(model: DriverModel, surface: np.ndarray, ray: np.ndarray, inten
         xu, xv = ops.du @ x, ops.dv @ x
         m = np.cross(xv, xu)
         norm = np.linalg.norm(m, axis=1)
+        defined = norm > 1e-9  # nodes whose differences vanish (e.g. isolated by holes in the mask) have no normal
+        norm = np.where(defined, norm, 1.0)
         n = m / norm[:, None]
         design = rho[:, None] * np.column_stack([np.ones(len(n)), n])
-        use = candidate.copy()
+        use = candidate & defined
         if use.sum() < 50:
             break
         light = np.linalg.lstsq(design[use], target[use], rcond=None)[0]

@@ -1,4 +1,4 @@
-"""The 3D render backend ``raycast`` against the synthetic ground-truth renderer.
+"""The 3D render backend ``mesh3d`` against the synthetic ground-truth renderer.
 
 The synthetic face's parametrised mesh ``verts`` and painted albedo ``vert_albedo`` are exactly a
 puppet mesh and texture on the canonical grid. ``render_photo`` ray-casts the same mesh with
@@ -176,5 +176,5 @@ def test_params_are_validated():
 
 def test_registered_as_a_render_backend():
     registry = default_registry()
-    assert registry.get("render", "raycast") is RaycastRender
+    assert registry.get("render", "mesh3d") is RaycastRender
     assert registry.default("render") == "tps2d"
