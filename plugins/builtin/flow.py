@@ -81,6 +81,18 @@ def prepare_pair(image0, image1, mask=None) -> tuple[np.ndarray, np.ndarray, np.
     return i0, i1, mask
 
 
+def _wide_blur(image: np.ndarray, sigma: float) -> np.ndarray:
+    """Gaussian blur; beyond σ = 8 px computed at a resolution reduced to keep σ at 4 px there
+    (the same smooth result for a fill, without kernels hundreds of pixels wide)."""
+    if sigma <= 8:
+        return cv2.GaussianBlur(image, (0, 0), sigma, borderType=cv2.BORDER_REPLICATE)
+    h, w = image.shape[:2]
+    factor = sigma / 4
+    small = cv2.resize(image, (max(1, round(w / factor)), max(1, round(h / factor))), interpolation=cv2.INTER_AREA)
+    small = cv2.GaussianBlur(small, (0, 0), 4.0, borderType=cv2.BORDER_REPLICATE)
+    return cv2.resize(small, (w, h), interpolation=cv2.INTER_LINEAR)
+
+
 def fill_outside_mask(image: np.ndarray, mask: np.ndarray, sigma: float = 4.0) -> np.ndarray:
     """image (H, W, C) float64 with the pixels outside ``mask`` replaced by a smooth, texture-free
     extension of the masked values (normalised Gaussian convolution, widened until every pixel is
@@ -97,8 +109,8 @@ def fill_outside_mask(image: np.ndarray, mask: np.ndarray, sigma: float = 4.0) -
     done = mask.copy()
     s = sigma
     while True:
-        den = cv2.GaussianBlur(m, (0, 0), s, borderType=cv2.BORDER_REPLICATE)
-        num = cv2.GaussianBlur(weighted, (0, 0), s, borderType=cv2.BORDER_REPLICATE).reshape(h, w, c)
+        den = _wide_blur(m, s)
+        num = _wide_blur(weighted, s).reshape(h, w, c)
         new = (den > 1e-3) & ~done
         fill[new] = num[new] / den[new][:, None]
         done |= new
@@ -512,6 +524,8 @@ def coarse2fine_flow(im1: np.ndarray, im2: np.ndarray, alpha: float, ratio: floa
 class PreparedFlow(FlowBackend):
     """The built-ins' common entry: inputs checked and converted, the outside of the mask
     filled (ALGORITHMS §6.5); subclasses implement ``compute`` on the prepared pair."""
+
+    version = "2"  # 2: the mask fill's wide blurs at reduced resolution
 
     def flow(self, image0, image1, mask=None):
         pair = _prepared(image0, image1, mask)
