@@ -11,6 +11,15 @@ fiducials: mean angular error of the normals, and depth RMS after a least-square
 scale-and-offset fit, on the inner face (coverage ≥ 0.5, 6 px inside the oval). Printed
 for the generic template itself, for photometric stereo on the frontalized faces
 (rigid alignment only) and on the collection-flow aligned faces (the paper's way).
+
+Two registrations of the truth are printed. "template frame": the truth carried onto the
+template's fiducials (the template's own frame). "collection frame": the truth carried onto
+the collection's mean fiducials, the frame the photos are aligned to and so the frame of the
+reconstruction (mean fiducials differ from the template's by ~1 px on average, up to 5 px at
+the mouth): measured against the template-frame truth, a reconstruction is also charged for
+that misregistration (seed 3: 3.38° vs 2.86° for the same normals). The template is listed
+in both for reference; its fair figure is the template frame, the reconstruction's the
+collection frame. "px" counts the pixels evaluated (NaN normals are left out).
 """
 
 from __future__ import annotations
@@ -53,19 +62,25 @@ def main():
         truth = synthetic.make_face(identity)
         # the truth in the canonical frame: sample it where the TPS from the template's fiducials
         # to the identity's own sends each canonical pixel
-        warp = tps_map(template.landmarks3d[list(IDX49), :2], truth.landmarks3d[list(IDX49), :2], (244, 194), lam=0)
-        gt_n = np.stack([cv2.remap(truth.normals[..., c].astype(np.float32), warp[..., 0], warp[..., 1],
-                                   cv2.INTER_LINEAR) for c in range(3)], -1)
-        gt_n /= np.linalg.norm(gt_n, axis=-1, keepdims=True)
-        gt_z = cv2.remap(truth.depth.astype(np.float32), warp[..., 0], warp[..., 1], cv2.INTER_LINEAR)
+        def truth_on(fiducials):
+            warp = tps_map(fiducials, truth.landmarks3d[list(IDX49), :2], (244, 194), lam=0)
+            gt_n = np.stack([cv2.remap(truth.normals[..., c].astype(np.float32), warp[..., 0], warp[..., 1],
+                                       cv2.INTER_LINEAR) for c in range(3)], -1)
+            gt_n /= np.linalg.norm(gt_n, axis=-1, keepdims=True)
+            return gt_n, cv2.remap(truth.depth.astype(np.float32), warp[..., 0], warp[..., 1], cv2.INTER_LINEAR)
+
+        frames = {"template": truth_on(template.landmarks3d[list(IDX49), :2]),
+                  "collection": truth_on(coll.array("aligned/mean_fiducials")[...].astype(np.float64))}
         inner = cv2.erode(template.mask.astype(np.uint8), np.ones((13, 13), np.uint8)).astype(bool)
         inner &= coll.array("aligned/coverage")[...] >= 0.5
 
-        def figures(normals, depth):
+        def figures(normals, depth, frame):
+            gt_n, gt_z = frames[frame]
             ang = np.degrees(np.arccos(np.clip(np.sum(normals * gt_n, -1), -1, 1)))[inner]
             x, y = depth[inner], gt_z[inner]
-            s, t = np.linalg.lstsq(np.c_[x, np.ones_like(x)], y, rcond=None)[0]
-            return float(np.nanmean(ang)), float(np.sqrt(np.nanmean((s * x + t - y) ** 2)))
+            ok = np.isfinite(x) & np.isfinite(ang)
+            s, t = np.linalg.lstsq(np.c_[x[ok], np.ones(ok.sum())], y[ok], rcond=None)[0]
+            return float(np.mean(ang[ok])), float(np.sqrt(np.mean((s * x[ok] + t - y[ok]) ** 2))), int(ok.sum())
 
         def ps(group, stage):
             ok = coll.state(stage) == OK
@@ -82,9 +97,11 @@ def main():
         rows = [("generic template", (template.normals, template.depth)),
                 ("PS, frontalized only (rigid)", ps("aligned", "frontalize")),
                 ("PS, collection flow (paper)", ps("collection", "align"))]
-        for name, (normals, depth) in rows:
-            err, rms = figures(normals, depth)
-            print(f"  {name:<30} mean normal error {err:5.2f}°   depth RMS {rms:5.2f} px")
+        for frame in frames:
+            print(f" truth in the {frame} frame")
+            for name, (normals, depth) in rows:
+                err, rms, count = figures(normals, depth, frame)
+                print(f"  {name:<30} mean normal error {err:5.2f}°   depth RMS {rms:5.2f} px   ({count} px)")
 
 
 if __name__ == "__main__":
