@@ -117,8 +117,8 @@ def _evaluate_texture(wf, args) -> int:
     if not Collection(open_store(wf.store, mode="r"), args.collection).has("aligned/fiducials"):
         raise RunError(f"{wf.store} has no aligned faces in {args.collection!r}: run `persona run {args.workflow}` first")
     with executor_for(wf, args.scheduler, args.workers) as ex:
-        result = evaluate_texture(Runner(wf, ex, progress=False), args.collection, references=args.references,
-                                  seed=args.seed)
+        result = evaluate_texture(Runner(wf, ex, progress=not args.json), args.collection, references=args.references,
+                                  seed=args.seed, photos=args.photos)
     if args.json:
         print(json.dumps(result, indent=2))
         return 0
@@ -233,6 +233,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--collection", default="puppet", help="--texture: the collection (default puppet)")
     p.add_argument("--references", type=int, default=40, help="--texture: held-out references (default 40)")
     p.add_argument("--seed", type=int, default=0, help="--texture: seed of the references' draw")
+    p.add_argument("--photos", type=int, help="--texture: synthesize from this many of the other photos, drawn at "
+                   "random (default: all of them)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     common_run(p)

@@ -22,7 +22,7 @@ from persona.stores.layout import OK, Collection
 from persona.stores.provenance import Provenance
 
 from . import stages as st
-from .motion import run_motion
+from .motion import export_meshes, run_motion
 from .texture import run_frame_textures
 
 
@@ -49,6 +49,9 @@ def run_drive(runner) -> Collection:
     drive.group.attrs["stages"] = ["retarget", stage.name] if stage is st.RENDER else ["retarget", "dynamics", stage.name]
     render = runner.prepare_stage(drive, stage, inputs)
     runner.run_stage_tasks(drive, [(stage.name, render.backend, render.params)])
+    every = runner.motion_params()["export_every"]
+    if stage is st.RENDER_3D and every:
+        export_meshes(runner, drive, every)
     return drive
 
 
@@ -75,16 +78,22 @@ def _retarget(runner, drive, frames, puppet, found, prov, sigma: float) -> None:
 
 
 def write_videos(drive: Collection, frames: Collection, output: Path) -> dict[str, str]:
-    """puppet.mp4 (the puppet alone) and side_by_side.mp4 (driver | puppet), at the video's fps."""
+    """puppet.mp4 (the puppet as rendered), side_by_side.mp4 (driver | puppet) and composite.mp4
+    (the puppet's face blended into the driver's frames through the render's soft mask), at the
+    video's fps."""
     fps = float(drive.attrs["fps"])
 
-    def shards(*arrays):
+    def shards(*arrays, composite=False):
         for start, stop in drive.shard_ranges():
             parts = [a[start:stop] for a in arrays]
+            if composite:
+                rendered, original, mask = parts
+                alpha = mask[..., None].astype(np.float32) / 255
+                parts = [np.round(rendered * alpha + original * (1 - alpha)).astype(np.uint8)]
             yield from (np.concatenate(row, axis=1) for row in zip(*parts))
 
-    rendered, original = drive.array("render/rgb"), frames.array("photos/rgb")
+    rendered, original, mask = drive.array("render/rgb"), frames.array("photos/rgb"), drive.array("render/mask")
     media.write_video_mp4(output / "puppet.mp4", shards(rendered), fps)
     media.write_video_mp4(output / "side_by_side.mp4", shards(original, rendered), fps)
-    return {"puppet": str(output / "puppet.mp4"), "side_by_side": str(output / "side_by_side.mp4")}
-
+    media.write_video_mp4(output / "composite.mp4", shards(rendered, original, mask, composite=True), fps)
+    return {name: str(output / f"{name}.mp4") for name in ("puppet", "side_by_side", "composite")}

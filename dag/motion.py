@@ -74,7 +74,8 @@ def run_motion(runner, drive: Collection, retargeted: Provenance) -> Provenance:
     model = DriverModel.build(driver.array("shape/depth")[...], driver.array("shape/albedo")[...],
                               driver.array("shape/mask")[...], driver.array("subspace/basis")[...])
     params = DynamicsParams.model_validate(motion["dynamics"])
-    mean = _driver_meshes(drive, model, params, prov)
+    with runner.progress_bar(f"{'drive':>13} meshes    ", drive.n) as bar:
+        mean = _driver_meshes(drive, model, params, prov, bar)
 
     puppet_mask = puppet.array("shape/mask")[...]
     phi = correspondence(puppet.array("shape/texture")[...], puppet_mask, driver.array("subspace/basis")[...], flow)
@@ -86,15 +87,18 @@ def run_motion(runner, drive: Collection, retargeted: Provenance) -> Provenance:
                                    denoiser=denoiser)
     meshes = drive.create("mesh", puppet_mean.shape, np.float32, ("frame", "y", "x", "xyz"), prov)
     source = drive.array("motion/driver_mesh")
-    for start, stop in drive.shard_ranges():
-        block = np.stack([transfer(m) for m in source[start:stop]]).astype(np.float32)
-        block[:, ~puppet_mask] = np.nan
-        meshes[start:stop] = block
+    with runner.progress_bar(f"{'drive':>13} transfer  ", drive.n) as bar:
+        for start, stop in drive.shard_ranges():
+            block = np.stack([transfer(m) for m in source[start:stop]]).astype(np.float32)
+            block[:, ~puppet_mask] = np.nan
+            meshes[start:stop] = block
+            bar.update(stop - start)
     drive.create_single("motion/correspondence", phi.astype(np.float32), ("y", "x", "xy"), prov)
     return prov
 
 
-def _driver_meshes(drive: Collection, model: DriverModel, params: DynamicsParams, prov: Provenance) -> np.ndarray:
+def _driver_meshes(drive: Collection, model: DriverModel, params: DynamicsParams, prov: Provenance,
+                   bar) -> np.ndarray:
     """M_D^t of every frame into ``motion/driver_mesh``, shard by shard with a halo for the temporal
     smoothing; returns (and stores) their mean M̄_D. Frames without a track keep the average."""
     ok = drive.state("dynamics") == OK
@@ -112,6 +116,32 @@ def _driver_meshes(drive: Collection, model: DriverModel, params: DynamicsParams
                           for t, track in zip(range(start, stop), smoothed[start - lo:stop - lo])])
         out[start:stop] = block
         total += block.sum(axis=0)
+        bar.update(stop - start)
     mean = (total / drive.n).astype(np.float32)
     drive.create_single("motion/driver_mean", mean, ("y", "x", "xyz"), prov)
     return mean
+
+
+def export_meshes(runner, drive: Collection, every: int) -> list[str]:
+    """B's textured mesh of every ``every``-th frame: ``<output>/meshes/frame_<t>.ply`` and ``.obj``."""
+    from pathlib import Path
+
+    import open3d as o3d
+
+    from persona.plugins.face.meshing import depth_to_mesh
+    from persona.stores.meshes import write_mesh
+
+    folder = Path(runner.wf.output) / "meshes"
+    written = []
+    frames = range(0, drive.n, every)
+    with runner.progress_bar(f"{'drive':>13} export    ", len(frames)) as bar:
+        for t in frames:
+            mesh, texture = drive.array("mesh")[t], drive.array("texture/rgb")[t]
+            face = np.isfinite(mesh).all(axis=-1)
+            surface = depth_to_mesh(np.where(face, mesh[..., 2], np.nan), face, texture)
+            pixels = np.round(np.asarray(surface.vertices)[:, :2]).astype(int)  # vertices are face pixels
+            surface.vertices = o3d.utility.Vector3dVector(mesh[pixels[:, 1], pixels[:, 0]].astype(np.float64))
+            surface.compute_vertex_normals()
+            written.append(str(write_mesh(folder, f"frame_{t:05d}", surface, texture, y_up=True)["ply"]))
+            bar.update()
+    return written

@@ -263,6 +263,12 @@ class Runner:
         tasks = [(self.wf.store, coll.path, s, e, steps) for s, e in pending]
         self._run(coll, steps, tasks, st.run_chain)
 
+    def progress_bar(self, what: str, total: int, unit: str = "frame"):
+        """A progress bar for work done in this process (hidden with --quiet)."""
+        from tqdm.auto import tqdm
+
+        return tqdm(total=total, desc=what, unit=unit, disable=not self.progress, leave=True, dynamic_ncols=True)
+
     def _run(self, coll, steps, tasks, fn):
         from tqdm.auto import tqdm
 

@@ -121,7 +121,9 @@ def run_frame_textures(runner, drive: Collection, puppet: Collection, retargeted
             array[start:stop] = np.broadcast_to(mean, (stop - start, *mean.shape))
         return prov
     cache, fiducials = load_cache(puppet)
-    for start, stop in drive.shard_ranges():
-        array[start:stop] = np.stack([backend.blend(cache, fiducials, t).round().astype(np.uint8)
-                                      for t in targets[start:stop]])
+    with runner.progress_bar(f"{'drive':>13} texture   ", drive.n) as bar:
+        for start, stop in drive.shard_ranges():
+            array[start:stop] = np.stack([backend.blend(cache, fiducials, t).round().astype(np.uint8)
+                                          for t in targets[start:stop]])
+            bar.update(stop - start)
     return prov

@@ -12,7 +12,7 @@ reference itself for the paper's reference-mode flow), from the other photos onl
 - colour consistency: the spread (relative standard deviation, %) over all references of
   the result's mean face colour (lower is more consistent).
 
-Dask tasks share the references; each builds the collection once.
+Dask tasks of a few references each; a worker builds the collection once and keeps it.
 """
 
 from __future__ import annotations
@@ -140,23 +140,30 @@ def grid(rows: list[dict]) -> np.ndarray:
 
 
 def evaluate_texture(runner, path: str = "puppet", *, references: int = 40, seed: int = 0,
-                     methods: tuple[str, ...] = METHODS, pictures: int = 8) -> dict:
+                     methods: tuple[str, ...] = METHODS, pictures: int = 8, photos: int | None = None) -> dict:
     """Hold out ``references`` random accepted photos of collection ``path``, synthesize each
-    with every method from the others, score; write the grid PNG and a JSON table into the
-    run's output folder."""
+    with every method from the others (or from ``photos`` of them drawn at random), score; write
+    the grid PNG and a JSON table into the run's output folder."""
     coll = Collection(runner.root, path)
     ok = np.flatnonzero(coll.state("frontalize") == OK)
     if len(ok) < references + 8:
         raise Rejected(f"{path}: {len(ok)} accepted photos; need more than {references} references + 8")
     chosen = np.sort(np.random.default_rng(seed).choice(ok, references, replace=False))
-    rows = tuple(int(i) for i in np.setdiff1d(ok, chosen))
+    rest = np.setdiff1d(ok, chosen)
+    if photos is not None and photos < len(rest):
+        rest = np.sort(np.random.default_rng(seed + 1).choice(rest, photos, replace=False))
+    rows = tuple(int(i) for i in rest)
     flow = runner.wf.stage("flow")
     params = {m: runner.wf.stage("texture")[1] if m == runner.wf.stage("texture")[0] else {} for m in methods}
     shown = {int(i) for i in chosen[:pictures]}
-    parts = np.array_split(chosen, max(1, min(len(chosen), runner.executor.workers)))
+    parts = np.array_split(chosen, -(-len(chosen) // 4))  # small tasks: progress, and balance across workers
     tasks = [(runner.wf.store, path, rows, [int(i) for i in part], flow, params, shown) for part in parts]
-    results = sorted((row for part in runner.executor.run(evaluate_references, tasks) for row in part),
-                     key=lambda row: row["photo"])
+    results = []
+    with runner.progress_bar(f"{path:>13} texture evaluation", len(chosen), unit="reference") as bar:
+        for part in runner.executor.run(evaluate_references, tasks):
+            results += part
+            bar.update(len(part))
+    results.sort(key=lambda row: row["photo"])
     table = summarize(results)
     out = Path(runner.wf.output)
     slug = path.replace("/", "_")

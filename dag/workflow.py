@@ -126,6 +126,8 @@ class MotionParams(Strict):
                                      "driver -> puppet (paper §4, ALGORITHMS §10), used by 3D renderers; "
                                      "its denoiser is stages.denoise (default: huber_rof, off-mask pixels "
                                      "excluded)")
+    export_every: int = Field(0, ge=0, description="with a 3D renderer, also write B's textured mesh of every "
+                              "n-th driver frame (PLY and OBJ + texture) into <output>/meshes/; 0 = none")
 
 
 BACKENDLESS = {"ingest": IngestParams, "align": AlignParams, "motion": MotionParams}

@@ -61,7 +61,7 @@ def _face_box(pose: Pose, frame_size) -> tuple[int, int, int, int] | None:
 class Tps2dRender(RenderBackend):
     name = "tps2d"
     description = "the paper's 2D baseline: the puppet's average face TPS-warped to the target fiducials, at the driver's pose"
-    default = True
+    default = False
 
     class Params(Params):
         tps_lambda: float = Field(10.0, ge=0, description="λ of the smoothing TPS (Eq. 1; paper: 10)")

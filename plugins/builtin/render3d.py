@@ -131,7 +131,7 @@ class RaycastRender(RenderBackend):
     name = "mesh3d"
     description = ("the paper's final render: the puppet's per-frame 3D mesh with its synthesized "
                    "texture, at the driver's head pose (z-buffered, equal to ray casting pixel centres)")
-    default = False
+    default = True
     uses_mesh = True
 
     class Params(Params):

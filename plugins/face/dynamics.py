@@ -541,6 +541,9 @@ def _solve_spd(matrix: sp.spmatrix, rhs: np.ndarray) -> np.ndarray:
     offset = lower.row - lower.col
     bands = np.zeros((int(offset.max()) + 1, matrix.shape[0]))
     bands[offset, lower.col] = lower.data
+    # a node that no data or prior reaches (a hole in a reconstructed mask) has an empty row: pin it
+    # with a unit diagonal (its right-hand side is 0 too), and keep the rest safely definite
+    bands[0] += 1e-10 * bands[0].max() + (bands[0] <= 0)
     return solveh_banded(bands, rhs, lower=True, check_finite=False)
 
 

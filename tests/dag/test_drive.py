@@ -7,7 +7,7 @@ import pytest
 import yaml
 
 from persona.dag.cli import main as cli
-from persona.dag.demo import make_demo_data
+from persona.dag.demo import driver_identity, make_demo_data
 from persona.dag.runner import run_workflow
 from persona.dag.workflow import load_workflow
 from persona.plugins.face import synthetic
@@ -18,7 +18,7 @@ from persona.stores import media
 def drive_run(tmp_path_factory):
     folder = tmp_path_factory.mktemp("drive")
     path = make_demo_data(folder, n_photos=10, n_frames=16)
-    frames = [f.image for f in synthetic.make_driver_video(16, seed=2)]
+    frames = [f.image for f in synthetic.make_driver_video(16, seed=2, identity=driver_identity(0))]
     frames[6] = np.full_like(frames[6], 90)  # the driver leaves the frame: no face
     media.write_video_mp4(folder / "data" / "driver.mp4", frames, fps=25)
     wf = yaml.safe_load(path.read_text())
@@ -44,7 +44,8 @@ def test_metrics_json_has_counts_times_and_figures(drive_run):
     assert metrics["collections"]["puppet"]["n_photos"] == 10
     assert {"accepted", "rejected"} <= set(metrics["collections"]["driver"])
     assert metrics["speed"]["ms_per_driver_frame"] > 0
-    assert {r["stage"] for r in metrics["stages"]} >= {"ingest", "landmarks", "pose", "frontalize", "render"}
+    assert {r["stage"] for r in metrics["stages"]} >= {"ingest", "landmarks", "pose", "frontalize", "dynamics",
+                                                       "render3d"}
     ev = metrics["evaluation"]
     assert set(ev["expression"]) == {"mouth_open", "eye_open", "brow_height"}
     assert 0 <= ev["identity"]["fraction_b_not_a"] <= 1
@@ -127,3 +128,33 @@ def test_texture_evaluation_holds_out_references_and_scores_every_method(drive_r
     assert grid.shape == (28 + 2 * 244, 5 * 194, 3)
     saved = json.loads((folder / "output" / "puppet_texture_evaluation.json").read_text())
     assert saved["table"] == table
+
+
+def test_3d_drive_moves_the_puppets_mesh_with_the_driver(drive_run):
+    from persona.stores.layout import Collection, open_store
+
+    folder, _, _ = drive_run
+    root = open_store(str(folder / "run.zarr"), mode="r")
+    drive, puppet = Collection(root, "drive"), Collection(root, "puppet")
+    meshes = drive.array("mesh")[:]
+    face = puppet.array("shape/mask")[...]
+    assert meshes.shape == (16, 244, 194, 3) and np.isfinite(meshes[:, face]).all()
+    assert np.isnan(meshes[:, ~face]).all()
+    rest = np.stack(np.mgrid[0:244, 0:194][::-1], axis=-1)
+    moved = np.linalg.norm(meshes[..., :2][:, face] - rest[face], axis=-1)
+    assert 0.05 < np.median(moved) < 5  # the driver's motion moves B's mesh, which stays a face
+    motion = np.linalg.norm(meshes[:, face] - meshes[:, face].mean(axis=0), axis=-1)
+    assert motion.mean() > 0.05  # and differently in different frames
+    phi = drive.array("motion/correspondence")[...]
+    assert np.median(np.linalg.norm(phi[face] - rest[face], axis=-1)) < 10
+    assert set(drive.state("dynamics")) <= {1, 2} and (drive.state("dynamics") == 1).mean() > 0.8
+
+
+def test_2d_baseline_renders_into_the_same_store(drive_run, capsys):
+    folder, path, _ = drive_run
+    assert cli(["run", str(path), "--scheduler", "sync", "--quiet", "--set", "stages.render.backend=tps2d",
+                "--set", "output=output_2d"]) == 0
+    metrics = json.loads((folder / "output_2d" / "metrics.json").read_text())
+    assert "render" in {r["stage"] for r in metrics["stages"]}
+    assert metrics["evaluation"]["frames"] == 16
+    assert media.VideoReader(folder / "output_2d" / "puppet.mp4").n_frames == 16
