@@ -177,4 +177,4 @@ def test_params_are_validated():
 def test_registered_as_a_render_backend():
     registry = default_registry()
     assert registry.get("render", "mesh3d") is RaycastRender
-    assert registry.default("render") == "tps2d"
+    assert registry.default("render") == "mesh3d"
