@@ -118,12 +118,13 @@ def _evaluate_texture(wf, args) -> int:
         raise RunError(f"{wf.store} has no aligned faces in {args.collection!r}: run `persona run {args.workflow}` first")
     with executor_for(wf, args.scheduler, args.workers) as ex:
         result = evaluate_texture(Runner(wf, ex, progress=not args.json), args.collection, references=args.references,
-                                  seed=args.seed, photos=args.photos)
+                                  seed=args.seed, photos=args.photos, mode=args.mode)
     if args.json:
         print(json.dumps(result, indent=2))
         return 0
     print(f"{args.collection}: {len(result['references'])} held-out references, {result['collection_photos']} "
-          f"photos, flow {result['flow']['backend']}")
+          f"photos, flow {result['flow']['backend']}, target: "
+          + ("each reference photo" if result["mode"] == "reference" else "each reference's fiducials"))
     print(f"  {'method':<16}{'alignment %IOD':>16}{'no face':>9}{'detail':>9}{'fidelity':>10}{'colour %':>10}")
     columns = (("alignment_median_pct_iod", 16, ".2f"), ("no_face_found", 9, "d"), ("detail_median", 9, ".3f"),
                ("fidelity_median", 10, ".3f"), ("colour_spread_pct", 10, ".2f"))
@@ -235,6 +236,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0, help="--texture: seed of the references' draw")
     p.add_argument("--photos", type=int, help="--texture: synthesize from this many of the other photos, drawn at "
                    "random (default: all of them)")
+    p.add_argument("--mode", choices=("reference", "fiducials"), default="reference", help="--texture: target the "
+                   "reference photo itself (the paper's Fig. 5) or only its fiducials (as in puppetry)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     common_run(p)

@@ -83,8 +83,10 @@ def scores(result: np.ndarray, result_mask: np.ndarray, reference: np.ndarray, r
 
 
 def evaluate_references(url: str, path: str, rows: tuple[int, ...], references: list[int],
-                        flow: tuple[str, dict], methods: dict[str, dict], pictures: set[int]) -> list[dict]:
-    """Dask task: every method on each reference, from the collection ``rows``."""
+                        flow: tuple[str, dict], methods: dict[str, dict], pictures: set[int],
+                        use_reference: bool = True) -> list[dict]:
+    """Dask task: every method on each reference, from the collection ``rows``; the target is the
+    reference photo (the paper's reference mode) or, without ``use_reference``, its fiducials only."""
     coll = Collection(open_store(url, mode="r"), path)
     photos = _collection(url, path, rows)
     registry = st.default_registry()
@@ -98,7 +100,8 @@ def evaluate_references(url: str, path: str, rows: tuple[int, ...], references: 
         row = {"photo": int(r), "reference_alignment": landmark_error(reference, fiducials[r], detector),
                "methods": {}, "images": {}}
         for name, backend in backends.items():
-            texture = backend.synthesize(photos, fiducials[r], flow_backend, reference=reference)
+            texture = backend.synthesize(photos, fiducials[r], flow_backend,
+                                         reference=reference if use_reference else None)
             row["methods"][name] = scores(texture.rgb, texture.mask, reference, seen, fiducials[r], detector)
             if r in pictures:
                 row["images"][name] = np.clip(texture.rgb, 0, 255).round().astype(np.uint8)
@@ -140,10 +143,15 @@ def grid(rows: list[dict]) -> np.ndarray:
 
 
 def evaluate_texture(runner, path: str = "puppet", *, references: int = 40, seed: int = 0,
-                     methods: tuple[str, ...] = METHODS, pictures: int = 8, photos: int | None = None) -> dict:
+                     methods: tuple[str, ...] = METHODS, pictures: int = 8, photos: int | None = None,
+                     mode: str = "reference") -> dict:
     """Hold out ``references`` random accepted photos of collection ``path``, synthesize each
     with every method from the others (or from ``photos`` of them drawn at random), score; write
-    the grid PNG and a JSON table into the run's output folder."""
+    the grid PNG and a JSON table into the run's output folder. ``mode``: "reference" gives the
+    methods the reference photo itself (the paper's Fig. 5; ``prewarped`` and ``multiscale`` then
+    flow to its actual geometry), "fiducials" only its 49 fiducials (as in puppetry)."""
+    if mode not in ("reference", "fiducials"):
+        raise ValueError(f"mode must be 'reference' or 'fiducials', got {mode!r}")
     coll = Collection(runner.root, path)
     ok = np.flatnonzero(coll.state("frontalize") == OK)
     if len(ok) < references + 8:
@@ -157,7 +165,8 @@ def evaluate_texture(runner, path: str = "puppet", *, references: int = 40, seed
     params = {m: runner.wf.stage("texture")[1] if m == runner.wf.stage("texture")[0] else {} for m in methods}
     shown = {int(i) for i in chosen[:pictures]}
     parts = np.array_split(chosen, -(-len(chosen) // 4))  # small tasks: progress, and balance across workers
-    tasks = [(runner.wf.store, path, rows, [int(i) for i in part], flow, params, shown) for part in parts]
+    tasks = [(runner.wf.store, path, rows, [int(i) for i in part], flow, params, shown, mode == "reference")
+             for part in parts]
     results = []
     with runner.progress_bar(f"{path:>13} texture evaluation", len(chosen), unit="reference") as bar:
         for part in runner.executor.run(evaluate_references, tasks):
@@ -166,9 +175,9 @@ def evaluate_texture(runner, path: str = "puppet", *, references: int = 40, seed
     results.sort(key=lambda row: row["photo"])
     table = summarize(results)
     out = Path(runner.wf.output)
-    slug = path.replace("/", "_")
+    slug = path.replace("/", "_") + ("" if mode == "reference" else "_fiducials")
     media.write_png(out / f"{slug}_texture_grid.png", grid(results))
-    report = {"collection": path, "references": [int(i) for i in chosen], "collection_photos": len(rows),
+    report = {"collection": path, "mode": mode, "references": [int(i) for i in chosen], "collection_photos": len(rows),
               "flow": {"backend": flow[0], "params": flow[1]}, "methods": params, "table": table,
               "per_reference": [{k: v for k, v in r.items() if k != "images"} for r in results],
               "grid": str(out / f"{slug}_texture_grid.png")}
