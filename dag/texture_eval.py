@@ -175,13 +175,14 @@ def evaluate_texture(runner, path: str = "puppet", *, references: int = 40, seed
     results.sort(key=lambda row: row["photo"])
     table = summarize(results)
     out = Path(runner.wf.output)
-    slug = path.replace("/", "_") + ("" if mode == "reference" else "_fiducials")
-    media.write_png(out / f"{slug}_texture_grid.png", grid(results))
+    slug, suffix = path.replace("/", "_"), "" if mode == "reference" else "_fiducials"
+    grid_file = out / f"{slug}_texture_grid{suffix}.png"
+    media.write_png(grid_file, grid(results))
     report = {"collection": path, "mode": mode, "references": [int(i) for i in chosen], "collection_photos": len(rows),
               "flow": {"backend": flow[0], "params": flow[1]}, "methods": params, "table": table,
               "per_reference": [{k: v for k, v in r.items() if k != "images"} for r in results],
-              "grid": str(out / f"{slug}_texture_grid.png")}
-    media.write_bytes(out / f"{slug}_texture_evaluation.json", _json(report))
+              "grid": str(grid_file)}
+    media.write_bytes(out / f"{slug}_texture_evaluation{suffix}.json", _json(report))
     return report
 
 

@@ -127,7 +127,14 @@ def test_texture_evaluation_holds_out_references_and_scores_every_method(drive_r
     grid = media.decode_image(result["grid"])
     assert grid.shape == (28 + 2 * 244, 5 * 194, 3)
     saved = json.loads((folder / "output" / "puppet_texture_evaluation.json").read_text())
-    assert saved["table"] == table
+    assert saved["table"] == table and saved["mode"] == "reference"
+    # the same references with their fiducials alone as the target: another file, other figures
+    assert cli(["evaluate", str(path), "--texture", "--references", "2", "--scheduler", "sync", "--json",
+                "--mode", "fiducials"]) == 0
+    fiducials = json.loads(capsys.readouterr().out)
+    assert fiducials["mode"] == "fiducials" and fiducials["references"] == result["references"]
+    assert fiducials["table"]["multiscale"] != table["multiscale"]
+    assert (folder / "output" / "puppet_texture_evaluation_fiducials.json").is_file()
 
 
 def test_3d_drive_moves_the_puppets_mesh_with_the_driver(drive_run):
