@@ -256,3 +256,16 @@ class TextureBackend(Backend):
         of the dense warps; reference: the frontalized reference photo (H, W, 3) whose expression
         F^T is (the paper's reference mode, Fig. 5), or None."""
         raise NotImplementedError
+
+    # Video mode (optional; the paper's puppetry mode): the collection is aligned once, to its
+    # mean fiducials, and only the expression weights change per frame. A backend without it
+    # raises NotImplementedError and the run shows the static average instead.
+    def cache(self, aligned):
+        """The target-independent state of an aligned collection (``.rgb`` (n, H, W, 3) float
+        0-255, ``.valid`` (n, H, W) bool), e.g. its pyramids."""
+        raise NotImplementedError
+
+    def blend(self, cache, fiducials: np.ndarray, target: np.ndarray) -> np.ndarray:
+        """The texture (H, W, 3) float32 for target fiducials (49, 2) from a :meth:`cache` of photos
+        whose fiducials are ``fiducials`` (n, 49, 2)."""
+        raise NotImplementedError

@@ -165,3 +165,20 @@ def test_2d_baseline_renders_into_the_same_store(drive_run, capsys):
     assert "render" in {r["stage"] for r in metrics["stages"]}
     assert metrics["evaluation"]["frames"] == 16
     assert media.VideoReader(folder / "output_2d" / "puppet.mp4").n_frames == 16
+
+
+def test_texture_backend_without_video_mode_falls_back_to_the_static_average(drive_run):
+    from persona.stores.layout import Collection, open_store
+
+    folder, path, _ = drive_run
+    assert cli(["run", str(path), "--scheduler", "sync", "--quiet", "--set", "stages.texture.backend=static",
+                "--set", "stages.render.backend=tps2d", "--set", "output=output_static"]) == 0
+    root = open_store(str(folder / "run.zarr"), mode="r")
+    puppet, drive = Collection(root, "puppet"), Collection(root, "drive")
+    assert not puppet.has("texture/neutral")
+    mean = np.clip(puppet.array("aligned/mean")[...], 0, 255).round().astype(np.uint8)
+    textures = drive.array("texture/rgb")[:]
+    assert (textures == mean).all()
+    # and back to the default: the cache and the per-frame textures come back
+    assert cli(["run", str(path), "--scheduler", "sync", "--quiet"]) == 0
+    assert Collection(open_store(str(folder / "run.zarr"), mode="r"), "puppet").has("texture/neutral")
