@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from persona.plugins.face.dynamics import gaussian_in_time
+from persona.plugins.face.dynamics import smooth_in_time
 from persona.plugins.face.tracks import bridge
 from persona.plugins.face.warp import retarget
 from persona.stores import media
@@ -46,7 +46,7 @@ def run_drive(runner) -> Collection:
     if st.default_registry().get("render", runner.wf.stage("render")[0]).uses_mesh:
         inputs["mesh"] = run_motion(runner, drive, prov).key
         stage = st.RENDER_3D
-    drive.group.attrs["stages"] = ["retarget", stage.name] if stage is st.RENDER else ["retarget", "dynamics", stage.name]
+    drive.group.attrs["stages"] = ["retarget", *(["dynamics"] if stage is st.RENDER_3D else []), stage.name]
     render = runner.prepare_stage(drive, stage, inputs)
     runner.run_stage_tasks(drive, [(stage.name, render.backend, render.params)])
     every = runner.motion_params()["export_every"]
@@ -59,11 +59,10 @@ def _retarget(runner, drive, frames, puppet, found, prov, sigma: float) -> None:
     n = frames.n
     group = runner.root.require_group("drive")
     group.attrs.update({"n_photos": n, "photos_per_shard": runner.wf.photos_per_shard,
-                        "canvas": frames.attrs["canvas"], "fps": frames.attrs["fps"],
-                        "stages": ["retarget", "render"]})
+                        "canvas": frames.attrs["canvas"], "fps": frames.attrs["fps"]})
     fiducials = frames.array("aligned/fiducials")[:].astype(np.float64)
     pose = bridge(frames.array("pose")[:], found)
-    pose[:, :6] = gaussian_in_time(pose[:, :6], None, sigma, max(1, int(np.ceil(3 * sigma)))) if sigma else pose[:, :6]
+    pose[:, :6] = smooth_in_time(pose[:, :6], sigma)  # rvec, tvec
     driver_fiducials = bridge(fiducials, found)
     target = retarget(driver_fiducials, fiducials[found].mean(axis=0),
                       puppet.array("aligned/mean_fiducials")[...].astype(np.float64))

@@ -19,7 +19,8 @@ from __future__ import annotations
 import numpy as np
 
 from persona.plugins.base import Rejected
-from persona.plugins.face.dynamics import DriverModel, DynamicsParams, FrameTrack, frame_mesh, smooth_tracks
+from persona.plugins.face.dynamics import (DriverModel, DynamicsParams, FrameTrack, as_grey_image, frame_mesh,
+                                           smooth_tracks)
 from persona.plugins.face.subspace import project
 from persona.plugins.face.transfer import DeformationTransfer
 from persona.plugins.kinds import FlowBackend, Pose
@@ -27,9 +28,6 @@ from persona.stores.layout import OK, Collection
 from persona.stores.provenance import Provenance, cache_key
 
 from . import stages as st
-
-_LUMA = np.array([0.299, 0.587, 0.114], np.float32)
-
 
 def correspondence(puppet_average: np.ndarray, puppet_mask: np.ndarray, driver_basis: np.ndarray,
                    flow: FlowBackend) -> np.ndarray:
@@ -40,7 +38,7 @@ def correspondence(puppet_average: np.ndarray, puppet_mask: np.ndarray, driver_b
     geometric difference between the two faces."""
     average = np.asarray(puppet_average, np.float32) / 255
     projected = np.clip(project(average, driver_basis, puppet_mask), 0, 1).astype(np.float32)
-    w = flow.flow(average @ _LUMA, projected @ _LUMA, puppet_mask)
+    w = flow.flow(as_grey_image(average), as_grey_image(projected), puppet_mask)
     ys, xs = np.mgrid[0:w.shape[0], 0:w.shape[1]].astype(np.float32)
     return np.stack([xs + w[..., 0], ys + w[..., 1]], axis=-1)
 
@@ -59,10 +57,10 @@ def run_motion(runner, drive: Collection, retargeted: Provenance) -> Provenance:
         "params": cache_key(**motion["dynamics"])})
     runner.run_stage_tasks(drive, [("dynamics", dynamics.backend, dynamics.params)])
 
-    denoise = runner.wf.stages.get("denoise")
+    # the workflow's denoiser when it names one, else the transfer's own default (huber_rof, off-mask excluded)
+    denoise = runner.wf.stage("denoise") if "denoise" in runner.wf.stages else None
     prov = Provenance.make(stage="motion", backend="-", backend_version="1",
-                           params={"transfer": motion["transfer"], "dynamics": motion["dynamics"],
-                                   "denoise": runner.wf.stage("denoise") if denoise else None},
+                           params={"transfer": motion["transfer"], "dynamics": motion["dynamics"], "denoise": denoise},
                            inputs={"dynamics": dynamics.key, "puppet_shape": puppet.provenance("shape/depth").key,
                                    "puppet_texture": puppet.provenance("shape/texture").key},
                            persona_version=runner.version)
@@ -82,7 +80,7 @@ def run_motion(runner, drive: Collection, retargeted: Provenance) -> Provenance:
     depth = puppet.array("shape/depth")[...]
     ys, xs = np.mgrid[0:depth.shape[0], 0:depth.shape[1]]
     puppet_mean = np.stack([xs, ys, depth], axis=-1)
-    denoiser = registry.get("denoise", runner.wf.stage("denoise")[0])(runner.wf.stage("denoise")[1]) if denoise else None
+    denoiser = registry.get("denoise", denoise[0])(denoise[1]) if denoise else None
     transfer = DeformationTransfer(mean, phi, puppet_mean, puppet_mask, model.mask, params=motion["transfer"],
                                    denoiser=denoiser)
     meshes = drive.create("mesh", puppet_mean.shape, np.float32, ("frame", "y", "x", "xyz"), prov)

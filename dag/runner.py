@@ -80,11 +80,6 @@ class Executor:
                 raise RunError(f"cannot reach the Dask scheduler at {scheduler}: {exc}. Start one with "
                                "`dask scheduler` and `dask worker ADDRESS`, or use --scheduler local") from None
 
-    @property
-    def workers(self) -> int:
-        """Worker processes that run tasks (1 in-process)."""
-        return 1 if self.client is None else max(1, len(self.client.scheduler_info()["workers"]))
-
     def run(self, fn, argument_lists):
         """Run fn(*args) for each args; yield results as they complete."""
         if self.client is None:
@@ -263,23 +258,21 @@ class Runner:
         tasks = [(self.wf.store, coll.path, s, e, steps) for s, e in pending]
         self._run(coll, steps, tasks, st.run_chain)
 
-    def progress_bar(self, what: str, total: int, unit: str = "frame"):
-        """A progress bar for work done in this process (hidden with --quiet)."""
+    def progress_bar(self, what: str, total: int, unit: str = "frame", initial: int = 0):
+        """A progress bar (hidden with --quiet)."""
         from tqdm.auto import tqdm
 
-        return tqdm(total=total, desc=what, unit=unit, disable=not self.progress, leave=True, dynamic_ncols=True)
+        return tqdm(total=total, initial=initial, desc=what, unit=unit, disable=not self.progress, leave=True,
+                    dynamic_ncols=True)
 
     def _run(self, coll, steps, tasks, fn):
-        from tqdm.auto import tqdm
-
         names = [name for name, _, _ in steps]
         done = {name: int((coll.state(name) != PENDING).sum()) for name in names}
         counts = {name: {"n_done": 0, "n_skipped": done[name], "seconds": 0.0} for name in names}
         for name, backend, params in steps:
             self.pm.hook.persona_before_stage(stage=name, collection=coll.path,
                                               info={"backend": backend, "params": params, "n_items": coll.n})
-        bars = {name: tqdm(total=coll.n, initial=done[name], desc=f"{coll.path:>13} {name:<10}",
-                           unit="photo", disable=not self.progress, leave=True, dynamic_ncols=True)
+        bars = {name: self.progress_bar(f"{coll.path:>13} {name:<10}", coll.n, "photo", initial=done[name])
                 for name in names}
         try:
             for result in self.executor.run(fn, tasks):
@@ -386,7 +379,7 @@ class Runner:
             report["evaluation"] = evaluation
         report["stages"] = self.timer.records
         report["report"] = str(Path(self.wf.output) / "report.html")
-        _write_json(Path(self.wf.output) / "metrics.json", report)
+        write_json(Path(self.wf.output) / "metrics.json", report)
         self.report(report, series)
         return report
 
@@ -436,7 +429,8 @@ def _canvas(sources, params) -> list[int]:
     return [h, w]
 
 
-def _write_json(path: Path, data: dict) -> None:
+def write_json(path: Path, data: dict) -> None:
+    """A JSON file, written atomically."""
     media.write_bytes(path, json.dumps(data, indent=2, default=str).encode())
 
 

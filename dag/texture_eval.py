@@ -32,6 +32,7 @@ from persona.stores import media
 from persona.stores.layout import OK, Collection, open_store
 
 from . import stages as st
+from .runner import write_json
 from .texture import texture_photos
 
 #: the paper's Fig. 5 columns: (ii) static, (iii) weighted, (iv) prewarped, ours
@@ -69,11 +70,12 @@ def landmark_error(rgb: np.ndarray, fiducials: np.ndarray, detector: DlibLandmar
     return float(100 * np.median(np.linalg.norm(found - fiducials, axis=1)) / eye_mouth_scale(fiducials)[0])
 
 
-def scores(result: np.ndarray, result_mask: np.ndarray, reference: np.ndarray, reference_mask: np.ndarray,
+def scores(result: np.ndarray, result_mask: np.ndarray, reference_band: np.ndarray, reference_mask: np.ndarray,
            fiducials: np.ndarray, detector: DlibLandmarks) -> dict:
-    """The per-reference figures of one synthesized face (see the module's docstring)."""
+    """The per-reference figures of one synthesized face (see the module's docstring);
+    ``reference_band`` is :func:`bandpass` of the reference."""
     mask = _inner_face() & result_mask & reference_mask
-    a, b = bandpass(result), bandpass(reference)
+    a, b = bandpass(result), reference_band
     span = float(np.percentile(b[mask], 99) - np.percentile(b[mask], 1))
     shift = lambda x: np.clip(128 + 127 * x / span, 0, 255).astype(np.uint8)  # noqa: E731
     return {"alignment": landmark_error(result, fiducials, detector),
@@ -97,12 +99,13 @@ def evaluate_references(url: str, path: str, rows: tuple[int, ...], references: 
     out = []
     for r in references:
         reference, seen = coll.array("aligned/rgb")[r], coll.array("aligned/mask")[r]
+        band = bandpass(reference)
         row = {"photo": int(r), "reference_alignment": landmark_error(reference, fiducials[r], detector),
                "methods": {}, "images": {}}
         for name, backend in backends.items():
             texture = backend.synthesize(photos, fiducials[r], flow_backend,
                                          reference=reference if use_reference else None)
-            row["methods"][name] = scores(texture.rgb, texture.mask, reference, seen, fiducials[r], detector)
+            row["methods"][name] = scores(texture.rgb, texture.mask, band, seen, fiducials[r], detector)
             if r in pictures:
                 row["images"][name] = np.clip(texture.rgb, 0, 255).round().astype(np.uint8)
         if r in pictures:
@@ -182,11 +185,5 @@ def evaluate_texture(runner, path: str = "puppet", *, references: int = 40, seed
               "flow": {"backend": flow[0], "params": flow[1]}, "methods": params, "table": table,
               "per_reference": [{k: v for k, v in r.items() if k != "images"} for r in results],
               "grid": str(grid_file)}
-    media.write_bytes(out / f"{slug}_texture_evaluation{suffix}.json", _json(report))
+    write_json(out / f"{slug}_texture_evaluation{suffix}.json", report)
     return report
-
-
-def _json(data) -> bytes:
-    import json
-
-    return json.dumps(data, indent=2).encode()

@@ -43,6 +43,12 @@ def _weighted_mean(rgb: np.ndarray, weights: np.ndarray) -> Texture:
     return Texture(out.astype(np.float32), total > 0)
 
 
+def _expression_mean(aligned: align.Aligned, fiducials: np.ndarray, target: np.ndarray, sigma: float) -> Texture:
+    """The photos' average weighted by e_i (relative, so never all zero) where each one sees."""
+    e = expression_weights(fiducials, target, sigma, relative=True)
+    return _weighted_mean(aligned.rgb, e[:, None, None] * aligned.valid)
+
+
 class MultiscaleTexture(TextureBackend):
     name = "multiscale"
     description = ("expression-dependent texture: photos aligned to the target (TPS + flow), blended in a "
@@ -108,9 +114,7 @@ class WeightedTexture(TextureBackend):
         pass
 
     def synthesize(self, photos, target, flow, reference=None):
-        frontal = align.rigid(photos)
-        e = expression_weights(photos.fiducials, target, self.params.sigma, relative=True)
-        return _weighted_mean(frontal.rgb, e[:, None, None] * frontal.valid)
+        return _expression_mean(align.rigid(photos), photos.fiducials, target, self.params.sigma)
 
 
 class PrewarpedTexture(TextureBackend):
@@ -124,8 +128,7 @@ class PrewarpedTexture(TextureBackend):
     def synthesize(self, photos, target, flow, reference=None):
         p = self.params
         aligned = align.align(photos, target, flow, tps_lambda=p.tps_lambda, rank=p.rank, reference=reference)
-        e = expression_weights(photos.fiducials, target, p.sigma, relative=True)
-        return _weighted_mean(aligned.rgb, e[:, None, None] * aligned.valid)
+        return _expression_mean(aligned, photos.fiducials, target, p.sigma)
 
 
 @hookimpl

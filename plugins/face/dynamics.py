@@ -323,9 +323,7 @@ def smooth_poses(poses: Sequence[Pose | None], sigma: float = 1.5) -> list[Pose]
         raise ValueError("no frame has a pose: nothing to smooth")
     vectors = np.full((len(poses), 6), np.nan)
     vectors[found] = [np.r_[p.rvec, p.tvec] for p in poses if p is not None]
-    filled = bridge(vectors, found)
-    if sigma > 0 and len(poses) > 1:
-        filled = gaussian_in_time(filled, None, sigma, max(1, int(np.ceil(3 * sigma))))
+    filled = smooth_in_time(bridge(vectors, found), sigma)
     known = np.flatnonzero(found)
     out = []
     for t, v in enumerate(filled):
@@ -333,6 +331,14 @@ def smooth_poses(poses: Sequence[Pose | None], sigma: float = 1.5) -> list[Pose]
         out.append(Pose(rvec=v[:3].copy(), tvec=v[3:].copy(), camera=np.asarray(source.camera, dtype=np.float64),
                         rms=float(source.rms) if found[t] else float("nan")))
     return out
+
+
+def smooth_in_time(values: np.ndarray, sigma: float) -> np.ndarray:
+    """``values`` (T, ...) with no missing frame, Gaussian-smoothed along time over ±3σ frames; σ = 0
+    (or a single frame) returns them unchanged."""
+    if sigma <= 0 or len(values) < 2:
+        return np.asarray(values, dtype=np.float64)
+    return gaussian_in_time(values, None, sigma, max(1, int(np.ceil(3 * sigma))))
 
 
 def gaussian_in_time(values: np.ndarray, valid: np.ndarray | None, sigma: float, radius: int) -> np.ndarray:
