@@ -5,7 +5,8 @@
 2. in this process, shard by shard: the flows and depth changes smoothed over time (a halo of
    ``time_radius`` frames each side), the driver's meshes M_D^t and their mean M̄_D;
 3. the correspondence φ puppet -> driver (ALGORITHMS §7.3): the puppet's 2D average projected
-   onto the driver's rank-4 appearance subspace, then a flow between the two;
+   onto the driver's rank-4 appearance subspace, then a flow between the two (by default started
+   from the TPS of the two faces' mean fiducials; ``motion.correspondence`` in the workflow);
 4. the magnitude-adjusted deformation transfer of every frame (:mod:`persona.plugins.face.transfer`):
    B's meshes M_P^t = M_P + Δ̂ f*.
 
@@ -16,13 +17,14 @@ Stored in the ``drive`` collection: ``dynamics/flow``, ``dynamics/delta`` (per f
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 
 from persona.plugins.base import Rejected
-from persona.plugins.face.dynamics import (DriverModel, DynamicsParams, FrameTrack, as_grey_image, frame_mesh,
-                                           smooth_tracks)
+from persona.plugins.face.dynamics import DriverModel, DynamicsParams, FrameTrack, frame_mesh, smooth_tracks
 from persona.plugins.face.subspace import project
 from persona.plugins.face.transfer import DeformationTransfer
+from persona.plugins.face.warp import tps_map
 from persona.plugins.kinds import FlowBackend, Pose
 from persona.stores.layout import OK, Collection
 from persona.stores.provenance import Provenance, cache_key
@@ -30,17 +32,24 @@ from persona.stores.provenance import Provenance, cache_key
 from . import stages as st
 
 def correspondence(puppet_average: np.ndarray, puppet_mask: np.ndarray, driver_basis: np.ndarray,
-                   flow: FlowBackend) -> np.ndarray:
+                   flow: FlowBackend, guide: np.ndarray | None = None) -> np.ndarray:
     """φ (H, W, 2): for each puppet pixel, the driver pixel (x, y) that corresponds (ALGORITHMS §7.3).
 
     The puppet's 2D average A_P (H, W, 3, 0-255) projected onto the driver's basis (k, H, W, 3)
     keeps A_P's lighting and takes the driver's geometry, so the flow A_P -> Π_D(A_P) is the
-    geometric difference between the two faces."""
+    geometric difference between the two faces. ``guide`` (H, W, 2), a map puppet px -> driver px
+    (e.g. the TPS of the two faces' mean fiducials), is where the flow starts: the basis is
+    warped by it first, and φ = guide ∘ (identity + flow)."""
+    ys, xs = np.mgrid[0:puppet_mask.shape[0], 0:puppet_mask.shape[1]].astype(np.float32)
+    start = np.stack([xs, ys], axis=-1) if guide is None else np.asarray(guide, np.float32)
+    basis = np.stack([cv2.remap(np.asarray(b, np.float32), start[..., 0], start[..., 1], cv2.INTER_LINEAR,
+                                borderMode=cv2.BORDER_REPLICATE) for b in driver_basis])
     average = np.asarray(puppet_average, np.float32) / 255
-    projected = np.clip(project(average, driver_basis, puppet_mask), 0, 1).astype(np.float32)
-    w = flow.flow(as_grey_image(average), as_grey_image(projected), puppet_mask)
-    ys, xs = np.mgrid[0:w.shape[0], 0:w.shape[1]].astype(np.float32)
-    return np.stack([xs + w[..., 0], ys + w[..., 1]], axis=-1)
+    projected = np.clip(project(average, basis, puppet_mask), 0, 1).astype(np.float32)
+    w = flow.flow(average, projected, puppet_mask)
+    fx, fy = xs + w[..., 0], ys + w[..., 1]
+    return np.stack([cv2.remap(start[..., k], fx, fy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+                     for k in range(2)], axis=-1)
 
 
 def run_motion(runner, drive: Collection, retargeted: Provenance) -> Provenance:
@@ -54,13 +63,14 @@ def run_motion(runner, drive: Collection, retargeted: Provenance) -> Provenance:
     drive.group.attrs["motion"] = motion
     dynamics = runner.prepare_stage(drive, st.DYNAMICS, {
         "retarget": retargeted.key, "driver_shape": driver.provenance("shape/depth").key,
-        "params": cache_key(**motion["dynamics"])})
+        "params": cache_key(**motion["dynamics"])}, (motion["flow"]["backend"], motion["flow"]["params"]))
     runner.run_stage_tasks(drive, [("dynamics", dynamics.backend, dynamics.params)])
 
     # the workflow's denoiser when it names one, else the transfer's own default (huber_rof, off-mask excluded)
     denoise = runner.wf.stage("denoise") if "denoise" in runner.wf.stages else None
     prov = Provenance.make(stage="motion", backend="-", backend_version="1",
-                           params={"transfer": motion["transfer"], "dynamics": motion["dynamics"], "denoise": denoise},
+                           params={"transfer": motion["transfer"], "dynamics": motion["dynamics"], "denoise": denoise,
+                                   "correspondence": motion["correspondence"]},
                            inputs={"dynamics": dynamics.key, "puppet_shape": puppet.provenance("shape/depth").key,
                                    "puppet_texture": puppet.provenance("shape/texture").key},
                            persona_version=runner.version)
@@ -68,7 +78,6 @@ def run_motion(runner, drive: Collection, retargeted: Provenance) -> Provenance:
     if done is not None and done.key == prov.key:
         return prov
     registry = st.default_registry()
-    flow = registry.get("flow", dynamics.backend)(dynamics.params)
     model = DriverModel.build(driver.array("shape/depth")[...], driver.array("shape/albedo")[...],
                               driver.array("shape/mask")[...], driver.array("subspace/basis")[...])
     params = DynamicsParams.model_validate(motion["dynamics"])
@@ -76,7 +85,11 @@ def run_motion(runner, drive: Collection, retargeted: Provenance) -> Provenance:
         mean = _driver_meshes(drive, model, params, prov, bar)
 
     puppet_mask = puppet.array("shape/mask")[...]
-    phi = correspondence(puppet.array("shape/texture")[...], puppet_mask, driver.array("subspace/basis")[...], flow)
+    corr = motion["correspondence"]
+    guide = tps_map(puppet.array("aligned/mean_fiducials")[...], driver.array("aligned/mean_fiducials")[...],
+                    puppet_mask.shape, lam=corr["guide_lambda"], step=4) if corr["landmark_guide"] else None
+    phi = correspondence(puppet.array("shape/texture")[...], puppet_mask, driver.array("subspace/basis")[...],
+                         registry.get("flow", corr["backend"])(corr["params"]), guide)
     depth = puppet.array("shape/depth")[...]
     ys, xs = np.mgrid[0:depth.shape[0], 0:depth.shape[1]]
     puppet_mean = np.stack([xs, ys, depth], axis=-1)

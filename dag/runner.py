@@ -231,10 +231,12 @@ class Runner:
             steps.append((name, upstream.backend, upstream.params))
         return steps
 
-    def prepare_stage(self, coll: Collection, stage: st.PhotoStage, inputs: dict[str, str]) -> Provenance:
+    def prepare_stage(self, coll: Collection, stage: st.PhotoStage, inputs: dict[str, str],
+                      choice: tuple[str, dict] | None = None) -> Provenance:
         """The provenance of a stage's next run; its outputs are (re)created when the key
-        changed, so that the stage starts over rather than mixing old and new results."""
-        backend, params = self.wf.stage(stage.kind)
+        changed, so that the stage starts over rather than mixing old and new results.
+        ``choice`` = (backend, params) overrides the workflow's backend of the stage's kind."""
+        backend, params = choice or self.wf.stage(stage.kind)
         cls = st.default_registry().get(stage.kind, backend)
         prov = Provenance.make(stage=stage.name, backend=backend, backend_version=cls.version,
                                params=params, inputs=inputs, persona_version=self.version)

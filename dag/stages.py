@@ -207,7 +207,8 @@ def _driver_model(root, path) -> dict:
     from persona.plugins.face.dynamics import DriverModel, DynamicsParams
 
     shape, basis = root["driver/shape"], root["driver/subspace/basis"]
-    return {"model": DriverModel.build(shape["depth"][...], shape["albedo"][...], shape["mask"][...], basis[...]),
+    return {"model": DriverModel.build(shape["depth"][...], shape["albedo"][...], shape["mask"][...], basis[...],
+                                       root["driver/aligned/mean_fiducials"][...]),
             "dynamics": DynamicsParams.model_validate(root[path].attrs["motion"]["dynamics"])}
 
 
@@ -216,14 +217,15 @@ def _dynamics(backend, params, inputs, context):
 
     h, w = inputs["/driver/frames/photos/size"]
     track = track_frame(context["model"], inputs["/driver/frames/photos/rgb"][:h, :w], Pose.from_vector(inputs["pose"]),
-                        backend, context["dynamics"])
+                        backend, context["dynamics"], inputs["/driver/frames/landmarks/points"])
     return {"dynamics/flow": track.flow, "dynamics/delta": track.delta}
 
 
 #: the driver's per-frame 3D flow (ALGORITHMS §9) before temporal smoothing: the flow of the
 #: average face into each frame (``flow`` backend) and the depth change along the ray
 DYNAMICS = PhotoStage(
-    "dynamics", "flow", "retarget", ("pose", "/driver/frames/photos/rgb", "/driver/frames/photos/size"), (
+    "dynamics", "flow", "retarget", ("pose", "/driver/frames/photos/rgb", "/driver/frames/photos/size",
+                                     "/driver/frames/landmarks/points"), (
         Output("dynamics/flow", (H, W, 2), "float32", ("frame", "y", "x", "xy")),
         Output("dynamics/delta", (H, W), "float32", ("frame", "y", "x")),
     ), _dynamics, _driver_model)

@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Any, Literal, Union
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from persona.plugins.face.dynamics import DynamicsParams
 from persona.plugins.face.transfer import TransferParams
@@ -117,15 +117,58 @@ class AlignParams(Strict):
     tps_lambda: float = Field(10.0, ge=0, description="λ of the smoothing TPS to the mean fiducials (Eq. 1; paper: 10)")
 
 
+class FlowChoice(Strict):
+    """A flow backend and its parameters, for a step that is not the workflow's ``flow`` stage."""
+
+    backend: str = Field("varref", description="the flow backend's name")
+    params: dict[str, Any] = Field(default_factory=dict, description="the flow backend's parameters")
+
+    @field_validator("backend")
+    @classmethod
+    def _backend(cls, v: str) -> str:
+        names = default_registry().names("flow")
+        if v not in names:
+            raise ValueError(f'unknown flow backend "{v}".{did_you_mean(v, names)} Known: {", ".join(names)}')
+        return v
+
+    @model_validator(mode="after")
+    def _params(self) -> "FlowChoice":
+        self.params = default_registry().get("flow", self.backend).Params.model_validate(self.params).model_dump(
+            mode="json")
+        return self
+
+
+class CorrespondenceParams(FlowChoice):
+    """The driver <-> puppet correspondence φ (paper §4, ALGORITHMS §7.3): B's 2D average projected
+    onto A's rank-4 subspace, then a flow between the two.
+
+    The paper used Liu's flow with (α, ratio, minWidth, outer, inner, SOR) = (0.02, 0.85, 20, 4, 1,
+    40): ``backend: liu`` with its defaults. On the three real workflows (Powell/woman, Bush/Obama,
+    Obama/Obama) φ takes B's mean fiducials a median 10.5 / 4.2 / 2.9 px from A's with it, 3.7 /
+    3.4 / 2.0 with ``dis``, 1.8 / 2.4 / 1.5 with ``varref``, and 1.1 / 1.1 / 0.8 with ``varref`` and
+    the landmark guide (the default)."""
+
+    landmark_guide: bool = Field(True, description="start from the smoothing TPS that takes B's mean fiducials "
+                                 "to A's and let the flow correct it (A's basis is warped by the TPS before "
+                                 "the projection); off = the flow alone, as in the paper")
+    guide_lambda: float = Field(10.0, ge=0, description="λ of the guide's smoothing TPS (Eq. 1; paper: 10)")
+
+
 class MotionParams(Strict):
     pose_sigma: float = Field(1.5, ge=0, le=10, description="σ (frames) of the Gaussian smoothing of the "
                               "driver's head pose over time (ALGORITHMS §9.2.1: 1-2); 0 = none")
     dynamics: DynamicsParams = Field(default_factory=DynamicsParams, description="the driver's per-frame "
                                      "3D flow (ALGORITHMS §9), used by 3D renderers")
+    flow: FlowChoice = Field(default_factory=FlowChoice, description="the 2D flow of the per-frame 3D flow "
+                             "(reference -> frame, after the landmark guide). On the Powell/woman driver "
+                             "video, the driver's meshes follow its mouth/eye/brow landmarks with r = 0.98 / "
+                             "0.98 / 0.82 with 'varref', 0.88 / 0.87 / 0.64 with 'dis'")
     transfer: TransferParams = Field(default_factory=TransferParams, description="deformation transfer "
                                      "driver -> puppet (paper §4, ALGORITHMS §10), used by 3D renderers; "
                                      "its denoiser is stages.denoise (default: huber_rof, off-mask pixels "
                                      "excluded)")
+    correspondence: CorrespondenceParams = Field(default_factory=CorrespondenceParams, description="the "
+                                                 "driver <-> puppet correspondence φ, used by 3D renderers")
     export_every: int = Field(0, ge=0, description="with a 3D renderer, also write B's textured mesh of every "
                               "n-th driver frame (PLY and OBJ + texture) into <output>/meshes/; 0 = none")
 
