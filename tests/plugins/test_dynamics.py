@@ -12,10 +12,12 @@ isolates the flow and shading steps from photometric stereo (§9.4). Measured wh
 * pose smoothing (σ = 1.5 frames): error 1.00 -> 0.44 noise units, jitter 2.43 -> 0.16.
 """
 
+import dataclasses
+
 import cv2
 import numpy as np
 import pytest
-from persona.plugins.builtin.flow import DISFlow
+from persona.plugins.builtin.flow import DISFlow, VariationalRefinementFlow
 from persona.plugins.builtin.pose import solve_pose
 from persona.plugins.face import dynamics as dy
 from persona.plugins.face.synthetic import Expression, Light, look_at_pose, make_face, render_photo
@@ -235,6 +237,68 @@ def test_temporal_smoothing_of_chunks_with_halo_equals_the_whole_sequence():
 
 
 # ----------------------------------------------------------------------------- contract
+
+
+class NoFlow:
+    """A flow backend that finds no motion: what the landmark guide does on its own."""
+
+    def flow(self, image0, image1, mask=None):
+        return np.zeros((*image0.shape, 2), np.float32)
+
+
+def guided(video):
+    """The model with its fiducials (the neutral face's), for the landmark guide."""
+    return dataclasses.replace(video["model"], fiducials=video["neutral"].fiducials3d[:, :2].copy())
+
+
+def test_landmark_guide_alone_moves_the_face_towards_the_truth(video):
+    """The TPS from the average's fiducials to the frame's (exact) landmarks, with no flow at all:
+    measured 1.96 / 2.33 / 2.13 px on the three most expressive frames against no motion's 2.61 /
+    3.08 / 2.80 (λ = 10: 1.73 / 2.06 / 1.88). Without the rim held in place the spline's affine
+    part stretched the whole face (4.9 px on frame 3)."""
+    model, params = guided(video), dy.DynamicsParams(shading_refinement=False)
+    for t in (2, 3, 4):
+        frame, pose = video["frames"][t], video["poses"][t]
+        track = dy.track_frame(model, frame.image, pose, NoFlow(), params, frame.landmarks)
+        err = dy.mesh_error(dy.frame_mesh(model, track, pose), video["truths"][t], video["mask"])
+        still = dy.mesh_error(model.rest_mesh, video["truths"][t], video["mask"])
+        assert err < 0.8 * still, (t, err, still)
+
+
+def test_landmark_guide_costs_little_where_the_flow_alone_succeeds(video):
+    """On these clean synthetic frames the flow alone tracks well, and the guide (TPS through the
+    landmarks, which is not the skin's true motion between them) costs a little. Measured (varref,
+    λ = 1, no shading), mean RMS px: 0.919 without the guide, 0.999 with exact landmarks, 1.205 with
+    1.5 px of landmark noise (no motion: 1.96). On real video the flow alone misses most of the mouth
+    and eye motion (benchmarks/driver_motion.py: the meshes' mouth/eye r against the frame's
+    landmarks 0.41 / 0.29 without the guide, 0.98 / 0.98 with it, Powell/woman driver)."""
+    model, params = guided(video), dy.DynamicsParams(shading_refinement=False)
+    rng = np.random.default_rng(0)
+    plain, exact, noisy = [], [], []
+    for frame, pose, truth in zip(video["frames"], video["poses"], video["truths"]):
+        for out, landmarks in ((plain, None), (exact, frame.landmarks),
+                               (noisy, frame.landmarks + rng.normal(0, 1.5, frame.landmarks.shape))):
+            track = dy.track_frame(model, frame.image, pose, VariationalRefinementFlow(), params, landmarks)
+            out.append(dy.mesh_error(dy.frame_mesh(model, track, pose), truth, video["mask"]))
+    baseline = no_motion(video).mean()
+    assert np.mean(exact) < 1.15 * np.mean(plain) and np.mean(exact) < 0.6 * baseline
+    assert np.mean(noisy) < 1.5 * np.mean(plain) and np.mean(noisy) < 0.7 * baseline
+
+
+def test_landmark_guide_is_skipped_without_usable_landmarks(video):
+    model, frame, pose = guided(video), video["frames"][3], video["poses"][3]
+    params = dy.DynamicsParams(shading_refinement=False)
+    plain = dy.track_frame(video["model"], frame.image, pose, DISFlow(), params)
+    broken = frame.landmarks.copy()
+    broken[30] = np.nan  # a frame whose landmarks were rejected holds NaN (30: the nose tip, a fiducial)
+    for landmarks in (None, broken):
+        track = dy.track_frame(model, frame.image, pose, DISFlow(), params, landmarks)
+        np.testing.assert_array_equal(track.flow, plain.flow)
+    off = dy.track_frame(model, frame.image, pose, DISFlow(), params.model_copy(update={"landmark_guide": False}),
+                         frame.landmarks)
+    np.testing.assert_array_equal(off.flow, plain.flow)
+    with pytest.raises(ValueError, match="fiducials"):
+        dy.DriverModel.build(model.depth, model.albedo, model.mask, model.basis, np.zeros((48, 2)))
 
 
 def test_outputs_shapes_dtypes_and_mean_mesh(video):
