@@ -53,7 +53,7 @@ from .mesh import cast, grid_triangles, raycasting_scene
 from .subspace import project
 from .template import IDX49
 from .tracks import bridge
-from .warp import tps_map
+from .warp import TpsWarp
 
 __all__ = ["DynamicsParams", "DriverModel", "FrameTrack", "smooth_poses", "track_frame", "smooth_tracks",
            "frame_mesh", "mean_mesh", "driver_meshes", "mesh_error"]
@@ -222,11 +222,16 @@ class DriverModel:
             seen = np.repeat(np.repeat(seen[::step, ::step], step, 0), step, 1)[:self.shape[0], :self.shape[1]]
         return inside & seen
 
-    @functools.lru_cache(maxsize=4)
     def rim_points(self, spacing: int) -> np.ndarray:
         """(k, 2) float64 canonical (x, y) points every ``spacing`` px along the mask's outer contour."""
         contours = cv2.findContours(self.mask.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)[0]
         return max(contours, key=len)[::spacing, 0].astype(np.float64)
+
+    @functools.lru_cache(maxsize=4)
+    def guide_warp(self, lam: float, spacing: int) -> TpsWarp:
+        """The landmark guide's spline (fitted once per model): from the fiducials and the rim points
+        every ``spacing`` px, which stay in place, to where a frame shows them."""
+        return TpsWarp(np.concatenate([self.fiducials, self.rim_points(spacing)]), self.shape, lam=lam, step=4)
 
     @functools.cached_property
     def _operators(self) -> dict[int, "_Operators"]:
@@ -503,8 +508,7 @@ def landmark_guide(model: DriverModel, landmarks: np.ndarray | None, pose: Pose,
         return None
     canonical = canonical_landmarks(points, model.depth, pose, model.fiducials)
     rim = model.rim_points(params.guide_rim_spacing)
-    return tps_map(np.concatenate([model.fiducials, rim]), np.concatenate([canonical, rim]), model.shape,
-                   lam=params.guide_lambda, step=4).astype(np.float32)
+    return model.guide_warp(params.guide_lambda, params.guide_rim_spacing).map(np.concatenate([canonical, rim]))
 
 
 def _sample_maps(maps: np.ndarray, at: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -53,11 +53,40 @@ def tps_map(target: np.ndarray, source: np.ndarray, shape: tuple[int, int], *, l
     h, w = shape
     ch, cw = -(-(h - 1) // step) + 1, -(-(w - 1) // step) + 1  # coarse nodes cover the last pixel
     ys, xs = np.mgrid[0:ch, 0:cw] * step
-    coarse = spline(np.c_[xs.ravel(), ys.ravel()]).reshape(ch, cw, 2).astype(np.float32)
+    return _upsample(spline(np.c_[xs.ravel(), ys.ravel()]).reshape(ch, cw, 2).astype(np.float32), shape, step)
+
+
+def _upsample(coarse: np.ndarray, shape: tuple[int, int], step: int) -> np.ndarray:
+    """The map on every pixel from its nodes on every ``step``-th pixel (bilinear)."""
     if step == 1:
         return coarse
-    fy, fx = np.mgrid[0:h, 0:w].astype(np.float32) / step
+    fy, fx = np.mgrid[0:shape[0], 0:shape[1]].astype(np.float32) / step
     return cv2.remap(coarse, fx, fy, cv2.INTER_LINEAR)
+
+
+class TpsWarp:
+    """The smoothing TPS to fixed ``target`` points as a linear operator on the ``source`` points.
+
+    The spline's coefficients are linear in the values it interpolates, so its coarse map is
+    ``weights @ source`` with ``weights`` (nodes x k) fitted once (slower than one :func:`tps_map`).
+    Warping many point sets to the same target (every frame of a video) then costs one small
+    product each."""
+
+    def __init__(self, target: np.ndarray, shape: tuple[int, int], *, lam: float = 10.0,
+                 scaling: Scaling = "objective", step: int = 1):
+        target = np.asarray(target, float)
+        h, w = shape
+        self.shape, self.step = (h, w), step
+        self.coarse_shape = (-(-(h - 1) // step) + 1, -(-(w - 1) // step) + 1)  # coarse nodes cover the last pixel
+        ys, xs = np.mgrid[0:self.coarse_shape[0], 0:self.coarse_shape[1]] * step
+        spline = RBFInterpolator(target, np.eye(len(target)), kernel="thin_plate_spline",
+                                 smoothing=tps_smoothing(lam, len(target), scaling), degree=1)
+        self.weights = spline(np.c_[xs.ravel(), ys.ravel()])
+
+    def map(self, source: np.ndarray) -> np.ndarray:
+        """(H, W, 2) float32: the backward sampling map of the spline with r(target_k) ≈ source_k."""
+        coarse = (self.weights @ np.asarray(source, float)).reshape(*self.coarse_shape, 2).astype(np.float32)
+        return _upsample(coarse, self.shape, self.step)
 
 
 def eye_mouth_scale(fiducials: np.ndarray) -> np.ndarray:

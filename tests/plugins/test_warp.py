@@ -8,7 +8,7 @@ from persona.plugins.builtin.frontalize import project, template_points
 from persona.plugins.builtin.render import Tps2dRender, canonical_coordinates
 from persona.plugins.face.template import IDX49, generic_template
 from persona.plugins.face.tracks import bridge
-from persona.plugins.face.warp import eye_mouth_scale, retarget, tps_map, tps_smoothing
+from persona.plugins.face.warp import TpsWarp, eye_mouth_scale, retarget, tps_map, tps_smoothing
 from persona.plugins.kinds import Pose, Puppet
 
 
@@ -115,3 +115,14 @@ def test_coarse_tps_evaluation_is_close_to_exact():
     coarse = tps_map(target, source, (244, 194), lam=10, step=4)
     assert coarse.shape == exact.shape
     assert np.abs(coarse - exact).max() < 0.05
+
+
+def test_prepared_tps_warp_equals_tps_map_for_any_source():
+    rng = np.random.default_rng(5)
+    target = rng.uniform(10, 180, (30, 2))
+    for step in (1, 4):
+        warp = TpsWarp(target, (60, 50), lam=3.0, step=step)
+        for _ in range(2):
+            source = target + rng.normal(0, 3, target.shape)
+            np.testing.assert_allclose(warp.map(source), tps_map(target, source, (60, 50), lam=3.0, step=step),
+                                       atol=2e-3)
