@@ -54,6 +54,7 @@ class MultiscaleTexture(TextureBackend):
     description = ("expression-dependent texture: photos aligned to the target (TPS + flow), blended in a "
                    "Laplacian pyramid with expression and detail weights (paper §5, Eq. 3)")
     default = True
+    version = "2"  # 2: the alignment confidence (stretch_scale, residual_scale)
 
     class Params(_Alignment):
         levels: int = Field(5, ge=2, le=8, description="pyramid levels p (the paper does not say; 5 gives a "
@@ -68,12 +69,34 @@ class MultiscaleTexture(TextureBackend):
         detail_floor: float = Field(1e-6, gt=0, description="added to |Laplacian| so flat regions keep a weight")
         skip: float = Field(1e-6, ge=0, lt=1, description="photos with e_i below skip · max(e) are left out of "
                             "the fine levels' sums (their share there is below this); 0 keeps every photo")
+        stretch_scale: float = Field(0.3, ge=0, description="s of the alignment confidence's flow term "
+                                     "exp(-|∇w_i|² / 2s²), |∇w_i|² the local (σ 3 px) squared Jacobian norm of "
+                                     "the photo's dense flow: tears, where the flow jumps, lose their weight. "
+                                     "Not in the paper (0 turns it off); 0.3 chosen on Bush, fiducial mode, "
+                                     "40 references (README, texture)")
+        residual_scale: float = Field(0.02, ge=0, description="s of the alignment confidence's residual term "
+                                      "exp(-r² / 2s²), r² the local (σ 3 px) squared difference of the band-passed "
+                                      "grey (0-1) aligned photo and its rank-k projection: where the flow left a "
+                                      "feature off the target's place. Not in the paper (0 turns it off); 0.02 "
+                                      "chosen with stretch_scale")
+
+    def confidence(self, aligned: align.Aligned) -> np.ndarray | None:
+        """Each photo's local alignment confidence (n, H, W) in [0, 1], the product of the terms
+        whose scale is not 0; None when the alignment carries no misfit measures (video mode's
+        collection flow) or both terms are off."""
+        p, out = self.params, None
+        for misfit, scale in ((aligned.stretch, p.stretch_scale), (aligned.residual, p.residual_scale)):
+            if misfit is not None and scale > 0:
+                term = np.exp(-misfit / np.float32(2 * scale ** 2))
+                out = term if out is None else out * term
+        return out
 
     def cache(self, aligned: align.Aligned) -> BlendCache:
         """The target-independent terms of Eq. 3 for an aligned collection (video mode)."""
         p = self.params
         return BlendCache.build(aligned.rgb, aligned.valid, levels=p.levels, alpha=p.alpha, beta=p.beta,
-                                tau=p.tau, blur=p.detail_blur, floor=p.detail_floor)
+                                tau=p.tau, blur=p.detail_blur, floor=p.detail_floor,
+                                confidence=self.confidence(aligned))
 
     def blend(self, cache: BlendCache, fiducials: np.ndarray, target: np.ndarray) -> np.ndarray:
         """The texture (H, W, 3) float32 for a target (49, 2), from a cache of photos whose fiducials

@@ -73,14 +73,18 @@ def collapse(pyramid: list[np.ndarray]) -> np.ndarray:
 
 
 def detail_pyramid(grey: np.ndarray, valid: np.ndarray, levels: int, *, blur: float = 1.0,
-                   floor: float = 1e-6) -> list[np.ndarray]:
+                   floor: float = 1e-6, confidence: np.ndarray | None = None) -> list[np.ndarray]:
     """L^i per level: |Laplacian| of the blurred grey image at full resolution, plus ``floor``
     (flat regions keep a weight), zero where the photo is not valid, reduced to each level by
-    the Gaussian pyramid, i.e. the local detail energy there (ALGORITHMS §12.3's proposal)."""
+    the Gaussian pyramid, i.e. the local detail energy there (ALGORITHMS §12.3's proposal).
+    ``confidence`` (H, W) in [0, 1], if given, multiplies the response before the reduction:
+    how much the photo's alignment is trusted there (see :meth:`BlendCache.build`)."""
     g = np.asarray(grey, np.float32)
     if blur > 0:
         g = cv2.GaussianBlur(g, (0, 0), blur)
     response = (np.abs(cv2.Laplacian(g, cv2.CV_32F, ksize=3)) + np.float32(floor)) * valid.astype(np.float32)
+    if confidence is not None:
+        response *= np.asarray(confidence, np.float32)
     return gaussian_pyramid(response, levels)
 
 
@@ -122,8 +126,12 @@ class BlendCache:
 
     @classmethod
     def build(cls, images: np.ndarray, valid: np.ndarray, *, levels: int, alpha: float, beta: float,
-              tau: float, blur: float = 1.0, floor: float = 1e-6, margin: int = 2) -> "BlendCache":
-        """images: (n, H, W, C) float aligned photos; valid: (n, H, W) bool.
+              tau: float, blur: float = 1.0, floor: float = 1e-6, margin: int = 2,
+              confidence: np.ndarray | None = None) -> "BlendCache":
+        """images: (n, H, W, C) float aligned photos; valid: (n, H, W) bool; confidence: None or
+        (n, H, W) in [0, 1], each photo's local alignment confidence, a factor of its detail
+        response L^i (so of its weight at every level): where a photo failed to register
+        (a tear, a misplaced feature) it cannot dominate the fine levels however sharp it is.
 
         A photo's unseen pixels are filled with the mean of the photos that see them before its
         pyramid is built, so its bands carry no edge where its view ends; its weight there is
@@ -136,7 +144,8 @@ class BlendCache:
         for i in range(n):
             image = np.where(valid[i][..., None], images[i], fill).astype(np.float32)
             inner = cv2.erode(valid[i].astype(np.uint8), kernel, borderValue=1) > 0 if margin else valid[i]
-            q = detail_pyramid(image.mean(axis=-1), inner, levels, blur=blur, floor=floor)
+            q = detail_pyramid(image.mean(axis=-1), inner, levels, blur=blur, floor=floor,
+                               confidence=None if confidence is None else confidence[i])
             bands = laplacian_pyramid(image, levels)
             if i == 0:
                 weighted = [np.empty((n, *b.shape), np.float32) for b in bands]

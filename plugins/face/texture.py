@@ -13,6 +13,17 @@ raw photo is sampled once:
 Reference mode (the paper's Fig. 5): when the target is a photo I^T, the flow w_T from I^T to
 its own projection Î^T takes the reference grid to the "average" grid, and d_i <- d_i(x + w_T(x))
 puts every photo's detail where the reference has it.
+
+Where the flow fails on a photo, its aligned version tears (a seam where the flow jumps) or keeps
+a feature away from the target's place. Two local measures of that misfit come with the result,
+both blurred squares over σ = ``MISFIT_BLUR`` px on the output grid, for a blend to down-weight
+such photos there (``MultiscaleTexture``'s alignment confidence):
+
+* ``stretch``: |∇w_i|², the squared Frobenius norm of the flow's Jacobian (0 for a rigid shift;
+  a tear is a jump in w_i);
+* ``residual``: the squared difference of the band-passed (difference of Gaussians, σ 1 and
+  4 px) grey aligned photo and its projection Î^i, grey in [0, 1]: what the flow could not
+  bring onto the collection's geometry at the target.
 """
 
 from __future__ import annotations
@@ -28,13 +39,21 @@ from .template import CANONICAL_HEIGHT as H, CANONICAL_WIDTH as W
 from .warp import tps_map
 
 
+#: σ (px) of the blur of the local misfit measures (``Aligned.stretch`` and ``residual``)
+MISFIT_BLUR = 3.0
+
+
 @dataclass(frozen=True)
 class Aligned:
     """The collection aligned to one target: rgb (n, H, W, 3) float32 in [0, 255] and
-    valid (n, H, W) bool, where each photo saw the aligned pixel."""
+    valid (n, H, W) bool, where each photo saw the aligned pixel; after the dense flow also
+    the local misfit measures stretch and residual (n, H, W) float32 (see the module's
+    docstring), None for other alignments."""
 
     rgb: np.ndarray
     valid: np.ndarray
+    stretch: np.ndarray | None = None
+    residual: np.ndarray | None = None
 
 
 def _compose(outer: np.ndarray, inner: np.ndarray) -> np.ndarray:
@@ -53,6 +72,17 @@ def _sample(photo: np.ndarray, fmap: np.ndarray) -> np.ndarray:
 
 def _grey(rgb: np.ndarray) -> np.ndarray:
     return (rgb @ np.float32([0.299, 0.587, 0.114])) / 255
+
+
+def _bandpass(grey: np.ndarray) -> np.ndarray:
+    return cv2.GaussianBlur(grey, (0, 0), 1.0) - cv2.GaussianBlur(grey, (0, 0), 4.0)
+
+
+def _stretch(w: np.ndarray) -> np.ndarray:
+    """|∇w|² (H, W) of a flow field (H, W, 2): the sum of its four squared derivatives."""
+    gx = cv2.Sobel(w, cv2.CV_32F, 1, 0, ksize=3) / 8
+    gy = cv2.Sobel(w, cv2.CV_32F, 0, 1, ksize=3) / 8
+    return (gx ** 2 + gy ** 2).sum(axis=-1)
 
 
 def rigid(photos: TexturePhotos) -> Aligned:
@@ -107,16 +137,25 @@ def _align(photos, target, flow, tps_lambda, rank, reference) -> Aligned:
         shift = grid + flow.flow(ref, np.clip(project(ref, basis, seen), 0, 1).astype(np.float32), seen)
     rgb = np.empty_like(warped.rgb)
     valid = np.empty_like(warped.valid)
+    stretch = np.empty(valid.shape, np.float32)
+    residual = np.empty(valid.shape, np.float32)
     for i in range(len(photos)):
         seen = warped.valid[i]
         projection = np.clip(project(grey[i], basis, seen), 0, 1).astype(np.float32)
-        moved = grid + flow.flow(projection, grey[i], seen)  # x + w_i(x)
+        w = flow.flow(projection, grey[i], seen)
+        moved = grid + w  # x + w_i(x)
+        stretch[i] = _stretch(w)
         if shift is not None:
             moved = _compose(moved, shift)  # (x + w_i)(x + w_T(x))
+            stretch[i] = _compose(stretch[i], shift)
+            projection = _compose(projection, shift)
         rgb[i] = _sample(photos.photos[i], _compose(maps[i], moved))
         valid[i] = _compose(seen.astype(np.float32), moved) > 0.99
+        residual[i] = (_bandpass(_grey(rgb[i])) - _bandpass(projection)) ** 2
+        for m in (stretch, residual):
+            m[i] = cv2.GaussianBlur(m[i], (0, 0), MISFIT_BLUR)
     rgb[~valid] = 0
-    return Aligned(rgb, valid)
+    return Aligned(rgb, valid, stretch, residual)
 
 
 def _basis(grey: np.ndarray, valid: np.ndarray, rank: int) -> np.ndarray:

@@ -92,3 +92,21 @@ def test_coarse_band_is_the_mean_and_fine_detail_comes_from_the_target_photos():
     for out in (smile, neutral):  # α = 0: uniform weights at the coarsest level
         np.testing.assert_allclose(low(out), mean_low, atol=1.0)  # of 0-255 (pyrDown∘pyrUp is not exact)
     assert stripe_amplitude(smile) > 0.6 * 8 > 10 * stripe_amplitude(neutral)
+
+
+def test_confidence_takes_a_photo_out_where_it_failed_to_register():
+    """A photo whose alignment confidence is 0 in a region has no weight there at the fine
+    levels, however sharp it is (a tear has a strong Laplacian); the weights still sum to 1."""
+    rng = np.random.default_rng(3)
+    images, valid = _collection(rng)
+    images[0, 100:140, 60:120] += 60 * np.sign(np.sin(np.arange(60) * np.pi / 3))[None, :, None]  # sharp "tear"
+    confidence = np.ones((6, H, W), np.float32)
+    confidence[0, 90:150, 50:130] = 0
+    e = np.r_[1.0, 0.2, 0.2, 0.2, 0.2, 0.2]
+    plain = BlendCache.build(images, valid, levels=5, alpha=1, beta=20, tau=1).weights(e)
+    trusted = BlendCache.build(images, valid, levels=5, alpha=1, beta=20, tau=1, confidence=confidence).weights(e)
+    assert plain[0][0, 110:130, 70:110].mean() > 0.5  # without it, the tear dominates the finest level
+    assert trusted[0][0, 100:140, 60:120].max() < 1e-6
+    for w in trusted:
+        np.testing.assert_allclose(w.sum(axis=0), 1.0, atol=1e-5)
+    np.testing.assert_allclose(trusted[0][0, 200:, :], plain[0][0, 200:, :], atol=1e-5)  # untouched elsewhere

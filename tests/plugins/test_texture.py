@@ -117,3 +117,32 @@ def test_baselines_run_and_differ(crease_set):
     for i, a in enumerate(names):
         for b in names[i + 1:]:
             assert np.abs(results[a] - results[b]).mean() > 0.5, (a, b)
+
+
+@pytest.mark.slow
+def test_local_misregistration_loses_its_weight(crease_set):
+    """One photo with a torn patch at an eye (a block of the raw photo shifted by 6 px, so no
+    smooth warp fits it): the alignment confidence of that photo drops there, not elsewhere,
+    and below the other photos' there; the multiscale blend's finest-level weight follows."""
+    _, photos, _ = crease_set
+    target = photos.fiducials.mean(axis=0)
+    eye = np.round(target[19:25].mean(axis=0)).astype(int)  # the first eye's six fiducials, canonical px
+    rx, ry = np.round(photos.maps[0][eye[1], eye[0]]).astype(int)  # its place in the raw photo
+    raw = photos.photos[0].copy()
+    block = (slice(ry - 10, ry + 10), slice(rx - 14, rx + 14))
+    raw[block] = np.roll(raw[block], 6, axis=1)
+    torn = TexturePhotos((raw, *photos.photos[1:]), photos.maps, photos.visible, photos.fiducials)
+    aligned = align.align(torn, target, DISFlow())
+    assert aligned.stretch is not None and aligned.residual is not None
+    ours = MultiscaleTexture(SIGMA)
+    confidence = ours.confidence(aligned)
+    region = (slice(eye[1] - 8, eye[1] + 8), slice(eye[0] - 12, eye[0] + 12))
+    far = (slice(eye[1] + 60, eye[1] + 80), slice(eye[0] - 10, eye[0] + 10))  # the cheek below
+    at_tear = confidence[0][region].mean()
+    assert at_tear < 0.5 * confidence[0][far].mean(), (at_tear, confidence[0][far].mean())
+    assert at_tear < 0.5 * np.median(confidence[1:][(slice(None), *region)].mean(axis=(1, 2)))
+    e = np.ones(len(torn))
+    trusting = MultiscaleTexture({**SIGMA, "stretch_scale": 0, "residual_scale": 0}).cache(aligned).weights(e)
+    weighted = ours.cache(aligned).weights(e)
+    assert weighted[0][0][region].mean() < 0.5 * trusting[0][0][region].mean()
+    assert ours.confidence(align.rigid(photos)) is None  # no flow, no misfit: Eq. 3 unchanged
