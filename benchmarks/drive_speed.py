@@ -75,7 +75,7 @@ def one_core(store: Path, runs: int, frames: int = 40) -> dict[str, list[float]]
 
     from persona.dag import stages as st
     from persona.dag.texture import load_cache
-    from persona.plugins.builtin.flow import DISFlow
+    from persona.dag.workflow import MotionParams
     from persona.plugins.builtin.render3d import RaycastRender
     from persona.plugins.builtin.texture import MultiscaleTexture
     from persona.plugins.face.transfer import DeformationTransfer
@@ -89,7 +89,9 @@ def one_core(store: Path, runs: int, frames: int = 40) -> dict[str, list[float]]
     poses = drive.array("pose")[:frames]
     images = [root["driver/frames/photos/rgb"][i] for i in range(frames)]
     sizes = root["driver/frames/photos/size"][:frames]
-    flow = DISFlow()
+    choice = MotionParams().flow  # the dynamics' default flow backend
+    flow = st.default_registry().get("flow", choice.backend)(choice.params)
+    landmarks = root["driver/frames/landmarks/points"][:frames]
     mask = puppet.array("shape/mask")[...]
     depth = puppet.array("shape/depth")[...]
     ys, xs = np.mgrid[0:depth.shape[0], 0:depth.shape[1]]
@@ -105,7 +107,8 @@ def one_core(store: Path, runs: int, frames: int = 40) -> dict[str, list[float]]
 
     def dynamics(i):
         st._dynamics(flow, {}, {"pose": poses[i], "/driver/frames/photos/rgb": images[i],
-                                "/driver/frames/photos/size": sizes[i]}, context)
+                                "/driver/frames/photos/size": sizes[i],
+                                "/driver/frames/landmarks/points": landmarks[i]}, context)
 
     def render(i):
         h, w = sizes[i]

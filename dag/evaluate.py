@@ -8,7 +8,11 @@ Figures (paper §6, with dlib's descriptor and landmarks only; nothing downloade
   between A's video and the output (landmarks found anew in the output frames);
 - stability: landmark jitter and face-colour flicker, output over driver;
 - self-reenactment (when asked): PSNR and SSIM of the output against A's real frames
-  inside the rendered face.
+  inside the rendered face;
+- motion (3D runs): the same expression signals computed from the fiducials moved by A's
+  per-frame meshes M_D^t and by B's meshes M_P^t after the transfer, correlated with A's
+  landmarks: how much of A's expression each step of the 3D method carries, before texture
+  and rendering add their own errors.
 
 Descriptors are computed by Dask tasks over shards; only small per-frame figures come back.
 """
@@ -20,6 +24,7 @@ import numpy as np
 from persona.plugins.builtin import evaluate as ev
 from persona.plugins.builtin.landmarks import DlibLandmarks
 from persona.plugins.base import Rejected
+from persona.plugins.face.template import IDX49
 from persona.plugins.manager import default_registry
 from persona.stores.layout import OK, Collection, open_store
 
@@ -110,9 +115,25 @@ def evaluate(store: str, executor, *, identity: tuple[str, dict], threshold: flo
             **{f"output_{k}": v for k, v in ev.expression_signals(joined["landmarks"]).items()},
         },
     }
+    if drive.has("mesh"):
+        result["motion"] = {
+            "driver_meshes": mesh_expression(root, "drive/motion/driver_mesh", "driver", driver_landmarks),
+            "puppet_meshes": mesh_expression(root, "drive/mesh", "puppet", driver_landmarks)}
     if self_reenactment:
         result["self_reenactment"] = {"psnr_db": _nanmean(joined["psnr"]), "ssim": _nanmean(joined["ssim"])}
     return result
+
+
+def mesh_expression(root, meshes: str, actor: str, driver_landmarks: np.ndarray) -> dict[str, float]:
+    """Pearson r of each expression signal between the actor's mean fiducials moved by the per-frame
+    meshes at ``meshes`` (T, H, W, 3; their (x, y) at each fiducial's canonical pixel, rigid pose
+    already removed) and the driver's landmarks (T, 68, 2)."""
+    cols, rows = np.round(root[f"{actor}/aligned/mean_fiducials"][...]).astype(int).T
+    moved = np.full(driver_landmarks.shape, np.nan)
+    for start in range(0, len(moved), 256):  # a few frames' meshes at a time
+        moved[start:start + 256, list(IDX49)] = root[meshes][start:start + 256][:, rows, cols, :2]
+    ours, theirs = ev.expression_signals(moved), ev.expression_signals(driver_landmarks)
+    return {k: ev.pearson(ours[k], theirs[k]) for k in theirs}
 
 
 def _ratio(a: float, b: float) -> float:

@@ -93,6 +93,8 @@ def write_report(path: Path, *, metrics: dict, pictures: dict[str, np.ndarray], 
         rows += [(f"expression correlation: {k.replace('_', ' ')}", v) for k, v in ev["expression"].items()]
         rows += [(k.replace("_", " "), v) for k, v in ev["stability"].items()]
         rows += [(f"self-reenactment {k}", v) for k, v in ev.get("self_reenactment", {}).items()]
+        rows += [(f"{who.replace('_', ' ')} follow A's landmarks: {k.replace('_', ' ')}", v)
+                 for who, figures in ev.get("motion", {}).items() for k, v in figures.items()]
         parts += ["<h2>Figures</h2>", _table(rows)]
     if video is not None and video.is_file() and video.stat().st_size <= MAX_EMBEDDED_VIDEO:
         data = base64.b64encode(video.read_bytes()).decode()

@@ -86,3 +86,15 @@ def test_bush_mean_face_is_a_face_with_landmarks_where_the_frame_puts_them(real_
     assert np.median(error) / iod < 0.05, np.median(error) / iod
     assert (folder / "out" / "puppet_mean_face.png").is_file()
     assert (folder / "out" / "puppet_contact_sheet.png").is_file()
+
+
+def test_3d_drive_carries_the_drivers_expressions_onto_the_puppet(real_run):
+    """Bush driven by frames 900-999 of Obama's address (the 3D method, the default): A's per-frame
+    meshes and B's transferred meshes follow A's mouth (dlib's landmarks on A's frames), and the
+    output is Bush, not Obama."""
+    _, report = real_run
+    evaluation = report["evaluation"]
+    print("\nmotion:", evaluation["motion"], "\nexpression:", evaluation["expression"])
+    for meshes in ("driver_meshes", "puppet_meshes"):
+        assert evaluation["motion"][meshes]["mouth_open"] > 0.8, meshes
+    assert evaluation["identity"]["fraction_b_not_a"] >= 0.9
