@@ -10,7 +10,11 @@ albedo ``ρ̄``, rank-4 appearance basis ``B_D``):
 3. the illumination-matched reference ``Ĵ_t = B_D c_t`` (masked least squares): the frame's
    lighting on the average expression;
 4. 2D flow ``w_t`` from ``Ĵ_t`` to the frontalised frame ``J_t``: the average's surface point at
-   canonical ``(u, v)`` is seen at ``(u, v) + w_t``;
+   canonical ``(u, v)`` is seen at ``(u, v) + w_t``. Not in ALGORITHMS: by default the flow starts
+   from the frame's landmarks (:func:`landmark_guide`): ``J_t`` is first warped by the smoothing
+   TPS that takes the average's fiducials to the frame's pose-corrected landmarks, steps 3-4 run on
+   the warped frame, and ``w_t`` is that flow composed with the TPS. On real video the flow alone
+   missed most of the mouth and eye motion;
 5. that point slid on the average surface, ``X_t = (u + w_x, v + w_y, Z̄((u, v) + w_t))``. The true
    point lies on the camera ray through it;
 6. shading refinement along that ray: ``M = X_t + δ r`` with ``r`` the ray direction scaled to a
