@@ -344,7 +344,12 @@ def load_workflow(path: str | Path, overrides: list[str] = (), registry: Registr
 
 
 def json_schema() -> dict:
-    return Workflow.model_json_schema()
+    """The workflow's JSON schema, with the params of the stages that have no backend choice
+    (ingest, align, motion) under ``x-stage-params``; each backend's params are in
+    ``persona plugins --json``."""
+    schema = Workflow.model_json_schema()
+    schema["x-stage-params"] = {kind: model.model_json_schema() for kind, model in BACKENDLESS.items()}
+    return schema
 
 
 

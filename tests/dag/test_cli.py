@@ -32,6 +32,9 @@ def test_schema_is_json_schema(capsys):
     assert cli(["schema"]) == 0
     schema = json.loads(capsys.readouterr().out)
     assert {"store", "puppet", "stages", "cluster"} <= set(schema["properties"])
+    motion = schema["x-stage-params"]["motion"]  # the params of the stages without backends, documented
+    assert {"dynamics", "flow", "correspondence", "transfer"} <= set(motion["properties"])
+    assert "landmark_guide" in motion["$defs"]["DynamicsParams"]["properties"]
 
 
 def test_validate_reports_errors_and_exit_code(tmp_path, capsys):
