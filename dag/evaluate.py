@@ -28,6 +28,8 @@ from persona.plugins.face.template import IDX49
 from persona.plugins.manager import default_registry
 from persona.stores.layout import OK, Collection, open_store
 
+from .stages import RENDER_3D
+
 
 def _identity(spec: tuple[str, dict]):
     return default_registry().get("identity", spec[0])(spec[1])
@@ -115,7 +117,7 @@ def evaluate(store: str, executor, *, identity: tuple[str, dict], threshold: flo
             **{f"output_{k}": v for k, v in ev.expression_signals(joined["landmarks"]).items()},
         },
     }
-    if drive.has("mesh"):
+    if drive.provenance("render/rgb").stage == RENDER_3D.name:  # rendered from the motion step's meshes
         result["motion"] = {
             "driver_meshes": mesh_expression(root, "drive/motion/driver_mesh", "driver", driver_landmarks),
             "puppet_meshes": mesh_expression(root, "drive/mesh", "puppet", driver_landmarks)}

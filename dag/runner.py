@@ -240,8 +240,10 @@ class Runner:
         cls = st.default_registry().get(stage.kind, backend)
         prov = Provenance.make(stage=stage.name, backend=backend, backend_version=cls.version,
                                params=params, inputs=inputs, persona_version=self.version)
-        current = coll.provenance(f"status/{stage.name}/state")
-        if current is None or current.key != prov.key:
+        # outputs another stage wrote since (the 2D and 3D renderers share render/*) count as stale
+        keys = {getattr(coll.provenance(name), "key", None)
+                for name in (f"status/{stage.name}/state", *(o.name for o in stage.outputs))}
+        if keys != {prov.key}:
             self._create_outputs(coll, stage, prov)
         return prov
 

@@ -167,6 +167,25 @@ def test_2d_baseline_renders_into_the_same_store(drive_run, capsys):
     assert media.VideoReader(folder / "output_2d" / "puppet.mp4").n_frames == 16
 
 
+def test_3d_run_after_a_2d_run_renders_again(drive_run):
+    """The 2D and 3D renderers write the same render/* arrays: after a 2D run into the store, the
+    3D run's own finished render stage is stale and runs again (it once kept the 2D frames)."""
+    from persona.stores.layout import Collection, open_store
+
+    folder, path, _ = drive_run
+    assert cli(["run", str(path), "--scheduler", "sync", "--quiet", "--set", "stages.render.backend=tps2d",
+                "--set", "output=output_2d"]) == 0
+    drive = Collection(open_store(str(folder / "run.zarr"), mode="r"), "drive")
+    assert drive.provenance("render/rgb").stage == "render"
+    assert cli(["run", str(path), "--scheduler", "sync", "--quiet", "--set", "output=output_3d"]) == 0
+    drive = Collection(open_store(str(folder / "run.zarr"), mode="r"), "drive")
+    assert drive.provenance("render/rgb").stage == "render3d"
+    two_d = json.loads((folder / "output_2d" / "metrics.json").read_text())["evaluation"]
+    three_d = json.loads((folder / "output_3d" / "metrics.json").read_text())["evaluation"]
+    assert "motion" in three_d and "motion" not in two_d
+    assert three_d["expression"] != two_d["expression"]
+
+
 def test_texture_backend_without_video_mode_falls_back_to_the_static_average(drive_run):
     from persona.stores.layout import Collection, open_store
 
