@@ -50,10 +50,17 @@ def tps_map(target: np.ndarray, source: np.ndarray, shape: tuple[int, int], *, l
     """
     spline = RBFInterpolator(np.asarray(target, float), np.asarray(source, float), kernel="thin_plate_spline",
                              smoothing=tps_smoothing(lam, len(target), scaling), degree=1)
+    nodes, points = _nodes(shape, step)
+    return _upsample(spline(points).reshape(*nodes, 2).astype(np.float32), shape, step)
+
+
+def _nodes(shape: tuple[int, int], step: int) -> tuple[tuple[int, int], np.ndarray]:
+    """The coarse grid of every ``step``-th pixel, covering the last pixel: its shape, and its
+    nodes' (x, y) as (n, 2)."""
     h, w = shape
-    ch, cw = -(-(h - 1) // step) + 1, -(-(w - 1) // step) + 1  # coarse nodes cover the last pixel
-    ys, xs = np.mgrid[0:ch, 0:cw] * step
-    return _upsample(spline(np.c_[xs.ravel(), ys.ravel()]).reshape(ch, cw, 2).astype(np.float32), shape, step)
+    nodes = (-(-(h - 1) // step) + 1, -(-(w - 1) // step) + 1)
+    ys, xs = np.mgrid[0:nodes[0], 0:nodes[1]] * step
+    return nodes, np.c_[xs.ravel(), ys.ravel()]
 
 
 def _upsample(coarse: np.ndarray, shape: tuple[int, int], step: int) -> np.ndarray:
@@ -75,17 +82,15 @@ class TpsWarp:
     def __init__(self, target: np.ndarray, shape: tuple[int, int], *, lam: float = 10.0,
                  scaling: Scaling = "objective", step: int = 1):
         target = np.asarray(target, float)
-        h, w = shape
-        self.shape, self.step = (h, w), step
-        self.coarse_shape = (-(-(h - 1) // step) + 1, -(-(w - 1) // step) + 1)  # coarse nodes cover the last pixel
-        ys, xs = np.mgrid[0:self.coarse_shape[0], 0:self.coarse_shape[1]] * step
+        self.shape, self.step = tuple(shape), step
+        self.nodes, points = _nodes(shape, step)
         spline = RBFInterpolator(target, np.eye(len(target)), kernel="thin_plate_spline",
                                  smoothing=tps_smoothing(lam, len(target), scaling), degree=1)
-        self.weights = spline(np.c_[xs.ravel(), ys.ravel()])
+        self.weights = spline(points)
 
     def map(self, source: np.ndarray) -> np.ndarray:
         """(H, W, 2) float32: the backward sampling map of the spline with r(target_k) ≈ source_k."""
-        coarse = (self.weights @ np.asarray(source, float)).reshape(*self.coarse_shape, 2).astype(np.float32)
+        coarse = (self.weights @ np.asarray(source, float)).reshape(*self.nodes, 2).astype(np.float32)
         return _upsample(coarse, self.shape, self.step)
 
 
