@@ -85,7 +85,7 @@ def one_core(store: Path, runs: int, frames: int = 40) -> dict[str, list[float]]
     cv2.setNumThreads(1)
     root = open_store(str(store), mode="r")
     drive, puppet = Collection(root, "drive"), Collection(root, "puppet")
-    context = st._driver_model(root, "drive")
+    context = st.driver_model(root, "drive")
     poses = drive.array("pose")[:frames]
     images = [root["driver/frames/photos/rgb"][i] for i in range(frames)]
     sizes = root["driver/frames/photos/size"][:frames]

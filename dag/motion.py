@@ -24,7 +24,7 @@ from persona.plugins.base import Rejected
 from persona.plugins.face.dynamics import DriverModel, DynamicsParams, FrameTrack, frame_mesh, smooth_tracks
 from persona.plugins.face.subspace import project
 from persona.plugins.face.transfer import DeformationTransfer
-from persona.plugins.face.warp import tps_map
+from persona.plugins.face.warp import compose, tps_map
 from persona.plugins.kinds import FlowBackend, Pose
 from persona.stores.layout import OK, Collection
 from persona.stores.provenance import Provenance, cache_key
@@ -41,15 +41,14 @@ def correspondence(puppet_average: np.ndarray, puppet_mask: np.ndarray, driver_b
     (e.g. the TPS of the two faces' mean fiducials), is where the flow starts: the basis is
     warped by it first, and φ = guide ∘ (identity + flow)."""
     ys, xs = np.mgrid[0:puppet_mask.shape[0], 0:puppet_mask.shape[1]].astype(np.float32)
-    start = np.stack([xs, ys], axis=-1) if guide is None else np.asarray(guide, np.float32)
-    basis = np.stack([cv2.remap(np.asarray(b, np.float32), start[..., 0], start[..., 1], cv2.INTER_LINEAR,
-                                borderMode=cv2.BORDER_REPLICATE) for b in driver_basis])
+    grid = np.stack([xs, ys], axis=-1)
+    start = grid if guide is None else np.asarray(guide, np.float32)
+    if guide is not None:
+        driver_basis = np.stack([compose(np.asarray(b, np.float32), start, cv2.BORDER_REPLICATE) for b in driver_basis])
     average = np.asarray(puppet_average, np.float32) / 255
-    projected = np.clip(project(average, basis, puppet_mask), 0, 1).astype(np.float32)
+    projected = np.clip(project(average, driver_basis, puppet_mask), 0, 1).astype(np.float32)
     w = flow.flow(average, projected, puppet_mask)
-    fx, fy = xs + w[..., 0], ys + w[..., 1]
-    return np.stack([cv2.remap(start[..., k], fx, fy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-                     for k in range(2)], axis=-1)
+    return compose(start, grid + w, cv2.BORDER_REPLICATE)
 
 
 def run_motion(runner, drive: Collection, retargeted: Provenance) -> Provenance:
@@ -78,9 +77,8 @@ def run_motion(runner, drive: Collection, retargeted: Provenance) -> Provenance:
     if done is not None and done.key == prov.key:
         return prov
     registry = st.default_registry()
-    model = DriverModel.build(driver.array("shape/depth")[...], driver.array("shape/albedo")[...],
-                              driver.array("shape/mask")[...], driver.array("subspace/basis")[...])
-    params = DynamicsParams.model_validate(motion["dynamics"])
+    context = st.driver_model(root, drive.path)  # the dynamics stage's own model and params
+    model, params = context["model"], context["dynamics"]
     with runner.progress_bar(f"{'drive':>13} meshes    ", drive.n) as bar:
         mean = _driver_meshes(drive, model, params, prov, bar)
 

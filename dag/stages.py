@@ -203,7 +203,8 @@ RENDER_3D = PhotoStage("render3d", "render", "retarget", (*_RENDER_INPUTS, "mesh
 PHOTO_STAGES.update(render=RENDER, render3d=RENDER_3D)
 
 
-def _driver_model(root, path) -> dict:
+def driver_model(root, path) -> dict:
+    """The context of the dynamics stage: the driver's average model and the dynamics params."""
     from persona.plugins.face.dynamics import DriverModel, DynamicsParams
 
     shape, basis = root["driver/shape"], root["driver/subspace/basis"]
@@ -228,7 +229,7 @@ DYNAMICS = PhotoStage(
                                      "/driver/frames/landmarks/points"), (
         Output("dynamics/flow", (H, W, 2), "float32", ("frame", "y", "x", "xy")),
         Output("dynamics/delta", (H, W), "float32", ("frame", "y", "x")),
-    ), _dynamics, _driver_model)
+    ), _dynamics, driver_model)
 PHOTO_STAGES["dynamics"] = DYNAMICS
 
 

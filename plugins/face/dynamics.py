@@ -57,7 +57,7 @@ from .mesh import cast, grid_triangles, raycasting_scene
 from .subspace import project
 from .template import IDX49
 from .tracks import bridge
-from .warp import TpsWarp
+from .warp import TpsWarp, compose
 
 __all__ = ["DynamicsParams", "DriverModel", "FrameTrack", "smooth_poses", "track_frame", "smooth_tracks",
            "frame_mesh", "mean_mesh", "driver_meshes", "mesh_error"]
@@ -226,6 +226,7 @@ class DriverModel:
             seen = np.repeat(np.repeat(seen[::step, ::step], step, 0), step, 1)[:self.shape[0], :self.shape[1]]
         return inside & seen
 
+    @functools.lru_cache(maxsize=4)
     def rim_points(self, spacing: int) -> np.ndarray:
         """(k, 2) float64 canonical (x, y) points every ``spacing`` px along the mask's outer contour."""
         contours = cv2.findContours(self.mask.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)[0]
@@ -466,7 +467,8 @@ def track_frame(model: DriverModel, image: np.ndarray, pose: Pose, flow: FlowBac
     guide = landmark_guide(model, landmarks, pose, params)
     if guide is None:
         guide = np.stack([xs, ys], axis=-1)
-    frontal = _sample(grey, *_sample_maps(fmap, guide))
+    to_photo = compose(fmap, guide, cv2.BORDER_REPLICATE)
+    frontal = _sample(grey, to_photo[..., 0], to_photo[..., 1])
     warped_seen = _sample(seen.astype(np.float32), guide[..., 0], guide[..., 1], cv2.BORDER_CONSTANT) > 0.999
     inner = cv2.erode(warped_seen.astype(np.uint8), np.ones((3, 3), np.uint8), iterations=params.rim).astype(bool)
     if inner.sum() < 100:
@@ -474,7 +476,7 @@ def track_frame(model: DriverModel, image: np.ndarray, pose: Pose, flow: FlowBac
     reference = np.clip(project(frontal, model.basis, weights=inner), 0.0, 1.0)
     r = flow.flow(*fill_outside(np.stack([reference, frontal]), inner))
     # compose: u in the reference <-> u + r(u) in the warped frame <-> guide(u + r(u)) in the frontal frame
-    w = np.stack(_sample_maps(guide, np.stack([xs + r[..., 0], ys + r[..., 1]], axis=-1)), axis=-1)
+    w = compose(guide, np.stack([xs + r[..., 0], ys + r[..., 1]], axis=-1), cv2.BORDER_REPLICATE)
     w[..., 0] -= xs
     w[..., 1] -= ys
     tx, ty = xs + w[..., 0], ys + w[..., 1]
@@ -513,12 +515,6 @@ def landmark_guide(model: DriverModel, landmarks: np.ndarray | None, pose: Pose,
     canonical = canonical_landmarks(points, model.depth, pose, model.fiducials)
     rim = model.rim_points(params.guide_rim_spacing)
     return model.guide_warp(params.guide_lambda, params.guide_rim_spacing).map(np.concatenate([canonical, rim]))
-
-
-def _sample_maps(maps: np.ndarray, at: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The (H, W, 2) map ``maps`` sampled bilinearly at the (H, W, 2) positions ``at``: x and y maps."""
-    x, y = np.ascontiguousarray(at[..., 0], np.float32), np.ascontiguousarray(at[..., 1], np.float32)
-    return _sample(maps[..., 0], x, y), _sample(maps[..., 1], x, y)
 
 
 def fill_outside(images: np.ndarray, mask: np.ndarray, sigma: float = 4.0) -> np.ndarray:

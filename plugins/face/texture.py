@@ -36,7 +36,7 @@ import numpy as np
 from ..kinds import FlowBackend, TexturePhotos
 from .subspace import project
 from .template import CANONICAL_HEIGHT as H, CANONICAL_WIDTH as W
-from .warp import tps_map
+from .warp import compose, tps_map
 
 
 #: σ (px) of the blur of the local misfit measures (``Aligned.stretch`` and ``residual``)
@@ -54,11 +54,6 @@ class Aligned:
     valid: np.ndarray
     stretch: np.ndarray | None = None
     residual: np.ndarray | None = None
-
-
-def _compose(outer: np.ndarray, inner: np.ndarray) -> np.ndarray:
-    """outer ∘ inner for sampling maps (H, W, 2): sample ``outer`` at the points ``inner`` gives."""
-    return cv2.remap(outer, inner[..., 0], inner[..., 1], cv2.INTER_LINEAR)
 
 
 def _grid() -> np.ndarray:
@@ -99,9 +94,9 @@ def tps_aligned(photos: TexturePhotos, target: np.ndarray, *, tps_lambda: float)
     valid = np.empty((n, H, W), bool)
     for i in range(n):
         r = tps_map(target, photos.fiducials[i], (H, W), lam=tps_lambda, step=4)
-        maps[i] = _compose(photos.maps[i], r)
+        maps[i] = compose(photos.maps[i], r)
         rgb[i] = _sample(photos.photos[i], maps[i])
-        valid[i] = _compose(photos.visible[i].astype(np.float32), r) > 0.99
+        valid[i] = compose(photos.visible[i].astype(np.float32), r) > 0.99
     return Aligned(rgb, valid), maps
 
 
@@ -146,11 +141,11 @@ def _align(photos, target, flow, tps_lambda, rank, reference) -> Aligned:
         moved = grid + w  # x + w_i(x)
         stretch[i] = _stretch(w)
         if shift is not None:
-            moved = _compose(moved, shift)  # (x + w_i)(x + w_T(x))
-            stretch[i] = _compose(stretch[i], shift)
-            projection = _compose(projection, shift)
-        rgb[i] = _sample(photos.photos[i], _compose(maps[i], moved))
-        valid[i] = _compose(seen.astype(np.float32), moved) > 0.99
+            moved = compose(moved, shift)  # (x + w_i)(x + w_T(x))
+            stretch[i] = compose(stretch[i], shift)
+            projection = compose(projection, shift)
+        rgb[i] = _sample(photos.photos[i], compose(maps[i], moved))
+        valid[i] = compose(seen.astype(np.float32), moved) > 0.99
         residual[i] = (_bandpass(_grey(rgb[i])) - _bandpass(projection)) ** 2
         for m in (stretch, residual):
             m[i] = cv2.GaussianBlur(m[i], (0, 0), MISFIT_BLUR)

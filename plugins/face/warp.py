@@ -27,6 +27,12 @@ def tps_smoothing(lam: float, n_points: int, scaling: Scaling = "objective") -> 
     raise ValueError(f"unknown TPS scaling {scaling!r}: use objective, diagonal or wahba")
 
 
+def compose(values: np.ndarray, at: np.ndarray, border: int = cv2.BORDER_CONSTANT) -> np.ndarray:
+    """``values`` (H', W'[, C]) sampled bilinearly at the (H, W, 2) positions ``at`` (x, y): for two
+    sampling maps, ``values ∘ at``. ``border``: the cv2 border mode beyond ``values``."""
+    return cv2.remap(values, at[..., 0], at[..., 1], cv2.INTER_LINEAR, borderMode=border)
+
+
 def tps_map(target: np.ndarray, source: np.ndarray, shape: tuple[int, int], *, lam: float = 10.0,
             scaling: Scaling = "objective", step: int = 1) -> np.ndarray:
     """Backward sampling map of the smoothing TPS r with r(target_k) ≈ source_k.
