@@ -1,6 +1,6 @@
 """Does the reconstructed 3D shape capture identity? Two random halves of Bush against Powell.
 
-    .venv/bin/python benchmarks/shape_identity.py [--seed 0] [--keep DIR]
+    .venv/bin/python benchmarks/shape_identity.py [--seed 0] [--keep DIR] [--flow NAME]
 
 Reconstructs george_w_bush from two random halves of its photos and colin_powell from all
 of its photos (default backends, 2 local workers), aligns each pair of depth maps by a
@@ -23,13 +23,15 @@ import yaml
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data" / "collections"
 
 
-def reconstruct(name: str, photos, folder: Path) -> tuple[np.ndarray, np.ndarray, float]:
+def reconstruct(name: str, photos, folder: Path, flow: str | None) -> tuple[np.ndarray, np.ndarray, float]:
     from persona.dag.runner import run_workflow
     from persona.dag.workflow import load_workflow
     from persona.stores.layout import Collection, open_store
 
     wf = {"version": 1, "name": name, "store": str(folder / f"{name}.zarr"), "output": str(folder / name),
           "puppet": {"photos": photos}, "cluster": {"scheduler": "local", "workers": 2}}
+    if flow:
+        wf["stages"] = {"flow": {"backend": flow}}
     path = folder / f"{name}.yaml"
     path.write_text(yaml.safe_dump(wf))
     t0 = time.perf_counter()
@@ -51,6 +53,7 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--keep", type=Path)
+    ap.add_argument("--flow", help="the collection flow's backend (default: the workflow default)")
     args = ap.parse_args()
     folder = args.keep or Path(tempfile.mkdtemp(prefix="shape_identity_"))
     folder.mkdir(parents=True, exist_ok=True)
@@ -59,7 +62,7 @@ def main():
     halves = [sorted(bush[i] for i in order[: len(bush) // 2]), sorted(bush[i] for i in order[len(bush) // 2:])]
     results = {}
     for name, photos in (("bush_a", halves[0]), ("bush_b", halves[1]), ("powell", str(SHARED / "colin_powell"))):
-        results[name] = reconstruct(name, photos, folder)
+        results[name] = reconstruct(name, photos, folder, args.flow)
         print(f"{name}: {len(photos) if isinstance(photos, list) else 'all'} photos, {results[name][2]:.1f} s")
     d = {pair: difference(*results[pair[0]][:2], *results[pair[1]][:2])
          for pair in (("bush_a", "bush_b"), ("bush_a", "powell"), ("bush_b", "powell"))}

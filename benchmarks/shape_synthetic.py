@@ -1,6 +1,6 @@
 """The average 3D face against ground truth, on a synthetic in-the-wild collection.
 
-    .venv/bin/python benchmarks/shape_synthetic.py [--photos 100] [--seed 3]
+    .venv/bin/python benchmarks/shape_synthetic.py [--photos 100] [--seed 3] [--flow NAME]
 
 One random synthetic identity, --photos photos with random lighting, pose (yaw ±30°,
 pitch ±15°), expressions (σ 0.25) and noise, ground-truth landmark sidecars (so the
@@ -37,6 +37,7 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--photos", type=int, default=100)
     ap.add_argument("--seed", type=int, default=3)
+    ap.add_argument("--flow", help="the collection flow's backend (default: the workflow default)")
     args = ap.parse_args()
     from persona.dag.demo import write_collection
     from persona.dag.runner import run_workflow
@@ -55,6 +56,8 @@ def main():
         write_collection(folder / "photos", photos)
         wf = {"version": 1, "name": "synthetic-shape", "store": str(folder / "run.zarr"), "output": str(folder / "out"),
               "puppet": {"photos": str(folder / "photos" / "*.png")}, "stages": {"landmarks": {"backend": "sidecar"}}}
+        if args.flow:
+            wf["stages"]["flow"] = {"backend": args.flow}
         (folder / "wf.yaml").write_text(yaml.safe_dump(wf))
         report = run_workflow(load_workflow(folder / "wf.yaml"), progress=False)
         coll = Collection(open_store(wf["store"], mode="r"), "puppet")

@@ -123,7 +123,7 @@ def _evaluate_texture(wf, args) -> int:
         print(json.dumps(result, indent=2))
         return 0
     print(f"{args.collection}: {len(result['references'])} held-out references, {result['collection_photos']} "
-          f"photos, flow {result['flow']['backend']}, target: "
+          f"photos, flow {result['methods'].get('multiscale', {}).get('flow', {}).get('backend', '-')}, target: "
           + ("each reference photo" if result["mode"] == "reference" else "each reference's fiducials"))
     print(f"  {'method':<16}{'alignment %IOD':>16}{'no face':>9}{'detail':>9}{'fidelity':>10}{'colour %':>10}")
     columns = (("alignment_median_pct_iod", 16, ".2f"), ("no_face_found", 9, "d"), ("detail_median", 9, ".3f"),
@@ -132,6 +132,12 @@ def _evaluate_texture(wf, args) -> int:
         cells = [format(row[key], f"{width}{fmt}") if row.get(key) is not None else f"{'-':>{width}}"
                  for key, width, fmt in columns]
         print(f"  {LABELS[name]:<16}" + "".join(cells))
+    if result["paired_alignment"]:
+        print("  alignment, ours minus the other on the same references (% IOD; negative: ours better)")
+    for name, d in result["paired_alignment"].items():
+        se = f" ± {d['standard_error']:.2f}" if d["standard_error"] is not None else ""
+        print(f"  {LABELS[name]:<16}median {d['median']:+.2f}, mean {d['mean']:+.2f}{se}, "
+              f"ours better on {d['ours_better']} of {d['references']}")
     print(f"  grid: {result['grid']}")
     return 0
 

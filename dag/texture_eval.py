@@ -12,6 +12,9 @@ reference itself for the paper's reference-mode flow), from the other photos onl
 - colour consistency: the spread (relative standard deviation, %) over all references of
   the result's mean face colour (lower is more consistent).
 
+Medians of two methods can hide how they compare reference by reference, so the alignment
+errors are also compared in pairs: ours minus each other method, on the same references.
+
 Dask tasks of a few references each; a worker builds the collection once and keeps it.
 """
 
@@ -85,14 +88,13 @@ def scores(result: np.ndarray, result_mask: np.ndarray, reference_band: np.ndarr
 
 
 def evaluate_references(url: str, path: str, rows: tuple[int, ...], references: list[int],
-                        flow: tuple[str, dict], methods: dict[str, dict], pictures: set[int],
-                        use_reference: bool = True) -> list[dict]:
+                        methods: dict[str, dict], pictures: set[int], use_reference: bool = True) -> list[dict]:
     """Dask task: every method on each reference, from the collection ``rows``; the target is the
-    reference photo (the paper's reference mode) or, without ``use_reference``, its fiducials only."""
+    reference photo (the paper's reference mode) or, without ``use_reference``, its fiducials only.
+    Each method aligns with the flow its params name."""
     coll = Collection(open_store(url, mode="r"), path)
     photos = _collection(url, path, rows)
     registry = st.default_registry()
-    flow_backend = registry.get("flow", flow[0])(flow[1])
     backends = {name: registry.get("texture", name)(params) for name, params in methods.items()}
     detector = DlibLandmarks()
     fiducials = coll.array("aligned/fiducials")[:].astype(np.float64)
@@ -103,8 +105,7 @@ def evaluate_references(url: str, path: str, rows: tuple[int, ...], references: 
         row = {"photo": int(r), "reference_alignment": landmark_error(reference, fiducials[r], detector),
                "methods": {}, "images": {}}
         for name, backend in backends.items():
-            texture = backend.synthesize(photos, fiducials[r], flow_backend,
-                                         reference=reference if use_reference else None)
+            texture = backend.synthesize(photos, fiducials[r], reference=reference if use_reference else None)
             row["methods"][name] = scores(texture.rgb, texture.mask, band, seen, fiducials[r], detector)
             if r in pictures:
                 row["images"][name] = np.clip(texture.rgb, 0, 255).round().astype(np.uint8)
@@ -132,6 +133,24 @@ def summarize(rows: list[dict]) -> dict:
     table["reference"] = {"alignment_median_pct_iod": float(np.nanmedian(reference)),
                           "no_face_found": int(np.isnan(reference).sum())}
     return table
+
+
+def paired(rows: list[dict], ours: str = "multiscale") -> dict:
+    """Alignment error of ``ours`` minus each other method's, reference by reference (where dlib
+    found both faces): median, mean and its standard error (% IOD), and how often ours is lower.
+    Negative is better for ours."""
+    out = {}
+    for name in rows[0]["methods"]:
+        if name == ours or ours not in rows[0]["methods"]:
+            continue
+        d = np.array([r["methods"][ours]["alignment"] - r["methods"][name]["alignment"] for r in rows])
+        d = d[np.isfinite(d)]
+        if len(d) == 0:
+            continue
+        out[name] = {"median": float(np.median(d)), "mean": float(d.mean()),
+                     "standard_error": float(d.std(ddof=1) / np.sqrt(len(d))) if len(d) > 1 else None,
+                     "ours_better": int((d < 0).sum()), "references": len(d)}
+    return out
 
 
 def grid(rows: list[dict]) -> np.ndarray:
@@ -164,11 +183,14 @@ def evaluate_texture(runner, path: str = "puppet", *, references: int = 40, seed
     if photos is not None and photos < len(rest):
         rest = np.sort(np.random.default_rng(seed + 1).choice(rest, photos, replace=False))
     rows = tuple(int(i) for i in rest)
-    flow = runner.wf.stage("flow")
-    params = {m: runner.wf.stage("texture")[1] if m == runner.wf.stage("texture")[0] else {} for m in methods}
+    ours, ours_params = runner.wf.stage("texture")
+    shared = {"flow": ours_params["flow"]} if "flow" in ours_params else {}  # the baselines align as ours does
+    params = {m: ours_params if m == ours else
+              {k: v for k, v in shared.items() if k in st.default_registry().get("texture", m).Params.model_fields}
+              for m in methods}
     shown = {int(i) for i in chosen[:pictures]}
     parts = np.array_split(chosen, -(-len(chosen) // 4))  # small tasks: progress, and balance across workers
-    tasks = [(runner.wf.store, path, rows, [int(i) for i in part], flow, params, shown, mode == "reference")
+    tasks = [(runner.wf.store, path, rows, [int(i) for i in part], params, shown, mode == "reference")
              for part in parts]
     results = []
     with runner.progress_bar(f"{path:>13} texture evaluation", len(chosen), unit="reference") as bar:
@@ -182,7 +204,8 @@ def evaluate_texture(runner, path: str = "puppet", *, references: int = 40, seed
     grid_file = out / f"{slug}_texture_grid{suffix}.png"
     media.write_png(grid_file, grid(results))
     report = {"collection": path, "mode": mode, "references": [int(i) for i in chosen], "collection_photos": len(rows),
-              "flow": {"backend": flow[0], "params": flow[1]}, "methods": params, "table": table,
+              "methods": params, "table": table,
+              "paired_alignment": paired(results),
               "per_reference": [{k: v for k, v in r.items() if k != "images"} for r in results],
               "grid": str(grid_file)}
     write_json(out / f"{slug}_texture_evaluation{suffix}.json", report)

@@ -11,11 +11,11 @@ from pathlib import Path
 from typing import Any, Literal, Union
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from persona.plugins.face.dynamics import DynamicsParams
 from persona.plugins.face.transfer import TransferParams
-from persona.plugins.manager import Registry, default_registry, did_you_mean
+from persona.plugins.manager import FlowChoice, Registry, default_registry, did_you_mean
 from persona.stores.errors import PersonaError
 
 
@@ -115,27 +115,6 @@ class AlignParams(Strict):
     rank: int = Field(4, ge=1, le=16, description="rank k of the appearance subspace (paper: 4, the "
                       "dimension of Lambertian faces under first-order spherical-harmonic light)")
     tps_lambda: float = Field(10.0, ge=0, description="λ of the smoothing TPS to the mean fiducials (Eq. 1; paper: 10)")
-
-
-class FlowChoice(Strict):
-    """A flow backend and its parameters, for a step that is not the workflow's ``flow`` stage."""
-
-    backend: str = Field("varref", description="the flow backend's name")
-    params: dict[str, Any] = Field(default_factory=dict, description="the flow backend's parameters")
-
-    @field_validator("backend")
-    @classmethod
-    def _backend(cls, v: str) -> str:
-        names = default_registry().names("flow")
-        if v not in names:
-            raise ValueError(f'unknown flow backend "{v}".{did_you_mean(v, names)} Known: {", ".join(names)}')
-        return v
-
-    @model_validator(mode="after")
-    def _params(self) -> "FlowChoice":
-        self.params = default_registry().get("flow", self.backend).Params.model_validate(self.params).model_dump(
-            mode="json")
-        return self
 
 
 class CorrespondenceParams(FlowChoice):

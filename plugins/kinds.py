@@ -250,11 +250,12 @@ class TextureBackend(Backend):
 
     kind = "texture"
 
-    def synthesize(self, photos: TexturePhotos, target: np.ndarray, flow: FlowBackend,
+    def synthesize(self, photos: TexturePhotos, target: np.ndarray, flow: FlowBackend | None = None,
                    reference: np.ndarray | None = None) -> Texture:
         """target: (49, 2) canonical fiducials F^T of the expression to show; flow: the backend
-        of the dense warps; reference: the frontalized reference photo (H, W, 3) whose expression
-        F^T is (the paper's reference mode, Fig. 5), or None."""
+        of the dense warps (None: the one the backend's params name); reference: the frontalized
+        reference photo (H, W, 3) whose expression F^T is (the paper's reference mode, Fig. 5),
+        or None."""
         raise NotImplementedError
 
     # Video mode (optional; the paper's puppetry mode): the collection is aligned once, to its

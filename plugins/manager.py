@@ -16,9 +16,10 @@ import logging
 import os
 from dataclasses import dataclass
 from functools import lru_cache
+from typing import Any
 
 import pluggy
-from pydantic import BaseModel
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, ValidationInfo, field_validator
 
 from . import hookspecs
 from .base import Backend
@@ -187,3 +188,38 @@ def get_plugin_manager(extra_plugins=()) -> tuple[pluggy.PluginManager, Registry
 def default_registry() -> Registry:
     """The registry of the installed plugins (cached; for validation and listing)."""
     return get_plugin_manager()[1]
+
+
+class FlowChoice(BaseModel):
+    """A flow backend and its parameters, for a step that is not the workflow's ``flow`` stage
+    (the collection flow): the driver's dynamics, the correspondence, texture synthesis."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    backend: str = Field("varref", description="the flow backend's name (`persona plugins` lists them)")
+    params: dict[str, Any] = Field(default_factory=dict, validate_default=True,
+                                   description="the flow backend's parameters (its defaults where left out)")
+
+    @field_validator("backend")
+    @classmethod
+    def _backend(cls, name: str) -> str:
+        names = default_registry().names("flow")
+        if name not in names:
+            raise ValueError(f'unknown flow backend "{name}".{did_you_mean(name, names)} Known: {", ".join(names)}')
+        return name
+
+    @field_validator("params")
+    @classmethod
+    def _params(cls, params: dict, info: ValidationInfo) -> dict:
+        if "backend" not in info.data:  # the name was invalid: that error says enough
+            return params
+        try:
+            return default_registry().get("flow", info.data["backend"]).Params.model_validate(params).model_dump(
+                mode="json")
+        except ValidationError as e:
+            errors = (f"{'.'.join(map(str, err['loc']))}: {err['msg']}" for err in e.errors())
+            raise ValueError("; ".join(errors)) from None
+
+    def build(self):
+        """The flow backend itself."""
+        return default_registry().get("flow", self.backend)(self.params)

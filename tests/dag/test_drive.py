@@ -135,6 +135,21 @@ def test_texture_evaluation_holds_out_references_and_scores_every_method(drive_r
     assert fiducials["mode"] == "fiducials" and fiducials["references"] == result["references"]
     assert fiducials["table"]["multiscale"] != table["multiscale"]
     assert (folder / "output" / "puppet_texture_evaluation_fiducials.json").is_file()
+    assert set(fiducials["paired_alignment"]) <= {"static", "weighted", "prewarped"}
+
+
+def test_texture_evaluation_pairs_methods_reference_by_reference():
+    from persona.dag.texture_eval import paired
+
+    # ours beats (ii) on 3 of 4 references; the one dlib missed (NaN) is left out of (iii)'s pairs
+    errors = {"multiscale": [1.0, 2.0, 3.0, 4.0], "static": [1.5, 2.5, 3.5, 3.0], "weighted": [2.0, np.nan, 4.0, 5.0]}
+    rows = [{"methods": {m: {"alignment": e[i]} for m, e in errors.items()}} for i in range(4)]
+    result = paired(rows)
+    assert set(result) == {"static", "weighted"}
+    assert result["static"]["ours_better"] == 3 and result["static"]["references"] == 4
+    assert result["static"]["median"] == pytest.approx(-0.5) and result["static"]["mean"] == pytest.approx(-0.125)
+    assert result["static"]["standard_error"] == pytest.approx(np.std([-0.5, -0.5, -0.5, 1.0], ddof=1) / 2)
+    assert result["weighted"]["references"] == 3 and result["weighted"]["mean"] == pytest.approx(-1.0)
 
 
 def test_3d_drive_moves_the_puppets_mesh_with_the_driver(drive_run):
