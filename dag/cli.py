@@ -108,6 +108,17 @@ def _cmd_evaluate(args) -> int:
     return 0
 
 
+def _texture_methods(value: str) -> tuple[str, ...]:
+    from .texture_eval import METHODS
+
+    names = tuple(v.strip() for v in value.split(",") if v.strip())
+    unknown = [n for n in names if n not in METHODS]
+    if unknown or not names:
+        raise argparse.ArgumentTypeError(f"unknown texture method(s) {', '.join(unknown) or '(none)'}; "
+                                         f"choose from {', '.join(METHODS)}")
+    return tuple(m for m in METHODS if m in names)
+
+
 def _evaluate_texture(wf, args) -> int:
     from persona.stores.layout import Collection, open_store
 
@@ -118,7 +129,8 @@ def _evaluate_texture(wf, args) -> int:
         raise RunError(f"{wf.store} has no aligned faces in {args.collection!r}: run `persona run {args.workflow}` first")
     with executor_for(wf, args.scheduler, args.workers) as ex:
         result = evaluate_texture(Runner(wf, ex, progress=not args.json), args.collection, references=args.references,
-                                  seed=args.seed, photos=args.photos, mode=args.mode)
+                                  seed=args.seed, photos=args.photos, mode=args.mode,
+                                  **({"methods": args.methods} if args.methods else {}))
     if args.json:
         print(json.dumps(result, indent=2))
         return 0
@@ -244,6 +256,8 @@ def build_parser() -> argparse.ArgumentParser:
                    "random (default: all of them)")
     p.add_argument("--mode", choices=("reference", "fiducials"), default="reference", help="--texture: target the "
                    "reference photo itself (the paper's Fig. 5) or only its fiducials (as in puppetry)")
+    p.add_argument("--methods", type=_texture_methods, default=None, help="--texture: comma-separated subset of "
+                   "static,weighted,prewarped,multiscale (default: all four)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     common_run(p)

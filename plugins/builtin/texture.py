@@ -35,10 +35,12 @@ class _Alignment(_Weights):
                               "(paper Eq. 1: 10; s = 8πλ, ALGORITHMS §5.2)")
     rank: int = Field(4, ge=1, le=16, description="rank of the appearance subspace the dense flow aligns "
                       "each photo to (paper: 4, lighting only)")
-    flow: FlowChoice = Field(default_factory=FlowChoice, description="the flow of the dense warps to the target. "
-                             "Not the workflow's collection flow (stages.flow, dis): on Bush and Powell, 40 "
-                             "held-out references each, ours' median alignment error is 1.94 / 1.93 % of the "
-                             "inter-ocular distance with varref against 2.00 / 1.91 with dis (README, texture)")
+    flow: FlowChoice = Field(default_factory=FlowChoice, description="the flow of the dense warps to a target "
+                             "(per-target synthesis and `persona evaluate --texture`; video mode blends the "
+                             "collection as the align stage warped it, with stages.flow). Not the collection "
+                             "flow's dis: on Bush and Powell, 40 held-out references each, ours' median alignment "
+                             "error is 1.94 / 1.93 % of the inter-ocular distance with varref against 2.00 / 1.91 "
+                             "with dis (README, texture)")
 
 
 def _weighted_mean(rgb: np.ndarray, weights: np.ndarray) -> Texture:

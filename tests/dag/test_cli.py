@@ -43,6 +43,14 @@ def test_validate_reports_errors_and_exit_code(tmp_path, capsys):
     assert cli(["validate", str(bad)]) == 2
     err = capsys.readouterr().err
     assert 'pupet: unknown key "pupet". Did you mean "puppet"?' in err
+    # a flow chosen inside a stage's params: errors at their own path, with a suggestion
+    bad.write_text("version: 1\nname: x\nstore: s\noutput: o\npuppet: {photos: p}\nstages:\n"
+                   "  texture: {params: {flow: {backend: varef}}}\n"
+                   "  motion: {params: {correspondence: {backend: liu, params: {alpha: -1}}}}\n")
+    assert cli(["validate", str(bad)]) == 2
+    err = capsys.readouterr().err
+    assert 'stages.texture.params.flow.backend: Value error, unknown flow backend "varef". Did you mean "varref"?' in err
+    assert "stages.motion.params.correspondence.params: Value error, alpha: Input should be greater than 0" in err
     assert cli(["validate", str(ROOT / "workflows" / "bush_driven_by_obama.yaml")]) == 0
     assert "landmarks  dlib" in capsys.readouterr().out
 

@@ -120,6 +120,18 @@ def test_baselines_run_and_differ(crease_set):
 
 
 @pytest.mark.slow
+def test_texture_aligns_with_the_flow_its_params_name(crease_set):
+    identity, photos, _ = crease_set
+    target = _target(identity, SMILE)
+    assert MultiscaleTexture().params.flow.backend == "varref"
+    own = MultiscaleTexture({**SIGMA, "flow": {"backend": "dis"}}).synthesize(photos, target)
+    given = MultiscaleTexture(SIGMA).synthesize(photos, target, DISFlow())
+    np.testing.assert_array_equal(own.rgb, given.rgb)
+    other = MultiscaleTexture(SIGMA).synthesize(photos, target)  # varref
+    assert np.abs(other.rgb - own.rgb).mean() > 0.1
+
+
+@pytest.mark.slow
 def test_local_misregistration_loses_its_weight(crease_set):
     """One photo with a torn patch at an eye (a block of the raw photo shifted by 6 px, so no
     smooth warp fits it): the alignment confidence of that photo drops there, not elsewhere,
