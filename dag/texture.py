@@ -1,7 +1,8 @@
 """Expression-dependent texture in the run (paper §5-§6).
 
 Video mode, the paper's way for puppetry: the collection is warped once to the puppet's mean
-fiducials (the ``align`` stage's collection flow already does exactly this), the target-
+fiducials (the ``align`` stage's collection flow already does exactly this, with the workflow's
+``flow`` stage; the texture backend's own ``flow`` param is for synthesis to one target), the target-
 independent terms of Eq. 3 (Laplacian pyramids times detail weights) are cached in the store
 under ``texture/``, and each driver frame only changes the expression weights. The textures
 keep the neutral geometry with the target's detail; the renderer moves the geometry.
