@@ -170,6 +170,15 @@ def _cmd_schema(args) -> int:
     return 0
 
 
+def _default_params(registry, row: dict) -> dict:
+    """A backend's default params for the text listing; a nested flow choice shows its backend."""
+    try:
+        values = registry.get(row["kind"], row["name"]).Params().model_dump(mode="json")
+    except ValueError:  # a param without a default (a third-party backend's): the schema's defaults
+        return {k: v.get("default") for k, v in row["params"].get("properties", {}).items()}
+    return {k: v["backend"] if isinstance(v, dict) and "backend" in v else v for k, v in values.items()}
+
+
 def _cmd_plugins(args) -> int:
     from persona.plugins.manager import default_registry
 
@@ -182,7 +191,7 @@ def _cmd_plugins(args) -> int:
         print(f"{kind}:")
         for row in (r for r in rows if r["kind"] == kind):
             star = "*" if row["default"] else " "
-            params = ", ".join(f"{k}={v.get('default')!r}" for k, v in row["params"].get("properties", {}).items())
+            params = ", ".join(f"{k}={v!r}" for k, v in _default_params(registry, row).items())
             print(f"  {star} {row['name']:<12} {row['description']}  [{row['distribution']}]")
             if params:
                 print(f"      params: {params}")

@@ -26,6 +26,7 @@ def test_plugins_text(capsys):
     assert cli(["plugins"]) == 0
     out = capsys.readouterr().out
     assert "landmarks:" in out and "* dlib" in out
+    assert "flow='varref'" in out  # a nested flow choice shows its backend
 
 
 def test_schema_is_json_schema(capsys):
