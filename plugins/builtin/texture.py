@@ -70,7 +70,9 @@ class MultiscaleTexture(TextureBackend):
                              "weight (paper: 1)")
         beta: float = Field(20.0, gt=0, description="β: fall-off of the uniform term τ l^-β with the level l "
                             "(paper: 20; l = 0, the coarsest, is uniform)")
-        tau: float = Field(1.0, ge=0, description="τ: weight of the uniform term (paper: 1)")
+        tau: float = Field(1.0, ge=0, description="τ: weight of the uniform term (paper: 1); 0 = none, so every "
+                           "level follows the expression, the coarsest too (its colour then follows the photos "
+                           "chosen)")
         detail_blur: float = Field(1.0, ge=0, description="σ (px) of the Gaussian blur before the Laplacian "
                                    "filter of the detail response L^i (the paper does not say)")
         detail_floor: float = Field(1e-6, gt=0, description="added to |Laplacian| so flat regions keep a weight")
@@ -108,7 +110,8 @@ class MultiscaleTexture(TextureBackend):
     def blend(self, cache: BlendCache, fiducials: np.ndarray, target: np.ndarray) -> np.ndarray:
         """The texture (H, W, 3) float32 for a target (49, 2), from a cache of photos whose fiducials
         (n, 49, 2) give the expression weights."""
-        e = expression_weights(fiducials, target, self.params.sigma)
+        # without a uniform term only the ratios of the e_i matter: relative ones cannot all underflow
+        e = expression_weights(fiducials, target, self.params.sigma, relative=self.params.tau == 0)
         return np.clip(cache.blend(e, skip=self.params.skip), 0, 255)
 
     def synthesize(self, photos, target, flow=None, reference=None):

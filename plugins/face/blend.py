@@ -41,7 +41,10 @@ def expression_weights(fiducials: np.ndarray, target: np.ndarray, sigma: float, 
 
 
 def level_bias(levels: int, beta: float, tau: float) -> np.ndarray:
-    """τ l^-β for each pyramid array index k (finest k = 0, so l = levels-1-k); inf at l = 0."""
+    """τ l^-β for each pyramid array index k (finest k = 0, so l = levels-1-k); inf at l = 0.
+    τ = 0: no uniform term at any level, the coarsest included (0·∞ taken as 0)."""
+    if tau == 0:
+        return np.zeros(levels)
     l = np.arange(levels - 1, -1, -1, dtype=np.float64)
     with np.errstate(divide="ignore"):
         return tau * l ** -beta

@@ -26,6 +26,7 @@ def test_level_bias_is_infinite_only_at_the_coarsest_level():
     bias = level_bias(5, beta=20, tau=1)
     assert np.isinf(bias[-1]) and np.isfinite(bias[:-1]).all()
     assert bias[-2] == 1.0 and bias[-3] == pytest.approx(2.0 ** -20)  # l = 1, l = 2
+    assert (level_bias(5, beta=20, tau=0) == 0).all()  # no uniform term, not even a NaN at l = 0
 
 
 def test_expression_weights_follow_the_paper_and_relative_ones_never_vanish():
@@ -92,6 +93,11 @@ def test_coarse_band_is_the_mean_and_fine_detail_comes_from_the_target_photos():
     for out in (smile, neutral):  # α = 0: uniform weights at the coarsest level
         np.testing.assert_allclose(low(out), mean_low, atol=1.0)  # of 0-255 (pyrDown∘pyrUp is not exact)
     assert stripe_amplitude(smile) > 0.6 * 8 > 10 * stripe_amplitude(neutral)
+    # τ = 0: no uniform term, so even the coarsest level comes from the chosen photos
+    chosen = BlendCache.build(images, np.ones((n, H, W), bool), levels=5, alpha=0, beta=20, tau=0).blend(
+        np.r_[1.0, 1.0, np.zeros(n - 2)])
+    assert np.isfinite(chosen).all()
+    np.testing.assert_allclose(low(chosen), low(images[:2].mean(axis=0)), atol=1.0)
 
 
 def test_confidence_takes_a_photo_out_where_it_failed_to_register():
