@@ -203,9 +203,10 @@ class FlowChoice(BaseModel):
     @field_validator("backend")
     @classmethod
     def _backend(cls, name: str) -> str:
-        names = default_registry().names("flow")
-        if name not in names:
-            raise ValueError(f'unknown flow backend "{name}".{did_you_mean(name, names)} Known: {", ".join(names)}')
+        try:
+            default_registry().get("flow", name)
+        except UnknownBackend as e:  # a KeyError; pydantic reports ValueErrors
+            raise ValueError(str(e)) from None
         return name
 
     @field_validator("params")

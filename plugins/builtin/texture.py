@@ -42,6 +42,11 @@ class _Alignment(_Weights):
                              "error is 1.94 / 1.93 % of the inter-ocular distance with varref against 2.00 / 1.91 "
                              "with dis (README, texture)")
 
+    def aligned(self, photos, target, flow=None, reference=None) -> align.Aligned:
+        """The photos TPS- and flow-aligned to the target, with ``flow`` or else this flow choice's."""
+        return align.align(photos, target, flow or self.flow.build(), tps_lambda=self.tps_lambda, rank=self.rank,
+                           reference=reference)
+
 
 def _weighted_mean(rgb: np.ndarray, weights: np.ndarray) -> Texture:
     """Σ_i w_i(x) rgb_i(x) / Σ_i w_i(x) with weights (n, H, W)."""
@@ -115,9 +120,7 @@ class MultiscaleTexture(TextureBackend):
         return np.clip(cache.blend(e, skip=self.params.skip), 0, 255)
 
     def synthesize(self, photos, target, flow=None, reference=None):
-        p = self.params
-        aligned = align.align(photos, target, flow or p.flow.build(), tps_lambda=p.tps_lambda, rank=p.rank,
-                              reference=reference)
+        aligned = self.params.aligned(photos, target, flow, reference)
         return Texture(self.blend(self.cache(aligned), photos.fiducials, target), aligned.valid.any(axis=0))
 
 
@@ -131,8 +134,7 @@ class StaticTexture(TextureBackend):
     def synthesize(self, photos, target, flow=None, reference=None):
         p = self.params
         mean_fiducials = photos.fiducials.mean(axis=0)
-        aligned = align.align(photos, mean_fiducials, flow or p.flow.build(),
-                              tps_lambda=p.tps_lambda, rank=p.rank)
+        aligned = p.aligned(photos, mean_fiducials, flow)
         average = _weighted_mean(aligned.rgb, aligned.valid.astype(np.float32))
         warp = tps_map(target, mean_fiducials, (H, W), lam=p.tps_lambda, step=4)
         rgb = cv2.remap(average.rgb, warp[..., 0], warp[..., 1], cv2.INTER_LINEAR)
@@ -162,8 +164,7 @@ class PrewarpedTexture(TextureBackend):
 
     def synthesize(self, photos, target, flow=None, reference=None):
         p = self.params
-        aligned = align.align(photos, target, flow or p.flow.build(), tps_lambda=p.tps_lambda, rank=p.rank,
-                              reference=reference)
+        aligned = p.aligned(photos, target, flow, reference)
         return _expression_mean(aligned, photos.fiducials, target, p.sigma)
 
 

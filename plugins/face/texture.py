@@ -69,7 +69,8 @@ def _grey(rgb: np.ndarray) -> np.ndarray:
     return (rgb @ np.float32([0.299, 0.587, 0.114])) / 255
 
 
-def _bandpass(grey: np.ndarray) -> np.ndarray:
+def bandpass(grey: np.ndarray) -> np.ndarray:
+    """Difference of Gaussians, σ 1 and 4 px: the fine detail a blend may blur or misplace."""
     return cv2.GaussianBlur(grey, (0, 0), 1.0) - cv2.GaussianBlur(grey, (0, 0), 4.0)
 
 
@@ -146,7 +147,7 @@ def _align(photos, target, flow, tps_lambda, rank, reference) -> Aligned:
             projection = compose(projection, shift)
         rgb[i] = _sample(photos.photos[i], compose(maps[i], moved))
         valid[i] = compose(seen.astype(np.float32), moved) > 0.99
-        residual[i] = (_bandpass(_grey(rgb[i])) - _bandpass(projection)) ** 2
+        residual[i] = (bandpass(_grey(rgb[i])) - bandpass(projection)) ** 2
         for m in (stretch, residual):
             m[i] = cv2.GaussianBlur(m[i], (0, 0), MISFIT_BLUR)
     rgb[~valid] = 0
