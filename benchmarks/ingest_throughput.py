@@ -90,6 +90,7 @@ def pipeline(photos, workers: int, folder: Path) -> tuple[float, float, dict]:
     """Seconds of ingest -> frontalize on warm workers, seconds including the cluster's
     start and warm-up, and the stage records."""
     from persona.dag.runner import Runner, executor_for
+    from persona.dag.stages import accepted
     from persona.dag.workflow import load_workflow
 
     wf = {"version": 1, "name": "bench", "store": str(folder / "run.zarr"), "output": str(folder / "out"),
@@ -105,7 +106,7 @@ def pipeline(photos, workers: int, folder: Path) -> tuple[float, float, dict]:
         coll, video = runner.collection("puppet", workflow.puppet.photos)
         runner.run_photo_stages(coll, video)
         t1 = time.perf_counter()
-    return t1 - t0, t1 - t_start, {"stages": runner.timer.records, "accepted": int((coll.state("frontalize") == 1).sum())}
+    return t1 - t0, t1 - t_start, {"stages": runner.timer.records, "accepted": int(accepted(coll).sum())}
 
 
 def main():

@@ -102,11 +102,12 @@ def main():
               f"(runs {', '.join(f'{r:.1f}' for r in runs)}), {ms / floor:.2f}x the floor; paper 340 ms, target 34 ms")
     if not args.store or args.targets < 1:
         return
+    from persona.dag.stages import accepted
     from persona.dag.texture import texture_photos
-    from persona.stores.layout import OK, Collection, open_store
+    from persona.stores.layout import Collection, open_store
 
     coll = Collection(open_store(args.store, mode="r"), "puppet")
-    ok = np.flatnonzero(coll.state("frontalize") == OK)
+    ok = np.flatnonzero(accepted(coll))
     rows, refs = ok[: args.reference_photos], ok[-args.targets:]
     photos = texture_photos(coll, rows)
     seconds = []

@@ -34,13 +34,14 @@ def _cmd_run(args) -> int:
 
 def _plan(wf) -> str:
     from .runner import ALL_STAGES, collection_specs
+    from .workflow import BACKENDLESS
 
     lines = [f"workflow {wf.name}: store {wf.store}, output {wf.output}"]
     for path, spec in collection_specs(wf):
         lines.append(f"  {path}: {spec}")
         for stage in ALL_STAGES:
-            if stage == "ingest":
-                lines.append("    ingest")
+            if stage in BACKENDLESS:
+                lines.append(f"    {stage:<10} {json.dumps(wf.backendless(stage))}")
             else:
                 backend, params = wf.stage(stage)
                 lines.append(f"    {stage:<10} {backend} {json.dumps(params)}")
@@ -68,7 +69,8 @@ def _print_report(report: dict) -> None:
     if "evaluation" in report:
         ev = report["evaluation"]
         print(f"frames that are B and not A: {ev['identity']['fraction_b_not_a']:.1%}; "
-              f"mouth-opening correlation {ev['expression']['mouth_open']:.2f}")
+              f"mouth opening: correlation {ev['expression']['mouth_open']:.2f}, "
+              f"gain {ev['amplitude']['mouth_open']['gain']:.2f} (1 = the driver's amplitude)")
     print(f"report: {report['report']}")
 
 
@@ -98,14 +100,17 @@ def _cmd_evaluate(args) -> int:
     if args.json:
         print(json.dumps(result, indent=2))
         return 0
-    for group, figures in result.items():
-        if isinstance(figures, dict):
-            print(f"{group}:")
-            for k, v in figures.items():
-                print(f"  {k:<24} {v:.3f}" if isinstance(v, float) else f"  {k:<24} {v}")
-        else:
-            print(f"{group}: {figures}")
+    _print_figures(result)
     return 0
+
+
+def _print_figures(figures: dict, indent: str = "") -> None:
+    for k, v in figures.items():
+        if isinstance(v, dict):
+            print(f"{indent}{k}:")
+            _print_figures(v, indent + "  ")
+        else:
+            print(f"{indent}{k:<24} {v:.3f}" if isinstance(v, float) else f"{indent}{k:<24} {v}")
 
 
 def _texture_methods(value: str) -> tuple[str, ...]:

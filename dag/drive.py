@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from persona.plugins.face.dynamics import smooth_in_time
+from persona.plugins.face.fiducials import mean_shape
 from persona.plugins.face.tracks import bridge
 from persona.plugins.face.warp import retarget
 from persona.stores import media
@@ -30,8 +31,8 @@ def run_drive(runner) -> Collection:
     """Retarget and render every driver frame; returns the ``drive`` collection."""
     frames = Collection(runner.root, "driver/frames")
     puppet = Collection(runner.root, "puppet")
-    found = frames.state("frontalize") == OK
-    inputs = {"frames": frames.provenance("status/frontalize/state").key,
+    found = st.accepted(frames)
+    inputs = {"frames": frames.provenance("status/screen/state").key,
               "puppet": puppet.provenance("aligned/mean").key}
     sigma = runner.motion_params()["pose_sigma"]
     prov = Provenance.make(stage="retarget", backend="-", backend_version="1", params={"pose_sigma": sigma},
@@ -64,7 +65,7 @@ def _retarget(runner, drive, frames, puppet, found, prov, sigma: float) -> None:
     pose = bridge(frames.array("pose")[:], found)
     pose[:, :6] = smooth_in_time(pose[:, :6], sigma)  # rvec, tvec
     driver_fiducials = bridge(fiducials, found)
-    target = retarget(driver_fiducials, fiducials[found].mean(axis=0),
+    target = retarget(driver_fiducials, mean_shape(fiducials[found]),
                       puppet.array("aligned/mean_fiducials")[...].astype(np.float64))
     for name, value, tail, dims in (
             ("target", target, (49, 2), ("frame", "point", "xy")),

@@ -4,15 +4,17 @@ Figures (paper §6, with dlib's descriptor and landmarks only; nothing downloade
 
 - identity: descriptor distance of every output frame to the centroid of B's photos and
   to that of A's; the fraction of frames that are "B and not A";
-- expression: Pearson correlation of mouth opening, eye openness and brow height
-  between A's video and the output (landmarks found anew in the output frames);
+- expression: Pearson correlation of mouth opening, eye openness, brow height and mouth
+  width between A's video and the output (landmarks found anew in the output frames);
+- amplitude: for the same signals, the gain (slope of the output's signal on the driver's:
+  1 = the same amplitude, which a correlation cannot see), the correlation and both ranges;
 - stability: landmark jitter and face-colour flicker, output over driver;
 - self-reenactment (when asked): PSNR and SSIM of the output against A's real frames
   inside the rendered face;
 - motion (3D runs): the same expression signals computed from the fiducials moved by A's
-  per-frame meshes M_D^t and by B's meshes M_P^t after the transfer, correlated with A's
-  landmarks: how much of A's expression each step of the 3D method carries, before texture
-  and rendering add their own errors.
+  per-frame meshes M_D^t and by B's meshes M_P^t after the transfer, against A's landmarks
+  (gain, correlation, ranges): how much of A's expression each step of the 3D method carries,
+  before texture and rendering add their own errors (the chain: A's meshes, B's meshes, output).
 
 Descriptors are computed by Dask tasks over shards; only small per-frame figures come back.
 """
@@ -28,7 +30,7 @@ from persona.plugins.face.template import IDX49
 from persona.plugins.manager import default_registry
 from persona.stores.layout import OK, Collection, open_store
 
-from .stages import RENDER_3D
+from .stages import RENDER_3D, accepted
 
 
 def _identity(spec: tuple[str, dict]):
@@ -87,7 +89,7 @@ def evaluate(store: str, executor, *, identity: tuple[str, dict], threshold: flo
     centroids = {}
     for actor in ("puppet", "driver"):
         coll = Collection(root, actor)
-        chosen = _sample(coll.state("frontalize") == OK, collection_sample)
+        chosen = _sample(accepted(coll), collection_sample)
         parts = list(executor.run(describe_photos, [(store, actor, chosen[i::2], identity) for i in range(2)]))
         centroids[actor] = ev.centroid(np.concatenate(parts))
     drive = Collection(root, "drive")
@@ -107,6 +109,7 @@ def evaluate(store: str, executor, *, identity: tuple[str, dict], threshold: flo
     result = {
         "identity": {k: v for k, v in identity_figures.items() if not isinstance(v, np.ndarray)},
         "expression": video["expression"],
+        "amplitude": video["amplitude"],
         "stability": stability,
         "frames": drive.n,
         "bridged_frames": int(drive.array("bridged")[:].sum()),
@@ -126,16 +129,18 @@ def evaluate(store: str, executor, *, identity: tuple[str, dict], threshold: flo
     return result
 
 
-def mesh_expression(root, meshes: str, actor: str, driver_landmarks: np.ndarray) -> dict[str, float]:
-    """Pearson r of each expression signal between the actor's mean fiducials moved by the per-frame
+def mesh_expression(root, meshes: str, actor: str, driver_landmarks: np.ndarray) -> dict[str, dict]:
+    """The :func:`amplitude` (gain, r, ranges) of each expression signal of the actor's mean fiducials moved by the per-frame
     meshes at ``meshes`` (T, H, W, 3; their (x, y) at each fiducial's canonical pixel, rigid pose
     already removed) and the driver's landmarks (T, 68, 2)."""
+    height, width = root[meshes].shape[1:3]
     cols, rows = np.round(root[f"{actor}/aligned/mean_fiducials"][...]).astype(int).T
+    cols, rows = cols.clip(0, width - 1), rows.clip(0, height - 1)
     moved = np.full(driver_landmarks.shape, np.nan)
     for start in range(0, len(moved), 256):  # a few frames' meshes at a time
         moved[start:start + 256, list(IDX49)] = root[meshes][start:start + 256][:, rows, cols, :2]
     ours, theirs = ev.expression_signals(moved), ev.expression_signals(driver_landmarks)
-    return {k: ev.pearson(ours[k], theirs[k]) for k in theirs}
+    return {k: ev.amplitude(theirs[k], ours[k]) for k in theirs}
 
 
 def _ratio(a: float, b: float) -> float:

@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from persona.plugins.base import Rejected
+from persona.plugins.face.fiducials import mean_shape
 from persona.plugins.hookspecs import hookimpl
 from persona.plugins.manager import get_plugin_manager
 from persona.stores import media
@@ -32,12 +33,12 @@ from .shape import run_alignment, run_shape
 from .texture import run_texture
 from .evaluate import evaluate
 from .report import write_report
-from .workflow import BACKENDLESS, VideoRange, Workflow
+from .workflow import VideoRange, Workflow
 
 log = logging.getLogger(__name__)
 
 PHOTO_STAGE_ORDER = ("landmarks", "pose", "frontalize")
-ALL_STAGES = ("ingest", *PHOTO_STAGE_ORDER)
+ALL_STAGES = ("ingest", *PHOTO_STAGE_ORDER, "screen")
 
 
 def persona_version() -> str:
@@ -145,6 +146,8 @@ def collection_specs(wf: Workflow) -> list[tuple[str, object]]:
 
 
 def _media_spec(spec):
+    if isinstance(spec, list):
+        return [_media_spec(item) for item in spec]
     return spec.model_dump() if isinstance(spec, VideoRange) else spec
 
 
@@ -164,25 +167,21 @@ class Runner:
         self.version = persona_version()
 
     def _ingest_params(self) -> dict:
-        return self._backendless("ingest")
+        return self.wf.backendless("ingest")
 
     def align_params(self) -> dict:
-        return self._backendless("align")
+        return self.wf.backendless("align")
 
     def motion_params(self) -> dict:
-        return self._backendless("motion")
-
-    def _backendless(self, kind: str) -> dict:
-        config = self.wf.stages.get(kind)
-        return BACKENDLESS[kind].model_validate(config.params if config else {}).model_dump()
+        return self.wf.backendless("motion")
 
     def collection(self, path: str, spec) -> tuple[Collection, bool]:
         """Open (or create anew, when its sources or ingest params changed) a collection."""
         params = self._ingest_params()
         sources = media.resolve_sources(_media_spec(spec), self.wf.base_dir)
-        video = sources[0].path if sources[0].frame is not None else None
-        if video and any(s.path != video or s.frame is None for s in sources):
-            raise InputError(f"{path}: a mix of video frames and photos; give the video on its own")
+        # the frames of one video are decoded in one sequential pass; a mix of photos, videos and
+        # video ranges photo by photo (a frame decoded from the start of its video: exact)
+        video = sources[0].path if all(s.frame is not None and s.path == sources[0].path for s in sources) else None
         stats = [(s.path, s.frame, *_stat(s.path)) for s in sources]
         prov = Provenance.make(stage="ingest", backend="-", backend_version="1", params=params,
                                inputs={"sources": cache_key(sources=stats)}, persona_version=self.version)
@@ -236,9 +235,12 @@ class Runner:
         """The provenance of a stage's next run; its outputs are (re)created when the key
         changed, so that the stage starts over rather than mixing old and new results.
         ``choice`` = (backend, params) overrides the workflow's backend of the stage's kind."""
-        backend, params = choice or self.wf.stage(stage.kind)
-        cls = st.default_registry().get(stage.kind, backend)
-        prov = Provenance.make(stage=stage.name, backend=backend, backend_version=cls.version,
+        if stage.kind is None:  # a stage without backends: its params are the workflow's stages.<name>
+            backend, params, version = "-", self.wf.backendless(stage.name), "1"
+        else:
+            backend, params = choice or self.wf.stage(stage.kind)
+            version = st.default_registry().get(stage.kind, backend).version
+        prov = Provenance.make(stage=stage.name, backend=backend, backend_version=version,
                                params=params, inputs=inputs, persona_version=self.version)
         # outputs another stage wrote since (the 2D and 3D renderers share render/*) count as stale
         keys = {getattr(coll.provenance(name), "key", None)
@@ -248,12 +250,16 @@ class Runner:
         return prov
 
     def run_photo_stages(self, coll: Collection, video: bool) -> None:
-        """Every per-photo stage over every shard not finished yet, with hooks and progress bars."""
+        """Every per-photo stage over every shard not finished yet, with hooks and progress bars;
+        then the screen, which needs every photo's fiducials."""
         steps = self.steps(coll)
         if video:  # frames come from one sequential decoding pass, then the chain without ingest
             self._run(coll, steps[:1], [(self.wf.store, coll.path, steps[0][2])], st.ingest_video)
             steps = steps[1:]
         self.run_stage_tasks(coll, steps)
+        coll.group.attrs["stages"] = list(ALL_STAGES)  # stores made before the screen existed
+        screen = self.prepare_stage(coll, st.SCREEN, {"frontalize": coll.provenance("status/frontalize/state").key})
+        self.run_stage_tasks(coll, [("screen", screen.backend, screen.params)])
 
     def run_stage_tasks(self, coll: Collection, steps: list[tuple[str, str, dict]]) -> None:
         """The chain of ``steps`` on every shard where one of them is not done yet."""
@@ -298,10 +304,11 @@ class Runner:
                 **counts[name], "n_ok": int((state == OK).sum()), "n_rejected": int((state == REJECTED).sum())})
 
     def mean_face(self, coll: Collection) -> np.ndarray | None:
-        """The mean aligned face over accepted photos, weighted by visibility; None if none.
+        """The mean aligned face over accepted photos, weighted by visibility, and their mean
+        fiducials (each point over the photos that see it); None if none.
 
         A map over shards (each task sums its shard) and a sum of the parts."""
-        ok = coll.state("frontalize") == OK
+        ok = st.accepted(coll)
         if not ok.any():
             return None
         tasks = [(self.wf.store, coll.path, s, e) for s, e in coll.shard_ranges() if ok[s:e].any()]
@@ -310,11 +317,11 @@ class Runner:
         count = sum(p["count"] for p in parts)
         mean = (total / np.maximum(count, 1)[..., None]).astype(np.float32)
         prov = Provenance.make(stage="mean", backend="-", backend_version="1", params={},
-                               inputs={"frontalize": coll.provenance("status/frontalize/state").key},
+                               inputs={"screen": coll.provenance("status/screen/state").key},
                                persona_version=self.version)
         coll.create_single("aligned/mean", mean, ("y", "x", "channel"), prov)
         coll.create_single("aligned/coverage", (count / ok.sum()).astype(np.float32), ("y", "x"), prov)
-        fiducials = coll.array("aligned/fiducials")[:][ok].mean(axis=0)
+        fiducials = mean_shape(coll.array("aligned/fiducials")[:][ok])
         coll.create_single("aligned/mean_fiducials", fiducials, ("point", "xy"), prov)
         return mean
 
@@ -327,7 +334,7 @@ class Runner:
             big = np.kron(np.clip(mean, 0, 255).round().astype(np.uint8), np.ones((2, 2, 1), np.uint8))
             written["mean_face"] = out / f"{slug}_mean_face.png"
             media.write_png(written["mean_face"], big)
-        ok = coll.state("frontalize") == OK
+        ok = st.accepted(coll)
         faces = []
         for start, stop in coll.shard_ranges():  # whole shards: slices read fast, selections do not
             if len(faces) >= n_faces:
@@ -344,7 +351,7 @@ class Runner:
         for path, spec in collection_specs(self.wf):
             coll, video = self.collection(path, spec)
             self.run_photo_stages(coll, video)
-            if not (coll.state("frontalize") == OK).any():
+            if not st.accepted(coll).any():
                 raise RunError(f"{path}: no photo of the {coll.n} got through to an aligned face; "
                                f"see `persona inspect {self.wf.store}` for each photo's reason")
             mean = self.mean_face(coll)
@@ -361,7 +368,7 @@ class Runner:
                     log.warning("%s: no 3D shape: %s", path, exc.reason)
                     report.setdefault("warnings", []).append(f"{path}: no 3D shape: {exc.reason}")
                 shape_seconds = round(time.perf_counter() - t0, 3)
-            accepted = int((coll.state("frontalize") == OK).sum())
+            accepted = int(st.accepted(coll).sum())
             report["collections"][path] = {
                 "n_photos": coll.n, "accepted": accepted, "rejected": coll.n - accepted,
                 "pictures": pictures, "shape_seconds": shape_seconds}
@@ -421,15 +428,23 @@ def _stat(path: str) -> tuple[int, int]:
 
 
 def _canvas(sources, params) -> list[int]:
-    """The smallest canvas that holds every readable photo after downscaling to max_side."""
+    """The smallest canvas that holds every readable photo and video frame after downscaling to max_side."""
     h = w = 1
+    videos: dict[str, tuple[int, int]] = {}
     for s in sources:
         try:
-            info = media.probe_image(s.path, max_pixels=params["max_pixels"], min_side=params["min_side"])
-        except media.PhotoRejected:
+            if s.frame is None:
+                info = media.probe_image(s.path, max_pixels=params["max_pixels"], min_side=params["min_side"])
+                height, width = info.height, info.width
+            else:
+                if s.path not in videos:  # a video's frame size, read once
+                    with media.VideoReader(s.path) as reader:
+                        videos[s.path] = reader.height, reader.width
+                height, width = videos[s.path]
+        except (media.PhotoRejected, InputError):
             continue
-        scale = min(1.0, params["max_side"] / max(info.width, info.height))
-        h, w = max(h, int(round(info.height * scale))), max(w, int(round(info.width * scale)))
+        scale = min(1.0, params["max_side"] / max(width, height))
+        h, w = max(h, int(round(height * scale))), max(w, int(round(width * scale)))
     return [h, w]
 
 

@@ -72,10 +72,10 @@ def streamed_svd(rows, rank: int, compute, *, oversample: int = 10, power_iterat
 def run_alignment(runner, coll: Collection) -> Provenance:
     """Subspace of the frontalized faces, then collection flow of every photo."""
     config = runner.align_params()
-    frontalized = coll.provenance("status/frontalize/state")
-    sub = compute_subspace(runner, coll, source="aligned", state="frontalize", rank=config["rank"],
-                           tps_lambda=config["tps_lambda"], upstream=frontalized.key)
-    align = runner.prepare_stage(coll, st.ALIGN, {"frontalize": frontalized.key, "subspace": sub.key})
+    screened = coll.provenance("status/screen/state")
+    sub = compute_subspace(runner, coll, source="aligned", state="screen", rank=config["rank"],
+                           tps_lambda=config["tps_lambda"], upstream=screened.key)
+    align = runner.prepare_stage(coll, st.ALIGN, {"screen": screened.key, "subspace": sub.key})
     runner.run_stage_tasks(coll, [("align", align.backend, align.params)])
     return align
 

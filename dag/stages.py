@@ -24,6 +24,7 @@ import numpy as np
 
 from persona.plugins.base import Backend, Rejected
 from persona.plugins.builtin.frontalize import frontalizing_map
+from persona.plugins.face.fiducials import median_shape, shape_distance
 from persona.plugins.face.subspace import project
 from persona.plugins.face.template import CANONICAL_HEIGHT, CANONICAL_WIDTH, IDX49, generic_template
 from persona.plugins.face.warp import tps_map
@@ -73,19 +74,22 @@ def _photo(inputs: dict) -> np.ndarray:
 
 def _ingest(backend, params, inputs, context):
     canvas = context["canvas"]
-    source = str(inputs["photos/source"])
-    image = media.decode_image(source, **params)
+    source, frame = str(inputs["photos/source"]), int(inputs["photos/frame"])
+    hint, sha256 = None, ""
+    if frame >= 0:  # a frame of a video listed among the photos
+        image = media.read_video_frame(source, frame, max_side=params["max_side"])
+    else:
+        image, sha256 = media.decode_image(source, **params), media.sha256_file(source)
+        hint = media.read_landmark_sidecar(source)
+        if hint is not None:  # sidecars describe the file; the photo may have been downscaled
+            hint = hint * (image.shape[1] / _original_width(source, params))
     if image.shape[0] > canvas[0] or image.shape[1] > canvas[1]:
         raise Rejected(f"{image.shape[1]}x{image.shape[0]} px, larger than the collection canvas "
                        f"{canvas[1]}x{canvas[0]}: the file changed on disk during the run?")
-    hint = media.read_landmark_sidecar(source)
-    if hint is not None:  # sidecars describe the file; the photo may have been downscaled
-        hint = hint * (image.shape[1] / _original_width(source, params))
     rgb = np.zeros((*canvas, 3), np.uint8)
     rgb[:image.shape[0], :image.shape[1]] = image
     return {"photos/rgb": rgb, "photos/size": image.shape[:2],
-            "photos/hint": np.full((68, 2), np.nan) if hint is None else hint,
-            "photos/sha256": media.sha256_file(source)}
+            "photos/hint": np.full((68, 2), np.nan) if hint is None else hint, "photos/sha256": sha256}
 
 
 def _original_width(source, params) -> int:
@@ -110,7 +114,7 @@ def _frontalize(backend, params, inputs, context):
             "aligned/landmarks": front.landmarks, "aligned/fiducials": front.landmarks[list(IDX49)]}
 
 
-INGEST = PhotoStage("ingest", None, None, ("photos/source",), (
+INGEST = PhotoStage("ingest", None, None, ("photos/source", "photos/frame"), (
     Output("photos/rgb", (), "uint8", ("photo", "y", "x", "channel")),  # tail = the canvas
     Output("photos/size", (2,), "int32", ("photo", "hw")),
     Output("photos/hint", (68, 2), "float32", ("photo", "point", "xy")),
@@ -136,6 +140,33 @@ PHOTO_STAGES = {s.name: s for s in (
         Output("aligned/fiducials", (49, 2), "float32", ("photo", "point", "xy")),
     ), _frontalize),
 )}
+
+
+def _median_shape(root, path) -> dict:
+    """The context of the screen: the median shape of the collection's frontalized photos."""
+    coll = Collection(root, path)
+    return {"median": median_shape(coll.array("aligned/fiducials")[:][coll.state("frontalize") == OK])}
+
+
+def _screen(backend, params, inputs, context):
+    distance = shape_distance(inputs["aligned/fiducials"], context["median"])
+    if not distance <= params["max_distance"]:
+        raise Rejected(f"fiducials {distance:.0f} px (RMS) from the collection's median shape, more than "
+                       f"max_distance {params['max_distance']:g}: its landmarks or pose failed")
+    return {"aligned/shape_distance": distance}
+
+
+#: the collection's screen of its frontalized photos: one whose visible fiducials lie far from the
+#: collection's median shape is rejected (docs/fiducials.md); the photos it accepts are the collection's
+SCREEN = PhotoStage("screen", None, "frontalize", ("aligned/fiducials",), (
+    Output("aligned/shape_distance", (), "float32", ("photo",)),
+), _screen, _median_shape)
+PHOTO_STAGES["screen"] = SCREEN
+
+
+def accepted(coll: Collection) -> np.ndarray:
+    """(n,) bool: the photos of a collection that every per-photo stage and the screen accepted."""
+    return coll.state(SCREEN.name) == OK
 
 
 def _subspace(root, path) -> dict:
@@ -167,7 +198,7 @@ def _align(backend, params, inputs, context):
 
 #: non-rigid alignment by collection flow: runs after the subspace of the frontalized faces
 ALIGN = PhotoStage(
-    "align", "flow", "frontalize", ("photos/rgb", "photos/size", "pose", "aligned/fiducials", "aligned/mask"), (
+    "align", "flow", "screen", ("photos/rgb", "photos/size", "pose", "aligned/fiducials", "aligned/mask"), (
         Output("collection/rgb", (H, W, 3), "uint8", ("photo", "y", "x", "channel")),
         Output("collection/mask", (H, W), "bool", ("photo", "y", "x")),
         Output("collection/map", (H, W, 2), "float32", ("photo", "y", "x", "xy")),
@@ -310,7 +341,7 @@ def _summary(state: np.ndarray, seconds: float, skipped: bool = False) -> dict:
             "seconds": seconds, "skipped": skipped}
 
 
-def aligned_sum(url: str, path: str, start: int, stop: int, group: str = "aligned", stage: str = "frontalize") -> dict:
+def aligned_sum(url: str, path: str, start: int, stop: int, group: str = "aligned", stage: str = "screen") -> dict:
     """Sum of the accepted faces ``group``/rgb of photos [start, stop), weighted by visibility,
     and the per-pixel count: one shard's part of a mean face."""
     coll = Collection(open_store(url, mode="r"), path)

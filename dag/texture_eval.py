@@ -33,7 +33,7 @@ from persona.plugins.face.template import IDX49, generic_template
 from persona.plugins.face.texture import bandpass as texture_bandpass
 from persona.plugins.face.warp import eye_mouth_scale
 from persona.stores import media
-from persona.stores.layout import OK, Collection, open_store
+from persona.stores.layout import Collection, open_store
 
 from . import stages as st
 from .runner import write_json
@@ -62,7 +62,7 @@ def bandpass(rgb: np.ndarray) -> np.ndarray:
 
 
 def landmark_error(rgb: np.ndarray, fiducials: np.ndarray, detector: DlibLandmarks) -> float:
-    """Median distance of dlib's 49 fiducials on a canonical face to ``fiducials``, % of the
+    """Median distance of dlib's 49 fiducials on a canonical face to ``fiducials`` (their visible ones), % of the
     inter-ocular distance; NaN when dlib finds no face."""
     canvas = cv2.copyMakeBorder(np.clip(rgb, 0, 255).astype(np.uint8), PAD, PAD, PAD, PAD,
                                 cv2.BORDER_CONSTANT, value=(128, 128, 128))
@@ -70,7 +70,7 @@ def landmark_error(rgb: np.ndarray, fiducials: np.ndarray, detector: DlibLandmar
         found = detector.detect(canvas).points[list(IDX49)] - PAD
     except Rejected:
         return float("nan")
-    return float(100 * np.median(np.linalg.norm(found - fiducials, axis=1)) / eye_mouth_scale(fiducials)[0])
+    return float(100 * np.nanmedian(np.linalg.norm(found - fiducials, axis=1)) / eye_mouth_scale(fiducials)[0])
 
 
 def scores(result: np.ndarray, result_mask: np.ndarray, reference_band: np.ndarray, reference_mask: np.ndarray,
@@ -175,7 +175,7 @@ def evaluate_texture(runner, path: str = "puppet", *, references: int = 40, seed
     if mode not in ("reference", "fiducials"):
         raise ValueError(f"mode must be 'reference' or 'fiducials', got {mode!r}")
     coll = Collection(runner.root, path)
-    ok = np.flatnonzero(coll.state("frontalize") == OK)
+    ok = np.flatnonzero(st.accepted(coll))
     if len(ok) < references + 8:
         raise Rejected(f"{path}: {len(ok)} accepted photos; need more than {references} references + 8")
     chosen = np.sort(np.random.default_rng(seed).choice(ok, references, replace=False))

@@ -43,11 +43,13 @@ class VideoRange(Strict):
     step: int = Field(1, ge=1, description="take every step-th frame")
 
 
-PhotoSpec = Union[str, list[str], VideoRange]
+PhotoSpec = Union[str, VideoRange, list[Union[str, VideoRange]]]
 
 
 class Actor(Strict):
-    photos: PhotoSpec = Field(description="a folder, a glob, a list of files, a video, or {video, start, stop, step}")
+    photos: PhotoSpec = Field(description="a folder, a glob, a photo, a video, {video, start, stop, step}, or a "
+                              "list mixing any of these (e.g. several videos: the paper builds collections "
+                              "from many films)")
     video: Union[str, VideoRange, None] = Field(None, description="the actor's driving video (driver only)")
 
 
@@ -102,6 +104,11 @@ class Workflow(Strict):
         params = registry.get(kind, name).Params.model_validate(config.params)
         return name, params.model_dump(mode="json")
 
+    def backendless(self, kind: str) -> dict:
+        """The validated params, defaults filled in, of a kind without backends (``BACKENDLESS``)."""
+        config = self.stages.get(kind)
+        return BACKENDLESS[kind].model_validate(config.params if config else {}).model_dump()
+
 
 # Stage kinds that take params but no backend choice (their work lives in the DAG).
 class IngestParams(Strict):
@@ -109,6 +116,14 @@ class IngestParams(Strict):
     max_pixels: int = Field(64_000_000, ge=1, description="headers claiming more pixels are rejected "
                             "as decompression bombs without decoding")
     min_side: int = Field(32, ge=1, description="photos smaller than this (px, shorter side) are rejected")
+
+
+class ScreenParams(Strict):
+    max_distance: float = Field(16.0, gt=0, description="reject a frontalized photo whose visible fiducials "
+                                "lie further than this from the collection's median shape (RMS over the "
+                                "points, canonical px; the inter-ocular distance is 64): its landmarks or "
+                                "pose failed. Accepted photos of the shared collections lie within 11 px, "
+                                "the widest laughs included (docs/fiducials.md)")
 
 
 class AlignParams(Strict):
@@ -152,7 +167,7 @@ class MotionParams(Strict):
                               "n-th driver frame (PLY and OBJ + texture) into <output>/meshes/; 0 = none")
 
 
-BACKENDLESS = {"ingest": IngestParams, "align": AlignParams, "motion": MotionParams}
+BACKENDLESS = {"ingest": IngestParams, "screen": ScreenParams, "align": AlignParams, "motion": MotionParams}
 
 
 def _resolve(path: str, base: Path) -> str:
@@ -251,12 +266,12 @@ def _resolve_paths(wf: Workflow, base: Path) -> None:
             continue
         for attr in ("photos", "video"):
             spec = getattr(actor, attr)
-            if isinstance(spec, str):
-                setattr(actor, attr, _resolve(spec, base))
-            elif isinstance(spec, list):
-                setattr(actor, attr, [_resolve(s, base) for s in spec])
-            elif isinstance(spec, VideoRange):
-                spec.video = _resolve(spec.video, base)
+            items = spec if isinstance(spec, list) else [spec]
+            resolved = [_resolve(s, base) if isinstance(s, str) else s for s in items]
+            for s in resolved:
+                if isinstance(s, VideoRange):
+                    s.video = _resolve(s.video, base)
+            setattr(actor, attr, resolved if isinstance(spec, list) else resolved[0])
 
 
 def set_override(data: dict, assignment: str) -> None:

@@ -18,7 +18,7 @@ from scipy.ndimage import map_coordinates
 
 from ..base import Params, Rejected
 from ..face.mesh import cast, grid_triangles, raycasting_scene
-from ..face.template import generic_template
+from ..face.template import IDX49, generic_template
 from ..hookspecs import hookimpl
 from ..kinds import Frontal, FrontalizeBackend, Pose
 
@@ -87,33 +87,53 @@ def visible(fmap: np.ndarray, mask: np.ndarray, pose: Pose, image_size, toleranc
 
 
 def canonical_landmarks(points: np.ndarray, depth: np.ndarray, pose: Pose, start: np.ndarray,
-                        iterations: int = 8) -> np.ndarray:
+                        iterations: int = 20, max_step: float = 4.0) -> tuple[np.ndarray, np.ndarray]:
     """Invert the frontalizing map at photo points (n, 2) by Gauss-Newton (ALGORITHMS §4.4).
 
-    Returns (n, 2) canonical positions whose posed template point projects onto each
-    photo point: the pose-corrected landmarks F^i.
+    Returns (n, 2) canonical positions whose posed template point projects onto each photo
+    point (the pose-corrected landmarks F^i), and the (n,) photo-px distance by which each
+    still misses. A step moves a point at most ``max_step`` canonical px: a landmark on the
+    silhouette of a turned face (the far side of the nose, say) has no preimage on the
+    template, and unbounded steps there diverge to hundreds of px; bounded, such a point
+    stays near the face and its miss says that it did not converge.
     """
     x = start.astype(np.float64).copy()
-    step = 0.5
+    delta = 0.5
     for _ in range(iterations):
         f = project(template_points(depth, x), pose)[0]
         jac = np.empty((len(x), 2, 2))
         for j in range(2):
             d = np.zeros(2)
-            d[j] = step
+            d[j] = delta
             jac[:, :, j] = (project(template_points(depth, x + d), pose)[0]
-                            - project(template_points(depth, x - d), pose)[0]) / (2 * step)
+                            - project(template_points(depth, x - d), pose)[0]) / (2 * delta)
         # damped Gauss-Newton: a (near-)singular Jacobian far off the face must not fail
         jt = np.swapaxes(jac, 1, 2)
         normal = jt @ jac + 1e-6 * np.eye(2)
-        x -= np.linalg.solve(normal, jt @ (f - points)[..., None])[..., 0]
-    return x
+        step = np.linalg.solve(normal, jt @ (f - points)[..., None])[..., 0]
+        length = np.linalg.norm(step, axis=1, keepdims=True)
+        x -= step * np.minimum(1.0, max_step / np.maximum(length, 1e-12))
+        if length.max() < 1e-4:
+            break
+    miss = np.linalg.norm(project(template_points(depth, x), pose)[0] - points, axis=1)
+    return x, miss
+
+
+def seen_at(points: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """(n,) bool: whether each canonical point (n, 2) lies on a pixel of ``mask`` (False outside it)."""
+    h, w = mask.shape
+    cols, rows = np.round(np.nan_to_num(points, nan=-1.0)).astype(int).T
+    inside = (cols >= 0) & (cols < w) & (rows >= 0) & (rows < h)
+    seen = np.zeros(len(points), bool)
+    seen[inside] = mask[rows[inside], cols[inside]]
+    return seen
 
 
 class TemplateFrontalize(FrontalizeBackend):
     name = "template"
     description = "back-project the posed generic 3D template (Hassner et al. 2015) with a z-buffer visibility mask"
     default = True
+    version = "2"
 
     class Params(Params):
         occlusion_tolerance: float = Field(
@@ -123,6 +143,13 @@ class TemplateFrontalize(FrontalizeBackend):
                                      "n-th canonical row and column (1 = every pixel, exact)")
         min_visible: float = Field(0.3, ge=0, le=1, description="reject faces with less than "
                                    "this fraction of the template's face visible")
+        landmark_miss: float = Field(0.02, gt=0, description="a pose-corrected landmark whose posed "
+                                     "template point misses its photo landmark by more than this many "
+                                     "inter-ocular distances has no preimage on the face (the silhouette "
+                                     "of a turned face) and is marked not visible (NaN); converged points "
+                                     "miss by < 0.001, silhouette points by 0.05-0.08 (docs/fiducials.md)")
+        min_fiducials: float = Field(0.6, ge=0, le=1, description="reject faces with fewer than this "
+                                     "fraction of the 49 fiducials visible after pose correction")
 
     def frontalize(self, image, landmarks, pose):
         template = generic_template()
@@ -132,10 +159,23 @@ class TemplateFrontalize(FrontalizeBackend):
         fraction = mask.sum() / template.mask.sum()
         if fraction < self.params.min_visible:
             raise Rejected(f"frontalize: only {fraction:.0%} of the face is visible in the photo")
+        canonical, miss = canonical_landmarks(landmarks, template.depth, pose, template.landmarks3d[:, :2])
+        photo_iod = np.linalg.norm(landmarks[36:42].mean(axis=0) - landmarks[42:48].mean(axis=0))
+        converged = miss <= self.params.landmark_miss * photo_iod
+        fiducials = list(IDX49)
+        h, w = mask.shape
+        outside = converged & ~((canonical >= 0) & (canonical <= [w - 1, h - 1])).all(axis=1)
+        if outside[fiducials].any():
+            raise Rejected(f"frontalize: {outside[fiducials].sum()} fiducials land outside the canonical "
+                           "frame: the pose does not fit the landmarks")
+        trusted = converged & seen_at(canonical, mask)
+        if trusted[fiducials].mean() < self.params.min_fiducials:
+            raise Rejected(f"frontalize: only {trusted[fiducials].sum()} of the 49 fiducials are visible "
+                           f"after pose correction (at least {self.params.min_fiducials:.0%} needed)")
+        canonical[~trusted] = np.nan
         rgb = cv2.remap(image, fmap[..., 0], fmap[..., 1], cv2.INTER_LINEAR,
                         borderMode=cv2.BORDER_CONSTANT, borderValue=0)
         rgb[~mask] = 0
-        canonical = canonical_landmarks(landmarks, template.depth, pose, template.landmarks3d[:, :2])
         return Frontal(rgb=rgb, mask=mask, landmarks=canonical)
 
 

@@ -18,6 +18,7 @@ from pydantic import Field
 from ..base import Params
 from ..face import texture as align
 from ..face.blend import BlendCache, expression_weights
+from ..face.fiducials import mean_shape
 from ..face.template import CANONICAL_HEIGHT as H, CANONICAL_WIDTH as W
 from ..face.warp import tps_map
 from ..hookspecs import hookimpl
@@ -133,7 +134,7 @@ class StaticTexture(TextureBackend):
 
     def synthesize(self, photos, target, flow=None, reference=None):
         p = self.params
-        mean_fiducials = photos.fiducials.mean(axis=0)
+        mean_fiducials = mean_shape(photos.fiducials)
         aligned = p.aligned(photos, mean_fiducials, flow)
         average = _weighted_mean(aligned.rgb, aligned.valid.astype(np.float32))
         warp = tps_map(target, mean_fiducials, (H, W), lam=p.tps_lambda, step=4)

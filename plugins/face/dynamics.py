@@ -512,7 +512,7 @@ def landmark_guide(model: DriverModel, landmarks: np.ndarray | None, pose: Pose,
     points = points[list(IDX49)] if len(points) == 68 else points
     if points.shape != (49, 2) or not np.isfinite(points).all():
         return None
-    canonical = canonical_landmarks(points, model.depth, pose, model.fiducials)
+    canonical, _ = canonical_landmarks(points, model.depth, pose, model.fiducials)
     rim = model.rim_points(params.guide_rim_spacing)
     return model.guide_warp(params.guide_lambda, params.guide_rim_spacing).map(np.concatenate([canonical, rim]))
 

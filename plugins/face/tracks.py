@@ -9,7 +9,9 @@ def bridge(values: np.ndarray, found: np.ndarray) -> np.ndarray:
     """Fill frames without a face by linear interpolation in time between the nearest
     frames with one (held constant before the first and after the last).
 
-    values : (n, ...) float — per-frame values (pose, fiducials), anything where not found
+    values : (n, ...) float — per-frame values (pose, fiducials), anything where not found; a NaN
+        value (a fiducial not visible in that frame) is bridged from the frames that have it, and
+        stays NaN only when no frame does
     found : (n,) bool
     """
     values = np.asarray(values, dtype=np.float64)
@@ -19,5 +21,6 @@ def bridge(values: np.ndarray, found: np.ndarray) -> np.ndarray:
     flat = values.reshape(len(values), -1)
     out = np.empty_like(flat)
     for j in range(flat.shape[1]):
-        out[:, j] = np.interp(frames, frames[found], flat[found, j])
+        use = found & np.isfinite(flat[:, j])  # a point not visible in a frame is bridged too
+        out[:, j] = np.interp(frames, frames[use], flat[use, j]) if use.any() else np.nan
     return out.reshape(values.shape)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import warnings
 from typing import Literal
 
 import cv2
@@ -40,7 +41,8 @@ def tps_map(target: np.ndarray, source: np.ndarray, shape: tuple[int, int], *, l
     Parameters
     ----------
     target, source : ndarray, shape (k, 2)
-        Corresponding (x, y) points: where each point must land, and where it is now.
+        Corresponding (x, y) points: where each point must land, and where it is now. Pairs with
+        a NaN coordinate (a landmark not visible in the photo) are left out.
     shape : (H, W)
         The grid the map is evaluated on.
     lam : float
@@ -54,8 +56,10 @@ def tps_map(target: np.ndarray, source: np.ndarray, shape: tuple[int, int], *, l
     map : ndarray, shape (H, W, 2), float32
         For each output pixel, the (x, y) to sample the source image at (``cv2.remap``).
     """
-    spline = RBFInterpolator(np.asarray(target, float), np.asarray(source, float), kernel="thin_plate_spline",
-                             smoothing=tps_smoothing(lam, len(target), scaling), degree=1)
+    target, source = np.asarray(target, float), np.asarray(source, float)
+    pairs = np.isfinite(target).all(axis=1) & np.isfinite(source).all(axis=1)  # NaN: a point not visible
+    spline = RBFInterpolator(target[pairs], source[pairs], kernel="thin_plate_spline",
+                             smoothing=tps_smoothing(lam, int(pairs.sum()), scaling), degree=1)
     nodes, points = _nodes(shape, step)
     return _upsample(spline(points).reshape(*nodes, 2).astype(np.float32), shape, step)
 
@@ -103,8 +107,10 @@ class TpsWarp:
 def eye_mouth_scale(fiducials: np.ndarray) -> np.ndarray:
     """(sx, sy) size of a face from its 49 fiducials: the inter-ocular distance, and the
     distance from the eyes' midpoint to the mouth's centre."""
-    eyes_r, eyes_l = fiducials[19:25].mean(0), fiducials[25:31].mean(0)  # 36-41, 42-47 in the 49 order
-    mouth = fiducials[31:43].mean(0)  # outer lips 48-59
+    with warnings.catch_warnings():  # NaN points (not visible) are left out; all-NaN stays NaN
+        warnings.simplefilter("ignore", RuntimeWarning)
+        eyes_r, eyes_l = np.nanmean(fiducials[19:25], 0), np.nanmean(fiducials[25:31], 0)  # 36-41, 42-47
+        mouth = np.nanmean(fiducials[31:43], 0)  # outer lips 48-59
     return np.array([np.linalg.norm(eyes_l - eyes_r), np.linalg.norm(mouth - (eyes_l + eyes_r) / 2)])
 
 

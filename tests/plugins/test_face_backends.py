@@ -64,10 +64,11 @@ def test_canonical_landmarks_invert_the_frontalizing_map(yaw):
     pose = Pose(rvec, tvec, camera, 0.0)
     truth = template.landmarks3d[17:, :2] + np.random.default_rng(2).normal(0, 1.5, (51, 2))
     points = project(template_points(template.depth, truth), pose)[0]
-    found = canonical_landmarks(points, template.depth, pose, template.landmarks3d[17:, :2])
+    found, miss = canonical_landmarks(points, template.depth, pose, template.landmarks3d[17:, :2])
     # the nose hides its far side at yaw 30: there the map has two preimages, so skip the nose
     keep = [i - 17 for i in range(17, 68) if not 27 <= i <= 35]
     assert np.abs(found[keep] - truth[keep]).max() < 0.05
+    assert miss[keep].max() < 0.01  # photo px: every kept point converged
 
 
 def test_frontalizing_map_sends_template_landmarks_to_their_projections():
@@ -79,3 +80,43 @@ def test_frontalizing_map_sends_template_landmarks_to_their_projections():
         x, y = template.landmarks3d[k, :2]
         if float(x).is_integer() and float(y).is_integer():
             np.testing.assert_allclose(fmap[int(y), int(x)], points[k], atol=1e-3)
+
+
+def test_a_landmark_without_preimage_stays_near_the_face_and_is_not_visible():
+    """A photo landmark where no template point projects (beyond the silhouette of a face turned
+    40°, as dlib places the far side of the nose) used to send Gauss-Newton hundreds of px off the
+    canonical frame. Bounded, it stays within reach of its start, reports its miss, and the
+    frontalizer marks it NaN while every converged fiducial stays where it belongs."""
+    from persona.plugins.builtin.frontalize import TemplateFrontalize
+    from persona.plugins.face.template import IDX49
+
+    template = generic_template()
+    points, rvec, tvec, camera = posed_landmarks(40, 0, 0)
+    pose = Pose(rvec, tvec, camera, 0.0)
+    nose_tip = 33
+    lost = points.copy()
+    lost[nose_tip] += [-60.0, 0.0]  # off the face's projection, on the side the face turns away from
+    found, miss = canonical_landmarks(lost, template.depth, pose, template.landmarks3d[:, :2])
+    start = template.landmarks3d[:, :2]
+    assert np.linalg.norm(found - start, axis=1).max() <= 20 * 4.0 + 1e-6  # iterations x max_step
+    iod = np.linalg.norm(points[36:42].mean(0) - points[42:48].mean(0))
+    assert miss[nose_tip] > 0.02 * iod
+    front = TemplateFrontalize().frontalize(np.full((250, 250, 3), 128, np.uint8), lost, pose)
+    fiducials = front.landmarks[list(IDX49)]
+    assert np.isnan(front.landmarks[nose_tip]).all()
+    visible = np.isfinite(fiducials).all(axis=1)
+    assert visible.sum() >= 0.6 * 49
+    # the visible ones are the template's own (a rigid, exact face): within 0.5 px
+    assert np.abs(fiducials[visible] - template.fiducials3d[visible, :2]).max() < 0.5
+
+
+def test_landmarks_on_the_self_occluded_side_are_not_visible():
+    """At yaw 50° the far half of the face is hidden behind the nose: its landmarks are NaN."""
+    from persona.plugins.builtin.frontalize import TemplateFrontalize
+
+    points, rvec, tvec, camera = posed_landmarks(50, 0, 0)
+    front = TemplateFrontalize().frontalize(np.full((250, 250, 3), 128, np.uint8), points,
+                                            Pose(rvec, tvec, camera, 0.0))
+    hidden = np.flatnonzero(np.isnan(front.landmarks[17:, 0])) + 17
+    assert len(hidden) > 0
+    assert all(not front.mask[int(round(y)), int(round(x))] for x, y in generic_template().landmarks3d[hidden, :2])
