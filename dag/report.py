@@ -55,8 +55,8 @@ def plots(series: dict, threshold: float, fps: float) -> dict[str, str]:
     ax.legend(loc="upper right", fontsize=8)
     out["identity"] = _figure(fig)
     plt.close(fig)
-    names = ("mouth_open", "eye_open", "brow_height")
-    fig, axes = plt.subplots(len(names), 1, figsize=(9, 6), sharex=True)
+    names = ("mouth_open", "mouth_width", "eye_open", "brow_height")
+    fig, axes = plt.subplots(len(names), 1, figsize=(9, 8), sharex=True)
     for ax, name in zip(axes, names):
         ax.plot(t, series[f"driver_{name}"], label="driver (A)", lw=1)
         ax.plot(t, series[f"output_{name}"], label="output (B)", lw=1)
@@ -91,10 +91,13 @@ def write_report(path: Path, *, metrics: dict, pictures: dict[str, np.ndarray], 
                 ("mean distance to A", ev["identity"]["mean_distance_to_a"]),
                 ("output frames without a face", ev["identity"]["frames_without_face"])]
         rows += [(f"expression correlation: {k.replace('_', ' ')}", v) for k, v in ev["expression"].items()]
+        rows += [(f"expression gain (output / driver, target 1): {k.replace('_', ' ')}", a["gain"])
+                 for k, a in ev.get("amplitude", {}).items()]
         rows += [(k.replace("_", " "), v) for k, v in ev["stability"].items()]
         rows += [(f"self-reenactment {k}", v) for k, v in ev.get("self_reenactment", {}).items()]
-        rows += [(f"{who.replace('_', ' ')} follow A's landmarks: {k.replace('_', ' ')}", v)
-                 for who, figures in ev.get("motion", {}).items() for k, v in figures.items()]
+        rows += [(f"{who.replace('_', ' ')} follow A's landmarks: {k.replace('_', ' ')} (gain, r)",
+                  f"{a['gain']:.2f}, {a['r']:.2f}") for who, figures in ev.get("motion", {}).items()
+                 for k, a in figures.items()]
         parts += ["<h2>Figures</h2>", _table(rows)]
     if video is not None and video.is_file() and video.stat().st_size <= MAX_EMBEDDED_VIDEO:
         data = base64.b64encode(video.read_bytes()).decode()

@@ -750,6 +750,20 @@ class VideoReader:
         return f"VideoReader({str(self.path)!r}, {self.width}x{self.height}, fps={self.fps:g})"
 
 
+def read_video_frame(path, index: int, *, max_side: int = MAX_SIDE) -> np.ndarray:
+    """Frame ``index`` of a video as a photo of a collection: ``(h, w, 3) uint8`` RGB, the longer
+    side downscaled to at most ``max_side``. Decodes from the start, so the index is exact
+    (seeking is only keyframe-exact); for the many frames of one video in a row, use
+    :meth:`VideoReader.frames`. Raises :class:`PhotoRejected` when the frame cannot be decoded."""
+    try:
+        with VideoReader(path) as reader:
+            for _, image in reader.frames(index, index + 1):
+                return fit_max_side(image, max_side)
+    except InputError as exc:
+        raise PhotoRejected(str(exc)) from None
+    raise PhotoRejected(f"frame {index} could not be decoded: the video ends before it")
+
+
 # --------------------------------------------------------------------------- landmarks
 
 

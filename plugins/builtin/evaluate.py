@@ -33,6 +33,7 @@ LEFT_EYE = slice(42, 48)
 BROWS = slice(17, 27)
 INNER_LIP_PAIRS = ((62, 66), (61, 67), (63, 65))
 EYE_LID_PAIRS = (((37, 41), (38, 40)), ((43, 47), (44, 46)))
+MOUTH_CORNERS = (48, 54)
 
 
 # --------------------------------------------------------------------------- identity
@@ -185,7 +186,8 @@ def expression_signals(landmarks) -> dict[str, np.ndarray]:
         ``eye_open``: mean over both eyes of ``(|37-41| + |38-40|) / 2`` (and
         ``43-47``, ``44-46``), over IOD;
         ``brow_height``: mean distance of the brow points 17-26 to the line through the
-        two eye centres, over IOD.
+        two eye centres, over IOD;
+        ``mouth_width``: distance of the mouth corners 48-54, over IOD.
         NaN where the landmarks are NaN (or the IOD is 0).
     """
     x = _track(landmarks)
@@ -201,6 +203,7 @@ def expression_signals(landmarks) -> dict[str, np.ndarray]:
         "mouth_open": _divide(mouth, iod),
         "eye_open": _divide(eye, iod),
         "brow_height": _divide(brow, iod),
+        "mouth_width": _divide(_dist(x, *MOUTH_CORNERS), iod),
     }
 
 
@@ -233,6 +236,34 @@ def pearson(a, b) -> float:
     # sqrt(s * s) == s exactly in IEEE arithmetic, so a signal against itself gives exactly 1
     r = float(da @ db) / np.sqrt(saa * sbb)
     return float(np.clip(r, -1.0, 1.0))
+
+
+def amplitude(driver, output) -> dict[str, float]:
+    """How far an output signal moves with its driver's, which a correlation cannot see (a puppet
+    that moves a tenth as far correlates perfectly).
+
+    Parameters
+    ----------
+    driver, output : array_like, shape (n,)
+        The same expression signal of the driver and the output; NaN marks a frame to leave out.
+
+    Returns
+    -------
+    dict
+        ``gain``: the least-squares slope of the output on the driver (1 = the same amplitude;
+        NaN when fewer than 3 frames have both or the driver does not move); ``r``: their
+        Pearson correlation; ``driver_range``, ``output_range``: the 5th-95th percentile spread
+        of each over those frames.
+    """
+    d = np.asarray(driver, np.float64).ravel()
+    o = np.asarray(output, np.float64).ravel()
+    ok = np.isfinite(d) & np.isfinite(o)
+    if ok.sum() < 3:
+        return {"gain": float("nan"), "r": float("nan"), "driver_range": float("nan"), "output_range": float("nan")}
+    dd, do = d[ok] - d[ok].mean(), o[ok] - o[ok].mean()
+    spread = [float(np.subtract(*np.percentile(v, [95, 5]))) for v in (d[ok], o[ok])]
+    gain = _ratio(dd @ do, dd @ dd) if np.ptp(d[ok]) > 0 else float("nan")
+    return {"gain": gain, "r": pearson(d, o), "driver_range": spread[0], "output_range": spread[1]}
 
 
 # --------------------------------------------------------------------------- stability
@@ -452,9 +483,9 @@ def compare_videos(driver_landmarks, output_landmarks, *, driver_frames=None, dr
     Returns
     -------
     dict
-        ``expression``: ``{"mouth_open", "eye_open", "brow_height"}``, the Pearson
-        correlation between the driver's and the output's signal (see
-        :func:`expression_signals`);
+        ``expression``: ``{"mouth_open", "eye_open", "brow_height", "mouth_width"}``, the
+        Pearson correlation between the driver's and the output's signal (see
+        :func:`expression_signals`); ``amplitude``: the same signals' :func:`amplitude`;
         ``stability``: ``jitter_driver``, ``jitter_output``, ``jitter_ratio``
         (output / driver), and, when the frames are given, ``colour_change_driver``,
         ``colour_change_output`` and ``colour_change_ratio``. All plain floats.
@@ -465,6 +496,7 @@ def compare_videos(driver_landmarks, output_landmarks, *, driver_frames=None, dr
         raise ValueError(f"driver has {len(driver)} frames, output {len(output)}: align them first")
     sd, so = expression_signals(driver), expression_signals(output)
     expression = {k: pearson(sd[k], so[k]) for k in sd}
+    amplitudes = {k: amplitude(sd[k], so[k]) for k in sd}
     jd, jo = jitter(driver), jitter(output)
     stability = {"jitter_driver": jd, "jitter_output": jo, "jitter_ratio": _ratio(jo, jd)}
     for who, frames, masks in (("driver", driver_frames, driver_masks),
@@ -477,4 +509,4 @@ def compare_videos(driver_landmarks, output_landmarks, *, driver_frames=None, dr
     if "colour_change_driver" in stability and "colour_change_output" in stability:
         stability["colour_change_ratio"] = _ratio(stability["colour_change_output"],
                                                   stability["colour_change_driver"])
-    return {"expression": expression, "stability": stability}
+    return {"expression": expression, "amplitude": amplitudes, "stability": stability}

@@ -47,7 +47,7 @@ def test_metrics_json_has_counts_times_and_figures(drive_run):
     assert {r["stage"] for r in metrics["stages"]} >= {"ingest", "landmarks", "pose", "frontalize", "dynamics",
                                                        "render3d"}
     ev = metrics["evaluation"]
-    assert set(ev["expression"]) == {"mouth_open", "eye_open", "brow_height"}
+    assert set(ev["expression"]) == set(ev["amplitude"]) == {"mouth_open", "eye_open", "brow_height", "mouth_width"}
     assert 0 <= ev["identity"]["fraction_b_not_a"] <= 1
     assert ev["stability"]["jitter_ratio"] > 0
 

@@ -96,5 +96,5 @@ def test_3d_drive_carries_the_drivers_expressions_onto_the_puppet(real_run):
     evaluation = report["evaluation"]
     print("\nmotion:", evaluation["motion"], "\nexpression:", evaluation["expression"])
     for meshes in ("driver_meshes", "puppet_meshes"):
-        assert evaluation["motion"][meshes]["mouth_open"] > 0.8, meshes
+        assert evaluation["motion"][meshes]["mouth_open"]["r"] > 0.8, meshes
     assert evaluation["identity"]["fraction_b_not_a"] >= 0.9

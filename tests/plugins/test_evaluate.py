@@ -29,7 +29,7 @@ def hand_face(angle_deg=0.0, scale=1.0, shift=(0.0, 0.0)):
         # 36/42 corner, 37-38 upper lid, 39/45 corner, 40-41 lower lid: centre (centre, 50)
         p[first:first + 6] = [[centre - 5, 50], [centre - 2, 50 - gap / 2], [centre + 2, 50 - gap / 2],
                               [centre + 5, 50], [centre + 2, 50 + gap / 2], [centre - 2, 50 + gap / 2]]
-    p[48:60] = np.c_[np.linspace(35, 65, 12), np.full(12, 83.0)]  # outer lips (unused)
+    p[48:60] = np.c_[np.linspace(35, 65, 12), np.full(12, 83.0)]  # outer lips (48-54: the width)
     p[60], p[64] = [38, 83], [62, 83]  # inner-lip corners
     p[61:64] = np.c_[[44, 50, 56], np.full(3, 80.0)]  # inner upper lip
     p[65:68] = np.c_[[56, 50, 44], np.full(3, 86.0)]  # inner lower lip: 65 under 63, 67 under 61
@@ -56,8 +56,9 @@ def test_expression_signals_of_a_hand_made_face():
     for face, scale in ((hand_face(), 1.0), (hand_face(angle_deg=30, scale=2.5, shift=(100, -40)), 2.5)):
         np.testing.assert_allclose(interocular(face[None]), [40 * scale], rtol=1e-12)
         s = expression_signals(face[None])
-        assert set(s) == {"mouth_open", "eye_open", "brow_height"}
+        assert set(s) == {"mouth_open", "eye_open", "brow_height", "mouth_width"}
         np.testing.assert_allclose(s["mouth_open"], [6 / 40], rtol=1e-12)
+        np.testing.assert_allclose(s["mouth_width"], [(np.linspace(35, 65, 12)[6] - 35) / 40], rtol=1e-12)
         np.testing.assert_allclose(s["eye_open"], [(4 + 2) / 2 / 40], rtol=1e-12)
         np.testing.assert_allclose(s["brow_height"], [20 / 40], rtol=1e-12)
 
@@ -85,7 +86,8 @@ def test_pearson_ignores_nan_frames_and_needs_three_frames_with_variance():
 def test_a_track_against_itself_correlates_exactly_and_has_jitter_ratio_one():
     track = talking_track()
     figures = compare_videos(track, track.copy())
-    assert figures["expression"] == {"mouth_open": 1.0, "eye_open": 1.0, "brow_height": 1.0}
+    assert figures["expression"] == {"mouth_open": 1.0, "eye_open": 1.0, "brow_height": 1.0, "mouth_width": 1.0}
+    assert all(a["gain"] == pytest.approx(1.0) for a in figures["amplitude"].values())
     stability = figures["stability"]
     assert stability["jitter_ratio"] == 1.0
     assert stability["jitter_driver"] == stability["jitter_output"] > 0
@@ -103,6 +105,23 @@ def test_a_time_shifted_copy_correlates_less():
     got = compare_videos(driver, output)["expression"]["mouth_open"]
     assert got == pytest.approx(expected, abs=1e-12)
     assert got < 0.5
+
+
+def test_a_track_scaled_by_half_has_gain_one_half_and_correlation_one():
+    """The expression figures a correlation cannot see: an output whose mouth opens half as far."""
+    from persona.plugins.builtin.evaluate import amplitude
+
+    driver = expression_signals(talking_track())["mouth_open"]
+    half = amplitude(driver, 0.1 + 0.5 * driver)
+    assert half["gain"] == pytest.approx(0.5, abs=1e-12)
+    assert half["r"] == pytest.approx(1.0, abs=1e-12)
+    assert half["output_range"] == pytest.approx(0.5 * half["driver_range"], abs=1e-12)
+    noisy = amplitude(driver, 2.0 * driver + np.random.default_rng(0).normal(0, 0.01, driver.shape))
+    assert noisy["gain"] == pytest.approx(2.0, abs=0.05) and noisy["r"] < 1.0
+    still = amplitude(np.full(10, 0.3), np.linspace(0, 1, 10))
+    assert np.isnan(still["gain"]) and still["driver_range"] == 0.0
+    gapped = amplitude([0.1, np.nan, 0.3, 0.2], [0.2, 5.0, 0.6, 0.4])
+    assert gapped["gain"] == pytest.approx(2.0)
 
 
 # --------------------------------------------------------------------------- stability
