@@ -18,7 +18,7 @@ import numpy as np
 
 from persona.dag.workflow import load_workflow
 from persona.plugins.face.fiducials import median_shape, shape_distance
-from persona.stores.layout import OK, REJECTED, Collection, collections, open_store
+from persona.stores.layout import OK, REJECTED, collections, open_store
 
 
 def rows(store: str):

@@ -26,7 +26,6 @@ import numpy as np
 from persona.plugins.builtin import evaluate as ev
 from persona.plugins.builtin.landmarks import DlibLandmarks
 from persona.plugins.base import Rejected
-from persona.plugins.face.template import IDX49
 from persona.plugins.manager import default_registry
 from persona.stores.layout import OK, Collection, open_store
 
@@ -133,12 +132,9 @@ def mesh_expression(root, meshes: str, actor: str, driver_landmarks: np.ndarray)
     """The :func:`amplitude` (gain, r, ranges) of each expression signal of the actor's mean fiducials moved by the per-frame
     meshes at ``meshes`` (T, H, W, 3; their (x, y) at each fiducial's canonical pixel, rigid pose
     already removed) and the driver's landmarks (T, 68, 2)."""
-    height, width = root[meshes].shape[1:3]
-    cols, rows = np.round(root[f"{actor}/aligned/mean_fiducials"][...]).astype(int).T
-    cols, rows = cols.clip(0, width - 1), rows.clip(0, height - 1)
-    moved = np.full(driver_landmarks.shape, np.nan)
-    for start in range(0, len(moved), 256):  # a few frames' meshes at a time
-        moved[start:start + 256, list(IDX49)] = root[meshes][start:start + 256][:, rows, cols, :2]
+    fiducials = root[f"{actor}/aligned/mean_fiducials"][...]
+    moved = np.concatenate([ev.moved_landmarks(root[meshes][start:start + 256], fiducials)  # a few frames at a time
+                            for start in range(0, len(driver_landmarks), 256)])
     ours, theirs = ev.expression_signals(moved), ev.expression_signals(driver_landmarks)
     return {k: ev.amplitude(theirs[k], ours[k]) for k in theirs}
 

@@ -25,6 +25,7 @@ import numpy as np
 from pydantic import Field
 
 from ..base import Backend, Params, Rejected
+from ..face.template import IDX49
 from ..hookspecs import hookimpl
 
 # iBUG 68 indices
@@ -236,6 +237,18 @@ def pearson(a, b) -> float:
     # sqrt(s * s) == s exactly in IEEE arithmetic, so a signal against itself gives exactly 1
     r = float(da @ db) / np.sqrt(saa * sbb)
     return float(np.clip(r, -1.0, 1.0))
+
+
+def moved_landmarks(meshes, fiducials) -> np.ndarray:
+    """(T, 68, 2) landmarks of a face moved by per-frame meshes, for :func:`expression_signals`: the
+    (x, y) of meshes (T, H, W, 3) at the canonical pixels of its 49 ``fiducials`` (49, 2); the jaw
+    line (not among the fiducials) is NaN. Fiducials off the grid take its nearest edge pixel."""
+    meshes = np.asarray(meshes)
+    h, w = meshes.shape[1:3]
+    cols, rows = np.round(np.asarray(fiducials, np.float64)).astype(int).T
+    out = np.full((len(meshes), 68, 2), np.nan)
+    out[:, list(IDX49)] = meshes[:, rows.clip(0, h - 1), cols.clip(0, w - 1), :2]
+    return out
 
 
 def amplitude(driver, output) -> dict[str, float]:

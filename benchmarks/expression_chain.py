@@ -1,0 +1,99 @@
+"""Where does the driver's expression amplitude go? The gain of each step of the 3D drive.
+
+On a finished 3D run's store, for every expression signal (mouth opening, mouth width, eye
+openness, brow height; dlib's landmarks on A's frames are the reference), prints the gain
+(slope on the driver's signal), the correlation and the ranges of:
+
+- A's per-frame meshes M_D^t (A's mean fiducials moved by them): what the dynamics kept;
+- B's meshes M_P^t after the transfer (B's mean fiducials moved): what the transfer kept;
+- B's meshes re-transferred here with variants of the transfer (``--variants``), on every
+  ``--every``-th frame, to locate the loss inside the transfer;
+- the rendered output (dlib's landmarks on the output frames), read from the run's
+  ``metrics.json`` when its evaluation is there.
+
+    python benchmarks/expression_chain.py workflows/obama_self_reenactment.yaml --every 4
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+
+from persona.dag.workflow import load_workflow
+from persona.plugins.builtin import evaluate as ev
+from persona.plugins.face.transfer import DeformationTransfer
+from persona.plugins.manager import default_registry
+from persona.stores.layout import OK, Collection, open_store
+
+SIGNALS = ("mouth_open", "mouth_width", "eye_open", "brow_height")
+
+
+def gains(landmarks: np.ndarray, driver: dict) -> dict:
+    ours = ev.expression_signals(landmarks)
+    return {k: ev.amplitude(driver[k], ours[k]) for k in SIGNALS}
+
+
+def row(name: str, figures: dict) -> str:
+    cells = [f"{figures[k]['gain']:.2f} / {figures[k]['r']:.2f}" for k in SIGNALS]
+    return f"| {name} | " + " | ".join(cells) + " |"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("workflow")
+    parser.add_argument("--every", type=int, default=4, help="re-transfer every n-th frame (variants)")
+    parser.add_argument("--variants", default="default,none,naive,normal",
+                        help="comma-separated: default (the run's), none (no denoising), naive, normal, "
+                        "tv=W (Huber-ROF with TV weight W)")
+    args = parser.parse_args()
+    wf = load_workflow(args.workflow)
+    root = open_store(wf.store, mode="r")
+    frames, drive = Collection(root, "driver/frames"), Collection(root, "drive")
+    landmarks = frames.array("landmarks/points")[:].astype(np.float64)
+    landmarks[frames.state("landmarks") != OK] = np.nan
+    driver = ev.expression_signals(landmarks)
+    print(f"{wf.name}: {drive.n} frames; driver ranges (5-95 %, / IOD): "
+          + ", ".join(f"{k} {np.subtract(*np.nanpercentile(driver[k], [95, 5])):.3f}" for k in SIGNALS))
+    print("| step | " + " | ".join(f"{k} gain / r" for k in SIGNALS) + " |")
+    print("|---|" + "---|" * len(SIGNALS))
+    a_fid = root["driver/aligned/mean_fiducials"][...]
+    b_fid = root["puppet/aligned/mean_fiducials"][...]
+    print(row("A's meshes", gains(ev.moved_landmarks(root["drive/motion/driver_mesh"][:], a_fid), driver)))
+    print(row("B's meshes (the run)", gains(ev.moved_landmarks(root["drive/mesh"][:], b_fid), driver)))
+
+    chosen = np.arange(0, drive.n, args.every)
+    sub = {k: v[chosen] for k, v in driver.items()}
+    source = root["drive/motion/driver_mesh"]
+    a_meshes = np.stack([source[int(t)] for t in chosen]).astype(np.float64)
+    mean = root["drive/motion/driver_mean"][...].astype(np.float64)
+    phi = root["drive/motion/correspondence"][...].astype(np.float64)
+    mask = root["puppet/shape/mask"][...]
+    depth = root["puppet/shape/depth"][...]
+    ys, xs = np.mgrid[0:depth.shape[0], 0:depth.shape[1]]
+    puppet_mean = np.stack([xs, ys, depth], axis=-1)
+    driver_mask = root["driver/shape/mask"][...]
+    params = dict(drive.group.attrs["motion"]["transfer"])
+    registry = default_registry()
+    for variant in args.variants.split(","):
+        p, denoiser = dict(params), None
+        if variant in ("naive", "normal"):
+            p["method"] = variant
+        elif variant == "none":
+            denoiser = registry.get("denoise", "none")({})
+        elif variant.startswith("tv="):
+            denoiser = registry.get("denoise", "huber_rof")({"weight": float(variant[3:]), "outside": "exclude"})
+        transfer = DeformationTransfer(mean, phi, puppet_mean, mask, driver_mask, params=p, denoiser=denoiser)
+        meshes = np.stack([transfer(m) for m in a_meshes])
+        print(row(f"B's meshes, transfer {variant} (every {args.every}th frame)", gains(ev.moved_landmarks(meshes, b_fid), sub)))
+    metrics = Path(wf.output) / "metrics.json"
+    if metrics.is_file():
+        amp = json.loads(metrics.read_text()).get("evaluation", {}).get("amplitude")
+        if amp:
+            print(row("output (the run's evaluation)", amp))
+
+
+if __name__ == "__main__":
+    main()
