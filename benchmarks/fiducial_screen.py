@@ -1,9 +1,10 @@
 """How far each accepted photo's pose-corrected fiducials lie from its collection's median shape.
 
 For every collection of the given workflows' stores (run them first), prints the photos
-accepted, the largest distance (RMS over the visible fiducials, canonical px; one inter-ocular
-distance is 64) and its photo, the 99th percentile, the photos with NaN (not visible) points,
-and what the screen rejected. Stores written before the screen existed are read as they are
+accepted, the largest distance of an accepted photo (RMS over its visible fiducials, the
+screen's measure, canonical px; one inter-ocular distance is 64) and its 99th percentile, the
+largest distance of any one fiducial, the photos with NaN (not visible) points, and what the
+screen rejected. Stores written before the screen existed are read as they are
 (every frontalized photo counts as accepted), so the same script gives "before" and "after".
 
     python benchmarks/fiducial_screen.py workflows/bush_driven_by_obama.yaml ...
@@ -31,21 +32,28 @@ def rows(store: str):
         fiducials = coll.array("aligned/fiducials")[:].astype(np.float64)
         distance = shape_distance(fiducials, median_shape(fiducials[ok]))
         worst = int(np.flatnonzero(ok)[np.nanargmax(distance[ok])])
+        point = np.full(coll.n, np.nan)  # each accepted photo's farthest visible fiducial
+        point[ok] = np.nanmax(np.linalg.norm(fiducials[ok] - median_shape(fiducials[ok]), axis=-1), axis=1)
+        far = int(np.flatnonzero(ok)[np.nanargmax(point[ok])])
         rejected = int((coll.state("screen") == REJECTED).sum()) if screened else 0
-        yield (coll.path, int(ok.sum()), coll.n, float(distance[worst]), Path(str(coll.array("photos/ids")[worst])).name,
-               float(np.nanpercentile(distance[ok], 99)), int(np.isnan(fiducials[ok]).any(axis=(1, 2)).sum()), rejected)
+        ids = coll.array("photos/ids")
+        yield (coll.path, int(ok.sum()), coll.n, float(distance[worst]), Path(str(ids[worst])).name,
+               float(np.nanpercentile(distance[ok], 99)), float(point[far]), Path(str(ids[far])).name,
+               int(np.isnan(fiducials[ok]).any(axis=(1, 2)).sum()), rejected)
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("workflows", nargs="+")
     args = parser.parse_args()
-    print("| workflow | collection | accepted | worst photo | distance px | 99th pct px | photos with NaN points | screened out |")
+    print("| workflow | collection | accepted | largest RMS distance px (photo) | 99th pct px "
+          "| largest point distance px (photo) | photos with NaN points | screened out |")
     print("|---|---|---|---|---|---|---|---|")
     for path in args.workflows:
         wf = load_workflow(path)
-        for coll, ok, n, worst, photo, p99, nan, rejected in rows(wf.store):
-            print(f"| {wf.name} | {coll} | {ok}/{n} | {photo} | {worst:.1f} | {p99:.1f} | {nan} | {rejected} |")
+        for coll, ok, n, worst, photo, p99, point, far, nan, rejected in rows(wf.store):
+            print(f"| {wf.name} | {coll} | {ok}/{n} | {worst:.1f} ({photo}) | {p99:.1f} | {point:.1f} ({far}) "
+                  f"| {nan} | {rejected} |")
 
 
 if __name__ == "__main__":
