@@ -74,11 +74,17 @@ class DynamicsParams(Params):
                                  "(pose-corrected with the average depth), and the flow only corrects it. "
                                  "Off = the flow alone (ALGORITHMS §9.2.4), which misses wide mouth "
                                  "motion on real video")
-    guide_lambda: float = Field(1.0, ge=0, description="λ of the guide's smoothing TPS (Eq. 1; the paper "
+    guide_lambda: float = Field(0.1, ge=0, description="λ of the guide's smoothing TPS (Eq. 1; the paper "
                                 "warps photos with 10). On the Powell/woman driver video (177 frames, 'varref' flow), "
                                 "mouth/eye/brow r of the meshes against the frame's landmarks: 0.95 / 0.93 / 0.88 "
                                 "at 10, 0.98 / 0.98 / 0.82 at 1, 0.985 / 0.98 / 0.81 at 0.1; without the guide "
-                                "0.41 / 0.29 / 0.74")
+                                "0.41 / 0.29 / 0.74. A smoothing spline also shrinks the motion it passes on: on the "
+                                "first 150 frames of the Obama address the meshes' gain (slope on the frame's "
+                                "landmarks) for mouth opening / eye openness is 0.56 / 0.49 at 1 and 0.63 / 0.59 at "
+                                "0.1 (docs/expression.md)")
+    guide_step: int = Field(1, ge=1, le=8, description="evaluate the guide's spline on every n-th canonical row "
+                            "and column, bilinearly between: 4 rounds off the eyelids' few-px motion (eye-openness "
+                            "gain 0.59 at 4, 0.66 at 1 on the Obama address)")
     guide_rim_spacing: int = Field(12, ge=2, le=100, description="px between the points of the average's "
                                    "rim that the guide holds in place (12 on the 244 x 194 grid: ~50 points)")
     shading_refinement: bool = Field(True, description="refine the depth along the camera ray by shading "
@@ -117,8 +123,11 @@ class DynamicsParams(Params):
                                        "behind the first hit on its camera ray and still count as visible")
     visibility_step: int = Field(2, ge=1, le=8, description="cast visibility rays on every n-th canonical "
                                  "row and column (1 = every pixel)")
-    time_sigma: float = Field(1.0, ge=0, le=10, description="σ in frames of the Gaussian smoothing of the "
-                              "flow and δ over time (0 = off)")
+    time_sigma: float = Field(0.5, ge=0, le=10, description="σ in frames of the Gaussian smoothing of the "
+                              "flow and δ over time (0 = off). Speech moves the lips at 3-6 Hz, where σ = 1 at 25 fps "
+                              "passes half the amplitude: on the Obama address the meshes' mouth gain is 0.68 / "
+                              "0.80 / 0.84 at σ 1 / 0.5 / 0, and the jitter of their fiducials 0.21 / 0.56 / 0.81 "
+                              "of dlib's on the frames (docs/expression.md)")
     time_radius: int = Field(2, ge=0, le=10, description="frames on each side in the temporal smoothing "
                              "(the halo a chunk of frames needs)")
 
@@ -233,10 +242,11 @@ class DriverModel:
         return max(contours, key=len)[::spacing, 0].astype(np.float64)
 
     @functools.lru_cache(maxsize=4)
-    def guide_warp(self, lam: float, spacing: int) -> TpsWarp:
+    def guide_warp(self, lam: float, spacing: int, step: int = 1) -> TpsWarp:
         """The landmark guide's spline (fitted once per model): from the fiducials and the rim points
-        every ``spacing`` px, which stay in place, to where a frame shows them."""
-        return TpsWarp(np.concatenate([self.fiducials, self.rim_points(spacing)]), self.shape, lam=lam, step=4)
+        every ``spacing`` px, which stay in place, to where a frame shows them; evaluated on every
+        ``step``-th pixel."""
+        return TpsWarp(np.concatenate([self.fiducials, self.rim_points(spacing)]), self.shape, lam=lam, step=step)
 
     @functools.cached_property
     def _operators(self) -> dict[int, "_Operators"]:
@@ -514,7 +524,8 @@ def landmark_guide(model: DriverModel, landmarks: np.ndarray | None, pose: Pose,
         return None
     canonical, _ = canonical_landmarks(points, model.depth, pose, model.fiducials)
     rim = model.rim_points(params.guide_rim_spacing)
-    return model.guide_warp(params.guide_lambda, params.guide_rim_spacing).map(np.concatenate([canonical, rim]))
+    return model.guide_warp(params.guide_lambda, params.guide_rim_spacing, params.guide_step).map(
+        np.concatenate([canonical, rim]))
 
 
 def fill_outside(images: np.ndarray, mask: np.ndarray, sigma: float = 4.0) -> np.ndarray:

@@ -253,16 +253,18 @@ def guided(video):
 
 def test_landmark_guide_alone_moves_the_face_towards_the_truth(video):
     """The TPS from the average's fiducials to the frame's (exact) landmarks, with no flow at all:
-    measured 1.96 / 2.33 / 2.13 px on the three most expressive frames against no motion's 2.61 /
-    3.08 / 2.80 (λ = 10: 1.73 / 2.06 / 1.88). Without the rim held in place the spline's affine
-    part stretched the whole face (4.9 px on frame 3)."""
+    measured 2.09 / 2.49 / 2.27 px on the three most expressive frames (the default λ = 0.1, every
+    pixel) against no motion's 2.61 / 3.08 / 2.79 (λ = 1, every 4th pixel: 1.96 / 2.33 / 2.13;
+    λ = 10: 1.73 / 2.06 / 1.88: a stiffer spline errs less between the landmarks and passes on less
+    of their motion, see DynamicsParams.guide_lambda). Without the rim held in place the spline's
+    affine part stretched the whole face (4.9 px on frame 3)."""
     model, params = guided(video), dy.DynamicsParams(shading_refinement=False)
     for t in (2, 3, 4):
         frame, pose = video["frames"][t], video["poses"][t]
         track = dy.track_frame(model, frame.image, pose, NoFlow(), params, frame.landmarks)
         err = dy.mesh_error(dy.frame_mesh(model, track, pose), video["truths"][t], video["mask"])
         still = dy.mesh_error(model.rest_mesh, video["truths"][t], video["mask"])
-        assert err < 0.8 * still, (t, err, still)
+        assert err < 0.85 * still, (t, err, still)
 
 
 def test_landmark_guide_costs_little_where_the_flow_alone_succeeds(video):
