@@ -122,8 +122,8 @@ class ScreenParams(Strict):
     max_distance: float = Field(16.0, gt=0, description="reject a frontalized photo whose visible fiducials "
                                 "lie further than this from the collection's median shape (RMS over the "
                                 "points, canonical px; the inter-ocular distance is 64): its landmarks or "
-                                "pose failed. Accepted photos of the shared collections lie within 11 px, "
-                                "the widest laughs included (docs/fiducials.md)")
+                                "pose failed. Every photo and frame of the example workflows' collections, "
+                                "turned and laughing ones included, lies within 11 px (docs/fiducials.md)")
 
 
 class AlignParams(Strict):
