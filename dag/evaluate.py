@@ -27,6 +27,7 @@ from persona.plugins.builtin import evaluate as ev
 from persona.plugins.builtin.landmarks import DlibLandmarks
 from persona.plugins.base import Rejected
 from persona.plugins.manager import default_registry
+from persona.stores.errors import InputError
 from persona.stores.layout import OK, Collection, open_store
 
 from .stages import RENDER_3D, accepted
@@ -88,6 +89,10 @@ def evaluate(store: str, executor, *, identity: tuple[str, dict], threshold: flo
     centroids = {}
     for actor in ("puppet", "driver"):
         coll = Collection(root, actor)
+        if not coll.has("status/screen/state"):
+            raise InputError(f"{store}: the {actor}'s photos were processed by an older Persona, before the "
+                             "collection's screen existed; run `persona run` on the workflow again to bring "
+                             "the store up to date, then evaluate")
         chosen = _sample(accepted(coll), collection_sample)
         parts = list(executor.run(describe_photos, [(store, actor, chosen[i::2], identity) for i in range(2)]))
         centroids[actor] = ev.centroid(np.concatenate(parts))

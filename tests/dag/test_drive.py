@@ -113,6 +113,25 @@ def test_evaluate_command_prints_json(drive_run, capsys):
     assert result["expression"]["mouth_open"] == pytest.approx(report["evaluation"]["expression"]["mouth_open"], nan_ok=True)
 
 
+def test_evaluating_a_store_from_before_the_screen_says_to_run_again(drive_run, tmp_path, capsys):
+    """A store written before the collection's screen existed has no accepted photos by today's
+    rule: the evaluation says so and what to do, rather than judging identity against nothing."""
+    import shutil
+
+    folder, path, _ = drive_run
+    wf = yaml.safe_load(path.read_text())
+    old = tmp_path / "old.zarr"
+    shutil.copytree(path.parent / wf["store"], old)
+    shutil.rmtree(old / "puppet" / "status" / "screen")
+    wf.update(store=str(old), output=str(tmp_path / "out"))
+    copy = folder / "old.yaml"
+    copy.write_text(yaml.safe_dump(wf))
+    capsys.readouterr()
+    assert cli(["evaluate", str(copy), "--json", "--scheduler", "sync"]) != 0
+    err = capsys.readouterr().err
+    assert "older Persona" in err and "persona run" in err and "puppet" in err
+
+
 def test_texture_evaluation_holds_out_references_and_scores_every_method(drive_run, capsys):
     folder, path, _ = drive_run
     assert cli(["evaluate", str(path), "--texture", "--references", "2", "--scheduler", "sync", "--json"]) == 0
