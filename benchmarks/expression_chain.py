@@ -22,11 +22,12 @@ from pathlib import Path
 
 import numpy as np
 
+from persona.dag.evaluate import driver_frame_landmarks, mesh_expression
 from persona.dag.workflow import load_workflow
 from persona.plugins.builtin import evaluate as ev
 from persona.plugins.face.transfer import DeformationTransfer
 from persona.plugins.manager import default_registry
-from persona.stores.layout import OK, Collection, open_store
+from persona.stores.layout import Collection, open_store
 
 SIGNALS = ("mouth_open", "mouth_width", "eye_open", "brow_height")
 
@@ -51,18 +52,15 @@ def main() -> None:
     args = parser.parse_args()
     wf = load_workflow(args.workflow)
     root = open_store(wf.store, mode="r")
-    frames, drive = Collection(root, "driver/frames"), Collection(root, "drive")
-    landmarks = frames.array("landmarks/points")[:].astype(np.float64)
-    landmarks[frames.state("landmarks") != OK] = np.nan
+    drive = Collection(root, "drive")
+    landmarks = driver_frame_landmarks(root)
     driver = ev.expression_signals(landmarks)
     print(f"{wf.name}: {drive.n} frames; driver ranges (5-95 %, / IOD): "
           + ", ".join(f"{k} {np.subtract(*np.nanpercentile(driver[k], [95, 5])):.3f}" for k in SIGNALS))
     print("| step | " + " | ".join(f"{k} gain / r" for k in SIGNALS) + " |")
     print("|---|" + "---|" * len(SIGNALS))
-    a_fid = root["driver/aligned/mean_fiducials"][...]
-    b_fid = root["puppet/aligned/mean_fiducials"][...]
-    print(row("A's meshes", gains(ev.moved_landmarks(root["drive/motion/driver_mesh"][:], a_fid), driver)))
-    print(row("B's meshes (the run)", gains(ev.moved_landmarks(root["drive/mesh"][:], b_fid), driver)))
+    print(row("A's meshes", mesh_expression(root, "drive/motion/driver_mesh", "driver", landmarks)))
+    print(row("B's meshes (the run)", mesh_expression(root, "drive/mesh", "puppet", landmarks)))
 
     chosen = np.arange(0, drive.n, args.every)
     sub = {k: v[chosen] for k, v in driver.items()}
@@ -87,7 +85,8 @@ def main() -> None:
             denoiser = registry.get("denoise", "huber_rof")({"weight": float(variant[3:]), "outside": "exclude"})
         transfer = DeformationTransfer(mean, phi, puppet_mean, mask, driver_mask, params=p, denoiser=denoiser)
         meshes = np.stack([transfer(m) for m in a_meshes])
-        print(row(f"B's meshes, transfer {variant} (every {args.every}th frame)", gains(ev.moved_landmarks(meshes, b_fid), sub)))
+        moved = ev.moved_landmarks(meshes, root["puppet/aligned/mean_fiducials"][...])
+        print(row(f"B's meshes, transfer {variant} (every {args.every}th frame)", gains(moved, sub)))
     metrics = Path(wf.output) / "metrics.json"
     if metrics.is_file():
         amp = json.loads(metrics.read_text()).get("evaluation", {}).get("amplitude")

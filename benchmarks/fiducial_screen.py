@@ -30,10 +30,11 @@ def rows(store: str):
         screened = coll.has("status/screen/state")
         ok = coll.state("screen" if screened else "frontalize") == OK
         fiducials = coll.array("aligned/fiducials")[:].astype(np.float64)
-        distance = shape_distance(fiducials, median_shape(fiducials[ok]))
+        median = median_shape(fiducials[ok])
+        distance = shape_distance(fiducials, median)
         worst = int(np.flatnonzero(ok)[np.nanargmax(distance[ok])])
         point = np.full(coll.n, np.nan)  # each accepted photo's farthest visible fiducial
-        point[ok] = np.nanmax(np.linalg.norm(fiducials[ok] - median_shape(fiducials[ok]), axis=-1), axis=1)
+        point[ok] = np.nanmax(np.linalg.norm(fiducials[ok] - median, axis=-1), axis=1)
         far = int(np.flatnonzero(ok)[np.nanargmax(point[ok])])
         rejected = int((coll.state("screen") == REJECTED).sum()) if screened else 0
         ids = coll.array("photos/ids")

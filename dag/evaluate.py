@@ -101,9 +101,7 @@ def evaluate(store: str, executor, *, identity: tuple[str, dict], threshold: flo
     parts = sorted(executor.run(analyse_frames, tasks), key=lambda p: p["start"])
     joined = {k: np.concatenate([p[k] for p in parts]) for k in parts[0] if k != "start"}
 
-    frames = Collection(root, "driver/frames")
-    driver_landmarks = frames.array("landmarks/points")[:].astype(np.float64)
-    driver_landmarks[frames.state("landmarks") != OK] = np.nan
+    driver_landmarks = driver_frame_landmarks(root)
     identity_figures = ev.identity_figures(joined["descriptors"], centroids["puppet"], centroids["driver"], threshold)
     video = ev.compare_videos(driver_landmarks, joined["landmarks"])
     stability = video["stability"]
@@ -131,6 +129,15 @@ def evaluate(store: str, executor, *, identity: tuple[str, dict], threshold: flo
     if self_reenactment:
         result["self_reenactment"] = {"psnr_db": _nanmean(joined["psnr"]), "ssim": _nanmean(joined["ssim"])}
     return result
+
+
+def driver_frame_landmarks(root) -> np.ndarray:
+    """(T, 68, 2) dlib's landmarks on the driver's frames, the reference of every expression figure;
+    NaN for a frame without a face."""
+    frames = Collection(root, "driver/frames")
+    landmarks = frames.array("landmarks/points")[:].astype(np.float64)
+    landmarks[frames.state("landmarks") != OK] = np.nan
+    return landmarks
 
 
 def mesh_expression(root, meshes: str, actor: str, driver_landmarks: np.ndarray) -> dict[str, dict]:

@@ -27,6 +27,8 @@ import cv2
 import numba
 import numpy as np
 
+from .fiducials import mean_square_distance
+
 
 def expression_weights(fiducials: np.ndarray, target: np.ndarray, sigma: float, *,
                        relative: bool = False) -> np.ndarray:
@@ -37,10 +39,8 @@ def expression_weights(fiducials: np.ndarray, target: np.ndarray, sigma: float, 
     normalised anyway; it keeps them defined when every e_i underflows (a target far from
     every photo). Points that are NaN in a photo or the target are left out of its distance,
     which is scaled back to all points: a turned photo is compared on its visible half."""
-    sq = np.sum((np.asarray(fiducials, np.float64) - np.asarray(target, np.float64)) ** 2, axis=-1)
-    seen = np.isfinite(sq)  # NaN points (not visible in a photo or the target) are left out ...
-    d2 = np.where(seen, sq, 0.0).sum(axis=1) * sq.shape[1] / np.maximum(seen.sum(axis=1), 1)  # ... and made up for
-    d2[~seen.any(axis=1)] = np.inf
+    d2 = np.shape(fiducials)[1] * mean_square_distance(fiducials, target)  # over the shared points, scaled to all
+    d2[np.isnan(d2)] = np.inf  # no point in common
     return np.exp(-(d2 - (d2.min() if relative else 0.0)) / (2.0 * sigma ** 2))
 
 

@@ -25,13 +25,19 @@ def median_shape(fiducials: np.ndarray) -> np.ndarray:
         return np.nanmedian(np.asarray(fiducials, np.float64), axis=0)
 
 
+def mean_square_distance(fiducials: np.ndarray, reference: np.ndarray) -> np.ndarray:
+    """(n,) mean squared distance (px²) of each photo's fiducials (n, k, 2) from a reference shape
+    (k, 2), over the points both have (NaN in neither); NaN for a photo with no such point."""
+    d2 = np.sum((np.asarray(fiducials, np.float64) - np.asarray(reference, np.float64)) ** 2, axis=-1)
+    seen = np.isfinite(d2)
+    count = seen.sum(axis=-1)
+    return np.where(count > 0, np.where(seen, d2, 0.0).sum(axis=-1) / np.maximum(count, 1), np.nan)
+
+
 def shape_distance(fiducials: np.ndarray, reference: np.ndarray) -> np.ndarray:
     """(n,) RMS distance (px) of each photo's fiducials (n, k, 2) from a reference shape (k, 2),
     over the points both have; NaN for a photo with no such point."""
-    d2 = np.sum((np.asarray(fiducials, np.float64) - reference) ** 2, axis=-1)
-    seen = np.isfinite(d2)
-    count = seen.sum(axis=-1)
-    return np.where(count > 0, np.sqrt(np.where(seen, d2, 0.0).sum(axis=-1) / np.maximum(count, 1)), np.nan)
+    return np.sqrt(mean_square_distance(fiducials, reference))
 
 
 def mean_shape(fiducials: np.ndarray, fallback: np.ndarray | None = None) -> np.ndarray:
