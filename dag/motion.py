@@ -6,7 +6,8 @@
    ``time_radius`` frames each side), the driver's meshes M_D^t and their mean M̄_D;
 3. the correspondence φ puppet -> driver (ALGORITHMS §7.3): the puppet's 2D average projected
    onto the driver's rank-4 appearance subspace, then a flow between the two (by default started
-   from the TPS of the two faces' mean fiducials; ``motion.correspondence`` in the workflow);
+   from the TPS of the two faces' mean fiducials, and pinned to them afterwards;
+   ``motion.correspondence`` in the workflow);
 4. the magnitude-adjusted deformation transfer of every frame (:mod:`persona.plugins.face.transfer`):
    B's meshes M_P^t = M_P + Δ̂ f*.
 
@@ -17,39 +18,17 @@ Stored in the ``drive`` collection: ``dynamics/flow``, ``dynamics/delta`` (per f
 
 from __future__ import annotations
 
-import cv2
 import numpy as np
 
 from persona.plugins.base import Rejected
 from persona.plugins.face.dynamics import DriverModel, DynamicsParams, FrameTrack, frame_mesh, smooth_tracks
-from persona.plugins.face.subspace import project
-from persona.plugins.face.transfer import DeformationTransfer
-from persona.plugins.face.warp import compose, tps_map
+from persona.plugins.face.transfer import DeformationTransfer, correspondence
+from persona.plugins.face.warp import pin, tps_map
 from persona.plugins.kinds import FlowBackend, Pose
 from persona.stores.layout import OK, Collection
 from persona.stores.provenance import Provenance, cache_key
 
 from . import stages as st
-
-def correspondence(puppet_average: np.ndarray, puppet_mask: np.ndarray, driver_basis: np.ndarray,
-                   flow: FlowBackend, guide: np.ndarray | None = None) -> np.ndarray:
-    """φ (H, W, 2): for each puppet pixel, the driver pixel (x, y) that corresponds (ALGORITHMS §7.3).
-
-    The puppet's 2D average A_P (H, W, 3, 0-255) projected onto the driver's basis (k, H, W, 3)
-    keeps A_P's lighting and takes the driver's geometry, so the flow A_P -> Π_D(A_P) is the
-    geometric difference between the two faces. ``guide`` (H, W, 2), a map puppet px -> driver px
-    (e.g. the TPS of the two faces' mean fiducials), is where the flow starts: the basis is
-    warped by it first, and φ = guide ∘ (identity + flow)."""
-    ys, xs = np.mgrid[0:puppet_mask.shape[0], 0:puppet_mask.shape[1]].astype(np.float32)
-    grid = np.stack([xs, ys], axis=-1)
-    start = grid if guide is None else np.asarray(guide, np.float32)
-    if guide is not None:
-        driver_basis = np.stack([compose(np.asarray(b, np.float32), start, cv2.BORDER_REPLICATE) for b in driver_basis])
-    average = np.asarray(puppet_average, np.float32) / 255
-    projected = np.clip(project(average, driver_basis, puppet_mask), 0, 1).astype(np.float32)
-    w = flow.flow(average, projected, puppet_mask)
-    return compose(start, grid + w, cv2.BORDER_REPLICATE)
-
 
 def run_motion(runner, drive: Collection, retargeted: Provenance) -> Provenance:
     """Steps 1-4 (see the module's docstring); returns the provenance of ``mesh``."""
@@ -88,6 +67,9 @@ def run_motion(runner, drive: Collection, retargeted: Provenance) -> Provenance:
                     puppet_mask.shape, lam=corr["guide_lambda"], step=4) if corr["landmark_guide"] else None
     phi = correspondence(puppet.array("shape/texture")[...], puppet_mask, driver.array("subspace/basis")[...],
                          registry.get("flow", corr["backend"])(corr["params"]), guide)
+    if corr["pin_fiducials"]:
+        phi = pin(phi, puppet.array("aligned/mean_fiducials")[...], driver.array("aligned/mean_fiducials")[...],
+                  lam=corr["pin_lambda"])
     depth = puppet.array("shape/depth")[...]
     ys, xs = np.mgrid[0:depth.shape[0], 0:depth.shape[1]]
     puppet_mean = np.stack([xs, ys, depth], axis=-1)

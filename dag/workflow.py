@@ -146,6 +146,12 @@ class CorrespondenceParams(FlowChoice):
                                  "to A's and let the flow correct it (A's basis is warped by the TPS before "
                                  "the projection); off = the flow alone, as in the paper")
     guide_lambda: float = Field(10.0, ge=0, description="λ of the guide's smoothing TPS (Eq. 1; paper: 10)")
+    pin_fiducials: bool = Field(True, description="after the flow, add the smoothing TPS of φ's misses at B's "
+                                "mean fiducials, so that φ takes each of them onto A's (not in the paper). The "
+                                "flow between two blurred averages drifts at the thin lips: on Bush/Obama it "
+                                "took B's lower inner lip 3 px up onto A's lip line, and the transfer then moved "
+                                "it with A's closing lip line (docs/expression.md)")
+    pin_lambda: float = Field(1.0, ge=0, description="λ of the pinning TPS (Eq. 1's units): 0 interpolates")
 
 
 class MotionParams(Strict):
@@ -159,8 +165,8 @@ class MotionParams(Strict):
                              "0.98 / 0.82 with 'varref', 0.88 / 0.87 / 0.64 with 'dis'")
     transfer: TransferParams = Field(default_factory=TransferParams, description="deformation transfer "
                                      "driver -> puppet (paper §4, ALGORITHMS §10), used by 3D renderers; "
-                                     "its denoiser is stages.denoise (default: huber_rof, off-mask pixels "
-                                     "excluded)")
+                                     "its denoiser is stages.denoise (default: huber_rof with TV weight 0.3, "
+                                     "off-mask pixels excluded)")
     correspondence: CorrespondenceParams = Field(default_factory=CorrespondenceParams, description="the "
                                                  "driver <-> puppet correspondence φ, used by 3D renderers")
     export_every: int = Field(0, ge=0, description="with a 3D renderer, also write B's textured mesh of every "

@@ -64,6 +64,16 @@ def tps_map(target: np.ndarray, source: np.ndarray, shape: tuple[int, int], *, l
     return _upsample(spline(points).reshape(*nodes, 2).astype(np.float32), shape, step)
 
 
+def pin(map_: np.ndarray, target: np.ndarray, source: np.ndarray, *, lam: float = 1.0, step: int = 4) -> np.ndarray:
+    """A sampling map ``map_`` (H, W, 2) corrected so that it sends each ``target`` point (k, 2, x y)
+    to its ``source`` point: the smoothing TPS (λ ``lam``) of the misses ``source - map_(target)``
+    is added. Pairs with a NaN are left out."""
+    target = np.asarray(target, float)
+    at = np.nan_to_num(target).astype(np.float32).reshape(1, -1, 2)
+    miss = np.asarray(source, float) - compose(np.asarray(map_, np.float32), at, cv2.BORDER_REPLICATE)[0]
+    return map_ + tps_map(target, miss, map_.shape[:2], lam=lam, step=step)
+
+
 def _nodes(shape: tuple[int, int], step: int) -> tuple[tuple[int, int], np.ndarray]:
     """The coarse grid of every ``step``-th pixel, covering the last pixel: its shape, and its
     nodes' (x, y) as (n, 2)."""

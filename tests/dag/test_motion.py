@@ -5,7 +5,7 @@ true φ (puppet px -> driver px) is known; the driver's basis is that face's Lam
 
 import cv2
 import numpy as np
-from persona.dag.motion import correspondence
+from persona.plugins.face.transfer import correspondence
 from persona.plugins.builtin.flow import VariationalRefinementFlow
 from persona.plugins.face.synthetic import make_face
 from persona.plugins.face.template import FaceIdentity
