@@ -24,7 +24,7 @@ from persona.stores.provenance import Provenance
 
 from . import stages as st
 from .motion import export_meshes, run_motion
-from .texture import run_frame_textures
+from .texture import run_frame_textures, run_mouth
 
 
 def run_drive(runner) -> Collection:
@@ -46,6 +46,7 @@ def run_drive(runner) -> Collection:
     stage = st.RENDER
     if st.default_registry().get("render", runner.wf.stage("render")[0]).uses_mesh:
         inputs["mesh"] = run_motion(runner, drive, prov).key
+        inputs["mouth"] = run_mouth(runner, puppet).key
         stage = st.RENDER_3D
     drive.group.attrs["stages"] = ["retarget", *(["dynamics"] if stage is st.RENDER_3D else []), stage.name]
     render = runner.prepare_stage(drive, stage, inputs)

@@ -207,14 +207,17 @@ PHOTO_STAGES["align"] = ALIGN
 
 
 def _puppet(root, path) -> dict:
-    group = root["puppet/aligned"]
-    return {"coverage": group["coverage"][...], "fiducials": group["mean_fiducials"][...].astype(np.float64)}
+    group, puppet = root["puppet/aligned"], Collection(root, "puppet")
+    return {"coverage": group["coverage"][...], "fiducials": group["mean_fiducials"][...].astype(np.float64),
+            "mouth": puppet.array("texture/mouth")[...].astype(np.float32) if puppet.has("texture/mouth") else None,
+            "lips": puppet.array("texture/lips")[...] if puppet.has("texture/lips") else None}
 
 
 def _render(backend, params, inputs, context):
     h, w = inputs["/driver/frames/photos/size"]
     puppet = Puppet(appearance=inputs["texture/rgb"].astype(np.float32), coverage=context["coverage"],
-                    fiducials=context["fiducials"], mesh=inputs.get("mesh"))
+                    fiducials=context["fiducials"], mesh=inputs.get("mesh"), mouth=context["mouth"],
+                    lips=context["lips"])
     out = backend.render(puppet, inputs["target"].astype(np.float64),
                          Pose.from_vector(inputs["pose"]), inputs["/driver/frames/photos/rgb"][:h, :w])
     return {"render/rgb": out.rgb, "render/mask": np.round(out.mask * 255).astype(np.uint8)}

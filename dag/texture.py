@@ -9,6 +9,9 @@ keep the neutral geometry with the target's detail; the renderer moves the geome
 
 Stored: ``<puppet>/texture/weighted_<k>``, ``texture/detail_<k>`` (per photo and level),
 ``texture/neutral`` (the texture at the mean fiducials) and ``drive/texture/rgb`` (per frame).
+For 3D renderers also the inside of B's mouth (:mod:`persona.plugins.face.mouth`):
+``texture/mouth`` (when a photo shows it) and ``texture/lips`` (B's mean inner-lip curves,
+written last).
 """
 
 from __future__ import annotations
@@ -19,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from persona.plugins.builtin.frontalize import frontalizing_map
+from persona.plugins.face import mouth
 from persona.plugins.face.blend import BlendCache, level_bias
 from persona.plugins.face.template import generic_template
 from persona.plugins.face.texture import Aligned
@@ -127,4 +131,39 @@ def run_frame_textures(runner, drive: Collection, puppet: Collection, retargeted
             array[start:stop] = np.stack([backend.blend(cache, fiducials, t).round().astype(np.uint8)
                                           for t in targets[start:stop]])
             bar.update(stop - start)
+    return prov
+
+
+def run_mouth(runner, coll: Collection) -> Provenance:
+    """The inside of B's mouth for the renderer (``mouth``, ``mouth_photos`` and ``mouth_min_gap``
+    of its params): the median of B's widest-open accepted photos between their inner lips, and B's
+    mean inner-lip curves in the canonical frame."""
+    name, params = runner.wf.stage("render")
+    chosen = st.default_registry().get("render", name)(params).params
+    settings = {"photos": chosen.mouth_photos, "min_gap": chosen.mouth_min_gap}
+    prov = Provenance.make(stage="mouth", backend="-", backend_version="1", params=settings,
+                           inputs={"screen": coll.provenance("status/screen/state").key},
+                           persona_version=runner.version)
+    current = coll.provenance("texture/lips")
+    if current is not None and current.key == prov.key:
+        return prov
+    ok = np.flatnonzero(st.accepted(coll))
+    points = coll.array("landmarks/points").oindex[ok].astype(np.float64)
+    sizes = coll.array("photos/size").oindex[ok]
+    photos = []
+    for i in mouth.widest(points, settings["photos"], settings["min_gap"]):
+        h, w = sizes[i]
+        photos.append((coll.array("photos/rgb")[int(ok[i])][:h, :w], points[i]))
+    interior = mouth.interior(photos)
+    if coll.has("texture/mouth"):  # an earlier run's
+        del coll.group["texture/mouth"]
+    if interior is None:
+        log.warning("%s: no photo with the lips %.2f inter-ocular distances apart; the puppet's mouth shows "
+                    "no interior when it opens", coll.path, settings["min_gap"])
+    else:
+        coll.create_single("texture/mouth", interior.round().astype(np.uint8), ("mouth_t", "mouth_s", "channel"),
+                           prov)
+    landmarks = coll.array("aligned/landmarks").oindex[ok].astype(np.float64)
+    lips = mouth.lip_curves(np.nanmean(landmarks, axis=0))
+    coll.create_single("texture/lips", lips, ("lip", "lip_node", "xy"), prov)
     return prov

@@ -112,12 +112,18 @@ class Puppet:
         M_P^t, the average shape moved by the driver's adjusted motion): the canonical (x, y, Z) of
         the surface point that carries texture pixel (row v, col u) of ``appearance``, with the
         rigid head pose removed; NaN off the face. None when only a 2D puppet exists.
+    mouth : ndarray, shape (rows, cols, 3), float32, or None — the inside of B's mouth from B's
+        open-mouth photos (:mod:`persona.plugins.face.mouth`); None when no photo shows it
+    lips : ndarray, shape (2, 5, 2), or None — B's neutral inner-lip curves (upper, lower; canonical
+        x, y), where the mesh's lips are
     """
 
     appearance: np.ndarray
     coverage: np.ndarray
     fiducials: np.ndarray
     mesh: np.ndarray | None = None
+    mouth: np.ndarray | None = None
+    lips: np.ndarray | None = None
 
 
 @dataclass(frozen=True)

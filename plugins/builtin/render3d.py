@@ -28,6 +28,7 @@ import numpy as np
 from pydantic import Field
 
 from ..base import Params
+from ..face import mouth
 from ..face.mesh import grid_triangles
 from ..hookspecs import hookimpl
 from ..kinds import Pose, Puppet, RenderBackend, Rendered
@@ -78,6 +79,19 @@ def _rasterise(xy, z, uv, triangles, depth, hit_uv, x0, y0):
                     hit_uv[r, col, 1] = (pa * uv[a, 1] + pb * uv[b, 1] + pc * uv[c, 1]) * zz
 
 
+def project(points: np.ndarray, pose: Pose) -> tuple[np.ndarray, np.ndarray]:
+    """Frame positions (n, 2) and camera depths (n,) of canonical points (n, 3) at ``pose``
+    (R X + t, then K); a point at depth <= ``_NEAR`` (behind the camera) gets an arbitrary position."""
+    rotation = cv2.Rodrigues(np.asarray(pose.rvec, np.float64))[0]
+    cam = np.asarray(points, np.float64) @ rotation.T + np.asarray(pose.tvec, np.float64).reshape(3)
+    z = cam[:, 2]
+    k = pose.camera
+    safe_z = np.where(z > _NEAR, z, 1.0)
+    xy = np.stack([k[0, 0] * cam[:, 0] / safe_z + k[0, 1] * cam[:, 1] / safe_z + k[0, 2],
+                   k[1, 1] * cam[:, 1] / safe_z + k[1, 2]], axis=1)
+    return xy, z
+
+
 def surface_map(mesh: np.ndarray, pose: Pose, frame_size: tuple[int, int], pad: int = 0):
     """Where each frame pixel sees the mesh: its texture coordinate (u, v) and camera depth.
 
@@ -95,17 +109,10 @@ def surface_map(mesh: np.ndarray, pose: Pose, frame_size: tuple[int, int], pad: 
         return None, None, None
     vs, us = np.mgrid[0:grid_h, 0:grid_w]
     uv = np.stack([us, vs], axis=-1).reshape(-1, 2).astype(np.float64)
-    rotation = cv2.Rodrigues(np.asarray(pose.rvec, np.float64))[0]
-    points = np.where(finite[..., None], mesh, 0).reshape(-1, 3).astype(np.float64)
-    cam = points @ rotation.T + np.asarray(pose.tvec, np.float64).reshape(3)
-    z = cam[:, 2]
-    k = pose.camera
+    xy, z = project(np.where(finite[..., None], mesh, 0).reshape(-1, 3), pose)
     front = finite.ravel() & (z > _NEAR)
     if not front.any():
         return None, None, None
-    safe_z = np.where(z > _NEAR, z, 1.0)
-    xy = np.stack([k[0, 0] * cam[:, 0] / safe_z + k[0, 1] * cam[:, 1] / safe_z + k[0, 2],
-                   k[1, 1] * cam[:, 1] / safe_z + k[1, 2]], axis=1)
     lo = np.floor(xy[front].min(axis=0)).astype(int) - pad
     hi = np.ceil(xy[front].max(axis=0)).astype(int) + pad + 1
     x0, y0 = max(lo[0], 0), max(lo[1], 0)
@@ -142,6 +149,14 @@ class RaycastRender(RenderBackend):
         background: Literal["grey", "driver"] = Field(
             "grey", description="what surrounds the face: plain grey (the puppet alone, as the "
             "paper shows it) or the driver's frame")
+        mouth: bool = Field(True, description="draw the inside of B's mouth (from B's widest-open "
+                            "photos) between B's inner lips where the mesh parts them, instead of the "
+                            "stretched skin of a surface that cannot open (not in the paper; "
+                            "persona.plugins.face.mouth)")
+        mouth_photos: int = Field(5, ge=1, le=100, description="how many of B's widest-open photos make "
+                                  "the mouth's interior (their per-pixel median)")
+        mouth_min_gap: float = Field(0.08, ge=0, description="a photo counts as open when its inner lips "
+                                     "are this many inter-ocular distances apart")
 
     def render(self, puppet: Puppet, target: np.ndarray, pose: Pose, frame: np.ndarray) -> Rendered:
         """target is not used: the expression is already in ``puppet.mesh`` and ``puppet.appearance``."""
@@ -173,6 +188,13 @@ class RaycastRender(RenderBackend):
         back = out[y0:y1, x0:x1].astype(np.float32)
         blend = rgb * part[..., None] + back * (1 - part[..., None])
         out[y0:y1, x0:x1] = np.clip(blend, 0, 255).round().astype(np.uint8)
+        if self.params.mouth and puppet.mouth is not None and puppet.lips is not None:
+            lips = np.asarray(puppet.lips, np.float32).reshape(1, -1, 2)
+            on_mesh = np.stack([cv2.remap(np.ascontiguousarray(puppet.mesh[..., c], dtype=np.float32), lips[..., 0],
+                                          lips[..., 1], cv2.INTER_LINEAR)[0] for c in range(3)], axis=-1)
+            xy, z = project(on_mesh, pose)
+            if np.all(z > _NEAR):
+                mouth.draw(out, mask, np.asarray(puppet.mouth, np.float32), xy.reshape(2, -1, 2))
         return Rendered(rgb=out, mask=mask)
 
 @hookimpl

@@ -1,0 +1,122 @@
+"""The mouth's interior: B's own teeth and dark cavity, drawn where B's lips part.
+
+A depth-map surface cannot open: when the driver's lips part, B's mesh stretches the skin of
+the lip line across the gap. Instead, the gap between B's inner lips is filled with the inside
+of B's mouth as B's own open-mouth photos show it (issue 12, "lips that part").
+
+**The interior image.** Each photo's inner lips (iBUG 60-67) are two curves from one inner
+corner to the other: the upper lip through 60, 61, 62, 63, 64 and the lower through 60, 67, 66,
+65, 64. A point of the gap has a position ``s`` along the mouth (the five nodes at s = 0, 1/4,
+1/2, 3/4, 1, linear between them) and a height ``t`` from the upper curve (0) to the lower (1).
+B's photos whose inner lips are furthest apart (over ``min_gap`` inter-ocular distances) are
+resampled on that (s, t) rectangle, and the per-pixel median of the widest ``count`` is the
+interior image: teeth at the top, the dark cavity below, as in B's own photos.
+
+**Drawing it.** In each output frame the renderer projects B's inner-lip curves as the frame's
+mesh moved them and maps the interior image into the gap between them, quad by quad between
+the nodes (two affine triangles each), over the face it rendered: the stretched skin is hidden,
+the lips themselves stay (they lie outside the gap). Closed lips leave a gap of no area, so
+nothing is drawn.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+#: the iBUG-68 indices of the inner lips: upper curve and lower curve, corner to corner
+UPPER = (60, 61, 62, 63, 64)
+LOWER = (60, 67, 66, 65, 64)
+#: (rows, cols) of the interior image
+SIZE = (32, 64)
+
+
+def lip_curves(landmarks68: np.ndarray) -> np.ndarray:
+    """(2, 5, 2): the upper and lower inner-lip curves (x, y) of 68 landmarks."""
+    lm = np.asarray(landmarks68, np.float64)
+    return np.stack([lm[list(UPPER)], lm[list(LOWER)]])
+
+
+def lip_gap(landmarks68: np.ndarray) -> np.ndarray:
+    """(n,) the mean distance between the inner lips (61-67, 62-66, 63-65) over the inter-ocular
+    distance, for landmarks (n, 68, 2); NaN where a point is missing."""
+    lm = np.asarray(landmarks68, np.float64)
+    iod = np.linalg.norm(lm[:, 36:42].mean(axis=1) - lm[:, 42:48].mean(axis=1), axis=1)
+    gap = np.linalg.norm(lm[:, [61, 62, 63]] - lm[:, [67, 66, 65]], axis=2).mean(axis=1)
+    return gap / iod
+
+
+def _positions(curves: np.ndarray, size: tuple[int, int] = SIZE) -> np.ndarray:
+    """(rows, cols, 2): the image point (x, y) of every (s, t) cell of the interior rectangle."""
+    rows, cols = size
+    s = np.linspace(0, 1, cols) * (curves.shape[1] - 1)
+    k = np.minimum(np.floor(s).astype(int), curves.shape[1] - 2)
+    a = (s - k)[:, None]
+    upper = curves[0, k] * (1 - a) + curves[0, k + 1] * a  # (cols, 2)
+    lower = curves[1, k] * (1 - a) + curves[1, k + 1] * a
+    t = np.linspace(0, 1, rows)[:, None, None]
+    return upper[None] * (1 - t) + lower[None] * t
+
+
+def interior(photos) -> np.ndarray | None:
+    """The interior image (rows, cols, 3) float32 0-255: the per-pixel median over ``photos``, an
+    iterable of (rgb (h, w, 3), landmarks (68, 2) in that photo's pixels), of each photo's gap
+    resampled on the (s, t) rectangle; None for no photos. Choose them with :func:`widest`."""
+    samples = []
+    for rgb, landmarks in photos:
+        at = _positions(lip_curves(landmarks)).astype(np.float32)
+        samples.append(cv2.remap(np.asarray(rgb, np.float32), at[..., 0], at[..., 1], cv2.INTER_LINEAR,
+                                 borderMode=cv2.BORDER_REPLICATE))
+    return np.median(np.stack(samples), axis=0).astype(np.float32) if samples else None
+
+
+def widest(landmarks68: np.ndarray, count: int, min_gap: float) -> np.ndarray:
+    """Indices of the (at most) ``count`` photos whose inner lips are furthest apart, widest first,
+    among those open by ``min_gap`` inter-ocular distances."""
+    gap = lip_gap(landmarks68)
+    gap = np.where(np.isfinite(gap), gap, -np.inf)
+    order = np.argsort(-gap, kind="stable")
+    return order[gap[order] >= min_gap][:count]
+
+
+def draw(out: np.ndarray, face: np.ndarray, image: np.ndarray, curves: np.ndarray) -> None:
+    """Draw the interior ``image`` into the frame ``out`` (h, w, 3) uint8, in place, between the
+    frame's inner-lip ``curves`` (2, 5, 2), where the rendered ``face`` mask (h, w) float is; the
+    gap's edge is softened over a pixel."""
+    h, w = out.shape[:2]
+    curves = np.asarray(curves, np.float64)
+    if not np.all(np.isfinite(curves)):
+        return
+    lo = np.floor(curves.reshape(-1, 2).min(axis=0)).astype(int) - 2
+    hi = np.ceil(curves.reshape(-1, 2).max(axis=0)).astype(int) + 3
+    x0, y0 = max(lo[0], 0), max(lo[1], 0)
+    x1, y1 = min(hi[0], w), min(hi[1], h)
+    if x1 <= x0 or y1 <= y0:
+        return
+    rows, cols = image.shape[:2]
+    nodes = curves.shape[1]
+    src_x = np.linspace(0, cols - 1, nodes)
+    paint = np.zeros((y1 - y0, x1 - x0, 3), np.float32)
+    cover = np.zeros((y1 - y0, x1 - x0), np.float32)
+    offset = np.array([x0, y0], np.float64)
+    for k in range(nodes - 1):
+        quad_dst = np.array([curves[0, k], curves[0, k + 1], curves[1, k + 1], curves[1, k]]) - offset
+        quad_src = np.array([[src_x[k], 0], [src_x[k + 1], 0], [src_x[k + 1], rows - 1], [src_x[k], rows - 1]])
+        for tri in ((0, 1, 2), (0, 2, 3)):
+            dst, src = quad_dst[list(tri)], quad_src[list(tri)]
+            (ax, ay), (bx, by) = dst[1] - dst[0], dst[2] - dst[0]
+            if abs(ax * by - ay * bx) < 0.5:  # under a quarter pixel of area
+                continue
+            matrix = cv2.getAffineTransform(src.astype(np.float32), dst.astype(np.float32))
+            warped = cv2.warpAffine(image, matrix, (x1 - x0, y1 - y0), flags=cv2.INTER_LINEAR,
+                                    borderMode=cv2.BORDER_REPLICATE)
+            inside = np.zeros((y1 - y0, x1 - x0), np.uint8)
+            cv2.fillConvexPoly(inside, np.round(dst * 16).astype(np.int32), 1, cv2.LINE_AA, shift=4)
+            take = (inside > 0) & (cover == 0)
+            paint[take] = warped[take]
+            cover[take] = 1
+    if not cover.any():
+        return
+    alpha = cv2.GaussianBlur(cover, (0, 0), 0.6) * cover * face[y0:y1, x0:x1]
+    region = out[y0:y1, x0:x1].astype(np.float32)
+    out[y0:y1, x0:x1] = np.clip(paint * alpha[..., None] + region * (1 - alpha[..., None]), 0, 255).round().astype(np.uint8)

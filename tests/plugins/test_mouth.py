@@ -1,0 +1,93 @@
+"""The inside of the mouth (persona.plugins.face.mouth): taken from open-mouth photos, drawn between
+the lips where the puppet's mesh parts them."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from persona.plugins.builtin.render3d import RaycastRender
+from persona.plugins.face import mouth
+from persona.plugins.face.synthetic import Expression, look_at_pose, make_face
+from persona.plugins.kinds import Pose, Puppet
+
+BLUE = np.array([0.0, 0.0, 255.0], np.float32)
+
+
+def open_photo(gap: float, width: float = 60.0, size: int = 160):
+    """A white photo with a black mouth between two lips ``gap`` px apart (both curves straight, the
+    inner corners at the gap's middle height), and its 68 landmarks (eyes 50 px apart)."""
+    rgb = np.full((size, size, 3), 255, np.uint8)
+    lm = np.zeros((68, 2))
+    lm[36:42] = [55, 60]
+    lm[42:48] = [105, 60]
+    cx, cy = 80.0, 110.0
+    xs = cx + width * (np.arange(5) / 4 - 0.5)
+    lm[[60, 61, 62, 63, 64]] = np.c_[xs, np.r_[cy, [cy - gap / 2] * 3, cy]]
+    lm[[60, 67, 66, 65, 64]] = np.c_[xs, np.r_[cy, [cy + gap / 2] * 3, cy]]
+    top, bottom = int(round(cy - gap / 2)), int(round(cy + gap / 2))
+    rgb[top:bottom + 1, int(xs[1]):int(xs[3]) + 1] = 0
+    return rgb, lm
+
+
+def test_gap_and_the_widest_photos():
+    photos = [open_photo(g) for g in (4.0, 20.0, 0.0, 12.0)]
+    landmarks = np.stack([p[1] for p in photos])
+    landmarks[3, 62] = np.nan  # a photo with a missing point is never chosen
+    np.testing.assert_allclose(mouth.lip_gap(landmarks)[:3], [4 / 50, 20 / 50, 0.0])  # over the eyes' 50 px
+    assert np.isnan(mouth.lip_gap(landmarks)[3])
+    assert list(mouth.widest(landmarks, count=5, min_gap=0.05)) == [1, 0]
+    assert list(mouth.widest(landmarks, count=1, min_gap=0.05)) == [1]
+    assert len(mouth.widest(landmarks, count=5, min_gap=1.0)) == 0
+
+
+def test_interior_is_the_photos_gap():
+    """The gap of a photo is black between its inner lips, white outside: the interior image is
+    black in its middle columns from top to bottom, whatever the gap's size."""
+    image = mouth.interior([open_photo(24.0), open_photo(12.0), open_photo(30.0)])
+    rows, cols = mouth.SIZE
+    assert image.shape == (rows, cols, 3)
+    middle = image[2:-2, int(cols * 0.3):int(cols * 0.7)]
+    assert middle.max() < 40, middle.max()
+    assert mouth.interior([]) is None
+
+
+def test_draw_fills_the_gap_only_where_the_face_is():
+    out = np.full((100, 120, 3), 200, np.uint8)
+    face = np.ones((100, 120), np.float32)
+    face[:, 90:] = 0  # no face there: nothing is drawn
+    xs = np.linspace(20, 100, 5)
+    curves = np.stack([np.c_[xs, [50, 40, 40, 40, 50]], np.c_[xs, [50, 60, 60, 60, 50]]])
+    mouth.draw(out, face, np.broadcast_to(BLUE, (32, 64, 3)).copy(), curves)
+    blue = (out[..., 2] > 200) & (out[..., 0] < 50)
+    assert blue[44:57, 40:80].all()  # inside the gap
+    assert not blue[:35].any() and not blue[65:].any()  # above and below it
+    assert not blue[:, 90:].any()
+    closed = np.full((100, 120, 3), 200, np.uint8)
+    mouth.draw(closed, face, np.broadcast_to(BLUE, (32, 64, 3)).copy(),
+               np.stack([curves[0], curves[0]]))  # lips together: no area, nothing drawn
+    assert (closed == 200).all()
+
+
+def _blue_pixels(expression: Expression, draw: bool) -> int:
+    face = make_face(expression=expression)
+    neutral = make_face()
+    lips = mouth.lip_curves(neutral.landmarks3d[:, :2])
+    mesh = np.where(face.vert_mask[..., None], face.verts, np.nan).astype(np.float32)
+    puppet = Puppet(appearance=(face.vert_albedo * 255).astype(np.float32),
+                    coverage=np.ones(face.vert_mask.shape, np.float32), fiducials=face.landmarks3d[:, :2],
+                    mesh=mesh, mouth=np.broadcast_to(BLUE, (32, 64, 3)).copy(), lips=lips)
+    rvec, tvec, camera = look_at_pose(0.0, 0.0, 0.0, face_px=170.0, image_size=(260, 240))
+    out = RaycastRender({"mouth": draw}).render(puppet, None, Pose(rvec, tvec, camera, 0.0),
+                                                np.zeros((260, 240, 3), np.uint8))
+    rgb = out.rgb.astype(int)
+    return int(np.count_nonzero((rgb[..., 2] > 180) & (rgb[..., 0] < 60) & (rgb[..., 1] < 60)))
+
+
+def test_the_renderer_shows_the_interior_when_the_lips_part():
+    """A synthetic face whose jaw drops: the renderer draws the interior between the lips as the
+    mesh moved them (measured 670 px wide open, 236 at rest: the synthetic face's lips rest a little
+    apart), only the antialiased rim with the lips closed (8 px), none with ``mouth: false``."""
+    wide, rest = _blue_pixels(Expression(open=1.0), draw=True), _blue_pixels(Expression(), draw=True)
+    assert wide > 2 * rest > 200
+    assert _blue_pixels(Expression(open=-1.0), draw=True) < 30
+    assert _blue_pixels(Expression(open=1.0), draw=False) == 0
