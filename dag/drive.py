@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from persona.plugins.face.composite import multiband
 from persona.plugins.face.dynamics import smooth_in_time
 from persona.plugins.face.fiducials import mean_shape
 from persona.plugins.face.tracks import bridge
@@ -80,8 +81,8 @@ def _retarget(runner, drive, frames, puppet, found, prov, sigma: float) -> None:
 
 def write_videos(drive: Collection, frames: Collection, output: Path) -> dict[str, str]:
     """puppet.mp4 (the puppet as rendered), side_by_side.mp4 (driver | puppet) and composite.mp4
-    (the puppet's face blended into the driver's frames through the render's soft mask), at the
-    video's fps."""
+    (the puppet's face blended into the driver's frames through the render's soft mask, band by
+    band: :func:`persona.plugins.face.composite.multiband`), at the video's fps."""
     fps = float(drive.attrs["fps"])
 
     def shards(*arrays, composite=False):
@@ -89,8 +90,7 @@ def write_videos(drive: Collection, frames: Collection, output: Path) -> dict[st
             parts = [a[start:stop] for a in arrays]
             if composite:
                 rendered, original, mask = parts
-                alpha = mask[..., None].astype(np.float32) / 255
-                parts = [np.round(rendered * alpha + original * (1 - alpha)).astype(np.uint8)]
+                parts = [np.stack([multiband(r, o, m.astype(np.float32) / 255) for r, o, m in zip(*parts)])]
             yield from (np.concatenate(row, axis=1) for row in zip(*parts))
 
     rendered, original, mask = drive.array("render/rgb"), frames.array("photos/rgb"), drive.array("render/mask")

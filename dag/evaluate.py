@@ -9,6 +9,9 @@ Figures (paper §6, with dlib's descriptor and landmarks only; nothing downloade
 - amplitude: for the same signals, the gain (slope of the output's signal on the driver's:
   1 = the same amplitude, which a correlation cannot see), the correlation and both ranges;
 - stability: landmark jitter and face-colour flicker, output over driver;
+- composite: the seam of composite.mp4 along the rendered face's edge (colour step across it beyond
+  the driver frame's own, gradient energy on it over the frame's), medians over every 4th frame,
+  beside the same for a plain paste through the mask;
 - self-reenactment (when asked): PSNR and SSIM of the output against A's real frames
   inside the rendered face;
 - motion (3D runs): the same expression signals computed from the fiducials moved by A's
@@ -25,6 +28,7 @@ import numpy as np
 
 from persona.plugins.builtin import evaluate as ev
 from persona.plugins.builtin.landmarks import DlibLandmarks
+from persona.plugins.face import composite
 from persona.plugins.base import Rejected
 from persona.plugins.manager import default_registry
 from persona.stores.errors import InputError
@@ -56,13 +60,15 @@ def analyse_frames(url: str, start: int, stop: int, identity: tuple[str, dict], 
     root = open_store(url, mode="r")
     drive, frames = Collection(root, "drive"), Collection(root, "driver/frames")
     rendered = drive.array("render/rgb")[start:stop]
-    masks = drive.array("render/mask")[start:stop] > 127
+    alphas = drive.array("render/mask")[start:stop]
+    masks = alphas > 127
     original = frames.array("photos/rgb")[start:stop]
     detector, backend = DlibLandmarks(), _identity(identity)
     n = stop - start
     landmarks = np.full((n, 68, 2), np.nan)
     descriptors = np.full((n, 128), np.nan)
     psnr, ssim = np.full(n, np.nan), np.full(n, np.nan)
+    seams = {"multiband": [], "paste": []}
     for j in range(n):
         try:
             landmarks[j] = detector.detect(rendered[j]).points
@@ -72,7 +78,16 @@ def analyse_frames(url: str, start: int, stop: int, identity: tuple[str, dict], 
         if compare and masks[j].any():
             psnr[j] = ev.masked_psnr(rendered[j], original[j], masks[j])
             ssim[j] = ev.masked_ssim(rendered[j], original[j], masks[j])
+        if (start + j) % 4 == 0:
+            alpha = alphas[j].astype(np.float32) / 255
+            a = alpha[..., None]
+            for name, image in (("multiband", composite.multiband(rendered[j], original[j], alpha)),
+                                ("paste", np.round(rendered[j] * a + original[j] * (1 - a)).astype(np.uint8))):
+                found = composite.seam(image, original[j], alpha)
+                if found is not None:
+                    seams[name].append([found["colour_step"], found["gradient_ratio"]])
     return {"start": start, "landmarks": landmarks, "descriptors": descriptors, "psnr": psnr, "ssim": ssim,
+            **{f"seam_{k}": np.array(v).reshape(-1, 2) for k, v in seams.items()},
             "colour_output": ev.masked_mean_colours(rendered, masks),
             "colour_driver": ev.masked_mean_colours(original, masks)}
 
@@ -113,6 +128,8 @@ def evaluate(store: str, executor, *, identity: tuple[str, dict], threshold: flo
         "expression": video["expression"],
         "amplitude": video["amplitude"],
         "stability": stability,
+        "composite": {k: {"colour_step": _median(joined[f"seam_{k}"][:, 0]),
+                          "gradient_ratio": _median(joined[f"seam_{k}"][:, 1])} for k in ("multiband", "paste")},
         "frames": drive.n,
         "bridged_frames": int(drive.array("bridged")[:].sum()),
         "series": {
@@ -153,6 +170,10 @@ def mesh_expression(root, meshes: str, actor: str, driver_landmarks: np.ndarray)
 
 def _ratio(a: float, b: float) -> float:
     return a / b if np.isfinite(a) and np.isfinite(b) and b != 0 else float("nan")
+
+
+def _median(values: np.ndarray) -> float | None:
+    return float(np.median(values)) if len(values) else None
 
 
 def _nanmean(values: np.ndarray) -> float:

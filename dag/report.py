@@ -94,6 +94,10 @@ def write_report(path: Path, *, metrics: dict, pictures: dict[str, np.ndarray], 
         rows += [(f"expression gain (output / driver, target 1): {k.replace('_', ' ')}", a["gain"])
                  for k, a in ev.get("amplitude", {}).items()]
         rows += [(k.replace("_", " "), v) for k, v in ev["stability"].items()]
+        rows += [(f"composite seam ({how}): colour step beyond the driver's own (grey levels, lower is better)",
+                  f["colour_step"]) for how, f in ev.get("composite", {}).items()]
+        rows += [(f"composite seam ({how}): gradient energy over the driver's (1 = as smooth)", f["gradient_ratio"])
+                 for how, f in ev.get("composite", {}).items()]
         rows += [(f"self-reenactment {k}", v) for k, v in ev.get("self_reenactment", {}).items()]
         rows += [(f"{who.replace('_', ' ')} follow A's landmarks: {k.replace('_', ' ')} (gain, r)",
                   f"{a['gain']:.2f}, {a['r']:.2f}") for who, figures in ev.get("motion", {}).items()
