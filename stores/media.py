@@ -831,17 +831,30 @@ def read_landmark_sidecar(image_path) -> np.ndarray | None:
     return xy
 
 
+def _umask() -> int:
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+#: the process's umask, read once at import (reading it means setting it, which is not thread-safe)
+_UMASK = _umask()
+
+
 @contextlib.contextmanager
 def atomic_path(path, suffix: str | None = None) -> Iterator[str]:
     """A temporary file beside ``path`` to write; it replaces ``path`` only if the block
     succeeds, and is removed otherwise, so an interrupted write never leaves half a file.
-    ``suffix`` (default: the path's own) lets writers that pick a format by extension work."""
+    ``suffix`` (default: the path's own) lets writers that pick a format by extension work.
+    The file gets the mode any new file would (0666 less the umask), not the temporary
+    file's private 0600."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=suffix or path.suffix or ".tmp")
     os.close(fd)
     try:
         yield tmp
+        os.chmod(tmp, 0o666 & ~_UMASK)
         os.replace(tmp, path)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):

@@ -625,3 +625,15 @@ def test_decoding_in_threads_restores_warning_filters(bad):
     assert len(results) == 20 * len(expected)
     assert warnings.filters == before
     assert media._quiet_depth == 0
+
+
+@pytest.mark.parametrize("umask", [0o022, 0o002, 0o077])
+def test_outputs_get_the_mode_of_any_new_file(tmp_path, faces, monkeypatch, umask):
+    """Outputs are written to a private temporary file and renamed: they must end with the mode a
+    new file gets under the umask (0644 under 022), not the temporary file's 0600, or nobody else on
+    a shared machine or a web server can read them."""
+    monkeypatch.setattr(media, "_UMASK", umask)
+    media.write_png(tmp_path / "a.png", faces[0])
+    media.write_video_mp4(tmp_path / "a.mp4", [faces[0]] * 2, 25)
+    for name in ("a.png", "a.mp4"):
+        assert (tmp_path / name).stat().st_mode & 0o777 == 0o666 & ~umask, name
