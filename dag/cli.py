@@ -8,8 +8,9 @@ import shlex
 import sys
 from pathlib import Path
 
+from persona.plugins.base import Rejected
 from persona.plugins.manager import PluginError
-from persona.stores.errors import PersonaError
+from persona.stores.errors import InputError, PersonaError
 
 
 def _cmd_run(args) -> int:
@@ -25,6 +26,8 @@ def _cmd_run(args) -> int:
     except KeyboardInterrupt:
         _resume_hint(args)
         return 130
+    except (InputError, Rejected):  # the input must change: running again as it is cannot help
+        raise
     except Exception:
         _resume_hint(args)
         raise
@@ -162,8 +165,12 @@ def _evaluate_texture(wf, args) -> int:
 def _cmd_validate(args) -> int:
     from .workflow import load_workflow
 
+    from .runner import check_inputs
+
     wf = load_workflow(args.workflow, args.set)
-    print(f"{args.workflow}: valid")
+    counts = check_inputs(wf)
+    print(f"{args.workflow}: valid; " + ", ".join(f"{path}: {n} {'frames' if path == 'driver/frames' else 'photos'}"
+                                                 for path, n in counts.items()))
     print(_plan(wf))
     return 0
 
@@ -232,9 +239,16 @@ def _cmd_inspect(args) -> int:
     return 0
 
 
+def _version() -> str:
+    from .runner import persona_version
+
+    return persona_version()
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="persona", description=(
         "Build a controllable 3D face puppet from a photo collection and drive it with a video."))
+    parser.add_argument("--version", action="version", version=f"%(prog)s {_version()}")
     sub = parser.add_subparsers(dest="command", required=True)
 
     def common_run(p):
@@ -300,7 +314,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)
-    except (PersonaError, PluginError) as exc:
+    except (PersonaError, PluginError, Rejected) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     except BrokenPipeError:  # e.g. `persona plugins | head`

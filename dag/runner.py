@@ -145,6 +145,22 @@ def collection_specs(wf: Workflow) -> list[tuple[str, object]]:
     return specs
 
 
+def check_inputs(wf: Workflow) -> dict[str, int]:
+    """Resolve every collection's photos and videos before any work is done or any file created:
+    paths that do not exist, empty folders and frame ranges, files that are not videos where a video
+    is needed and videos that do not open raise an :class:`InputError` naming them. Returns the
+    number of photos (or frames) of each collection; takes a second or two (a video's frames are
+    counted, not decoded)."""
+    counts = {}
+    for path, spec in collection_specs(wf):
+        sources = media.resolve_sources(_media_spec(spec), wf.base_dir)
+        if path == "driver/frames" and any(s.frame is None for s in sources):
+            raise InputError(f"driver.video: {sources[0].path} is not a video; give a video file (.mp4, .mov, "
+                             "...) or a range {video: PATH, start: 0, stop: N}")
+        counts[path] = len(sources)
+    return counts
+
+
 def _media_spec(spec):
     if isinstance(spec, list):
         return [_media_spec(item) for item in spec]
@@ -465,6 +481,9 @@ def executor_for(wf: Workflow, scheduler: str | None = None, workers: int | None
 
 def run_workflow(wf: Workflow, *, scheduler: str | None = None, workers: int | None = None,
                  progress: bool = True) -> dict:
-    """Run every stage of a workflow; returns the run report (also in OUTPUT/metrics.json)."""
+    """Run every stage of a workflow; returns the run report (also in OUTPUT/metrics.json). The
+    inputs are checked first (:func:`check_inputs`): a bad one stops the run before anything is
+    created."""
+    check_inputs(wf)
     with executor_for(wf, scheduler, workers) as ex:
         return Runner(wf, ex, progress=progress).run()

@@ -371,7 +371,9 @@ def _quiet_warnings():
 
 
 def _short(e: BaseException, limit: int = 160) -> str:
-    text = str(e).strip() or type(e).__name__
+    """The error's message on one line, at most ``limit`` characters; for OS-level errors (PyAV's
+    among them) the plain reason, without the "[Errno N]" and the path repeated."""
+    text = (getattr(e, "strerror", None) or str(e)).strip() or type(e).__name__
     text = " ".join(text.split())
     return text if len(text) <= limit else text[: limit - 3] + "..."
 
