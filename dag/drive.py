@@ -10,6 +10,7 @@ the ``drive`` collection, whose photo axis is the driver's frame axis.
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import numpy as np
@@ -26,6 +27,8 @@ from persona.stores.provenance import Provenance
 from . import stages as st
 from .motion import export_meshes, run_motion
 from .texture import run_frame_textures, run_mouth
+
+log = logging.getLogger(__name__)
 
 
 def run_drive(runner) -> Collection:
@@ -79,10 +82,22 @@ def _retarget(runner, drive, frames, puppet, found, prov, sigma: float) -> None:
     drive.write_status("retarget", 0, np.full(n, OK, np.int8), [""] * n)
 
 
+def driver_sound(frames: Collection, fps: float) -> media.Audio | None:
+    """The driver video's sound over the frames used (a frame range cuts it to match), or None:
+    when the video has none, or the frames skip (``step`` > 1) and no sound can follow them."""
+    index = frames.array("photos/frame")[:]
+    sources = set(frames.array("photos/source")[:].tolist())
+    if len(sources) != 1 or len(index) == 0 or np.any(np.diff(index) != 1):
+        log.info("the driver's frames are not one continuous stretch of one video: the videos have no sound")
+        return None
+    return media.read_audio(sources.pop(), index[0] / fps, (index[-1] + 1) / fps)
+
+
 def write_videos(drive: Collection, frames: Collection, output: Path) -> dict[str, str]:
     """puppet.mp4 (the puppet as rendered), side_by_side.mp4 (driver | puppet) and composite.mp4
     (the puppet's face blended into the driver's frames through the render's soft mask, band by
-    band: :func:`persona.plugins.face.composite.multiband`), at the video's fps."""
+    band: :func:`persona.plugins.face.composite.multiband`), at the video's fps, with the driver
+    video's sound (:func:`driver_sound`)."""
     fps = float(drive.attrs["fps"])
 
     def shards(*arrays, composite=False):
@@ -94,7 +109,8 @@ def write_videos(drive: Collection, frames: Collection, output: Path) -> dict[st
             yield from (np.concatenate(row, axis=1) for row in zip(*parts))
 
     rendered, original, mask = drive.array("render/rgb"), frames.array("photos/rgb"), drive.array("render/mask")
-    media.write_video_mp4(output / "puppet.mp4", shards(rendered), fps)
-    media.write_video_mp4(output / "side_by_side.mp4", shards(original, rendered), fps)
-    media.write_video_mp4(output / "composite.mp4", shards(rendered, original, mask, composite=True), fps)
+    sound = driver_sound(frames, fps)
+    media.write_video_mp4(output / "puppet.mp4", shards(rendered), fps, sound)
+    media.write_video_mp4(output / "side_by_side.mp4", shards(original, rendered), fps, sound)
+    media.write_video_mp4(output / "composite.mp4", shards(rendered, original, mask, composite=True), fps, sound)
     return {name: str(output / f"{name}.mp4") for name in ("puppet", "side_by_side", "composite")}

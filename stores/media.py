@@ -951,8 +951,74 @@ def _rate(fps: float) -> Fraction:
     return Fraction(fps).limit_denominator(1001)
 
 
-def write_video_mp4(path, frames: Iterable[np.ndarray], fps: float) -> None:
-    """Encode uint8 RGB (or grey) frames as H.264 (libx264, yuv420p) MP4 with PyAV.
+@dataclass(frozen=True)
+class Audio:
+    """Decoded sound: ``samples`` (channels, n) float32 in [-1, 1] at ``rate`` Hz."""
+
+    samples: np.ndarray
+    rate: int
+
+
+def read_audio(path, start: float = 0.0, stop: float | None = None) -> Audio | None:
+    """The first audio stream of a video from ``start`` to ``stop`` seconds (of the stream's own
+    clock, which starts at its first sample), or None when the file has no sound."""
+    import av
+
+    try:
+        container = av.open(str(path))
+    except Exception as e:  # noqa: BLE001 - av.error.*
+        raise InputError(f"cannot read the sound of {path}: {_short(e)}") from None
+    with container:
+        if not container.streams.audio:
+            return None
+        stream = container.streams.audio[0]
+        resampler = av.AudioResampler(format="fltp", layout="stereo" if stream.channels > 1 else "mono",
+                                      rate=stream.rate)
+        chunks = []
+        for frame in container.decode(stream):
+            for out in resampler.resample(frame):
+                chunks.append(out.to_ndarray())
+        for out in resampler.resample(None):
+            chunks.append(out.to_ndarray())
+        if not chunks:
+            return None
+        samples = np.concatenate(chunks, axis=1).astype(np.float32)
+        first = int(round(start * stream.rate))
+        last = samples.shape[1] if stop is None else int(round(stop * stream.rate))
+        return Audio(np.ascontiguousarray(samples[:, max(first, 0):last]), int(stream.rate))
+
+
+def _add_audio_stream(container, audio: Audio):
+    """An AAC stream for ``audio`` (added with the video's, before anything is written)."""
+    stream = container.add_stream("aac", rate=audio.rate)
+    stream.codec_context.layout = "stereo" if audio.samples.shape[0] > 1 else "mono"
+    stream.codec_context.format = "fltp"
+    stream.codec_context.time_base = Fraction(1, audio.rate)
+    return stream
+
+
+def _encode_audio(container, stream, audio: Audio, duration: float) -> None:
+    """Encode ``audio``, cut or padded with silence to ``duration`` seconds, into ``stream``."""
+    import av
+
+    n = int(round(duration * audio.rate))
+    samples = np.zeros((audio.samples.shape[0], n), np.float32)
+    take = min(n, audio.samples.shape[1])
+    samples[:, :take] = audio.samples[:, :take]
+    size = stream.codec_context.frame_size or 1024
+    for offset in range(0, n, size):
+        frame = av.AudioFrame.from_ndarray(np.ascontiguousarray(samples[:, offset:offset + size]), format="fltp",
+                                           layout=stream.codec_context.layout.name)
+        frame.sample_rate, frame.pts, frame.time_base = audio.rate, offset, Fraction(1, audio.rate)
+        for packet in stream.encode(frame):
+            container.mux(packet)
+    for packet in stream.encode(None):
+        container.mux(packet)
+
+
+def write_video_mp4(path, frames: Iterable[np.ndarray], fps: float, audio: Audio | None = None) -> None:
+    """Encode uint8 RGB (or grey) frames as H.264 (libx264, yuv420p) MP4 with PyAV, with ``audio``
+    (AAC, cut or padded to the frames' duration) when given.
 
     Odd sizes are padded to even by repeating the last row/column (yuv420p needs even
     sizes). All frames must have the first frame's size. Written atomically (temporary
@@ -981,6 +1047,7 @@ def write_video_mp4(path, frames: Iterable[np.ndarray], fps: float) -> None:
                     stream.pix_fmt = "yuv420p"
                     stream.options = {"crf": "18", "preset": "medium"}
                     stream.codec_context.time_base = 1 / rate
+                    sound = _add_audio_stream(container, audio) if audio is not None else None
                 elif a.shape[:2] != size:
                     raise ValueError(
                         f"frame {i} is {a.shape[1]}x{a.shape[0]}, expected {size[1]}x{size[0]} like frame 0"
@@ -997,5 +1064,7 @@ def write_video_mp4(path, frames: Iterable[np.ndarray], fps: float) -> None:
                 raise ValueError(f"write_video_mp4({path}): no frames")
             for packet in stream.encode(None):
                 container.mux(packet)
+            if audio is not None:
+                _encode_audio(container, sound, audio, n / float(rate))
         finally:
             container.close()

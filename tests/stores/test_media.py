@@ -637,3 +637,34 @@ def test_outputs_get_the_mode_of_any_new_file(tmp_path, faces, monkeypatch, umas
     media.write_video_mp4(tmp_path / "a.mp4", [faces[0]] * 2, 25)
     for name in ("a.png", "a.mp4"):
         assert (tmp_path / name).stat().st_mode & 0o777 == 0o666 & ~umask, name
+
+
+def test_sound_is_carried_across_and_cut_to_a_frame_range(tmp_path):
+    """A 4 s video whose sound is a tone rising in pitch: its frames 25-74 (1-3 s) re-encoded with
+    the sound cut to the same range keep a sound stream exactly as long as the video, in sync with
+    the source to within a millisecond; a video without sound has None."""
+    rate, fps = 44100, 25
+    t = np.arange(4 * rate) / rate
+    tone = (0.5 * np.sin(2 * np.pi * (200 + 100 * t) * t)).astype(np.float32)
+    frames = [np.full((32, 32, 3), i, np.uint8) for i in range(4 * fps)]
+    source = tmp_path / "source.mp4"
+    media.write_video_mp4(source, frames, fps, media.Audio(np.stack([tone, tone]), rate))
+    whole = media.read_audio(source)
+    assert whole.rate == rate and whole.samples.shape[0] == 2
+
+    cut = media.read_audio(source, 25 / fps, 75 / fps)
+    out = tmp_path / "cut.mp4"
+    media.write_video_mp4(out, frames[25:75], fps, cut)
+    import av
+
+    with av.open(str(out)) as container:
+        video, sound = container.streams.video[0], container.streams.audio[0]
+        durations = [float(s.duration * s.time_base) for s in (video, sound)]
+    assert abs(durations[0] - 2.0) < 1e-6 and abs(durations[1] - durations[0]) < 1 / fps, durations
+    again = media.read_audio(out).samples[0]
+    expected = tone[rate:3 * rate]
+    probe = expected[rate // 2:rate // 2 + 4410]  # 0.1 s from the middle of the cut
+    lag = int(np.argmax(np.correlate(again[:2 * rate], probe, mode="valid"))) - rate // 2
+    assert abs(lag) <= rate // 1000, lag
+    media.write_video_mp4(tmp_path / "silent.mp4", frames[:5], fps)
+    assert media.read_audio(tmp_path / "silent.mp4") is None
