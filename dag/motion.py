@@ -119,10 +119,13 @@ def export_meshes(runner, drive: Collection, every: int) -> list[str]:
 
     import open3d as o3d
 
-    from persona.plugins.face.meshing import depth_to_mesh
+    from persona.plugins.face.meshing import METRIC_UNITS, depth_to_mesh, metric_frame
     from persona.stores.meshes import write_mesh
 
     folder = Path(runner.wf.output) / "meshes"
+    puppet = Collection(runner.root, "puppet")  # B's frame: every exported frame shares it
+    origin, scale = metric_frame(puppet.array("aligned/mean_fiducials")[...], puppet.array("shape/depth")[...],
+                                 puppet.array("shape/mask")[...])
     written = []
     frames = range(0, drive.n, every)
     with runner.progress_bar(f"{'drive':>13} export    ", len(frames)) as bar:
@@ -133,6 +136,7 @@ def export_meshes(runner, drive: Collection, every: int) -> list[str]:
             pixels = np.round(np.asarray(surface.vertices)[:, :2]).astype(int)  # vertices are face pixels
             surface.vertices = o3d.utility.Vector3dVector(mesh[pixels[:, 1], pixels[:, 0]].astype(np.float64))
             surface.compute_vertex_normals()
-            written.append(str(write_mesh(folder, f"frame_{t:05d}", surface, texture, y_up=True)["ply"]))
+            written.append(str(write_mesh(folder, f"frame_{t:05d}", surface, texture, y_up=True, origin=origin,
+                                          scale=scale, units=METRIC_UNITS)["ply"]))
             bar.update()
     return written

@@ -84,7 +84,7 @@ def run_shape(runner, coll: Collection, aligned: Provenance) -> dict[str, str]:
     """Photometric stereo over the aligned collection -> normals, albedo, lighting, depth;
     the textured mesh (PLY, OBJ) and shaded previews into the output folder."""
     from persona.plugins.builtin.shape import as_grey
-    from persona.plugins.face.meshing import depth_to_mesh, shaded_previews
+    from persona.plugins.face.meshing import METRIC_UNITS, depth_to_mesh, metric_frame, shaded_previews
     from persona.plugins.face.template import generic_template
     from persona.stores import media
     from persona.stores.meshes import clean_mesh, write_mesh
@@ -128,7 +128,8 @@ def run_shape(runner, coll: Collection, aligned: Provenance) -> dict[str, str]:
                               ("shape/lighting", lighting, ("photo", "sh"))):
         coll.create_single(name, np.asarray(value), dims, prov)
     mesh = clean_mesh(depth_to_mesh(depth, mask, texture))
-    written = write_mesh(out, f"{slug}_mesh", mesh, texture, y_up=True)
+    origin, scale = metric_frame(coll.array("aligned/mean_fiducials")[...], depth, mask)
+    written = write_mesh(out, f"{slug}_mesh", mesh, texture, y_up=True, origin=origin, scale=scale, units=METRIC_UNITS)
     previews = shaded_previews(depth, mask)
     media.write_png(files["mesh_previews"], np.concatenate(previews, axis=1))
     return {"mesh_ply": str(written["ply"]), "mesh_obj": str(written["obj"]), "mesh_previews": str(files["mesh_previews"])}

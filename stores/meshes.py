@@ -34,10 +34,11 @@ def _check_name(name: str) -> str:
     return name
 
 
-def _oriented(mesh: o3d.geometry.TriangleMesh, y_up: bool) -> o3d.geometry.TriangleMesh:
+def _oriented(mesh: o3d.geometry.TriangleMesh, y_up: bool, origin, scale: float) -> o3d.geometry.TriangleMesh:
     out = o3d.geometry.TriangleMesh(mesh)  # a copy: the caller's mesh is left alone
     if not out.has_vertex_normals():
         out.compute_vertex_normals()
+    out.vertices = o3d.utility.Vector3dVector((np.asarray(out.vertices) - np.asarray(origin, np.float64)) * scale)
     if y_up:
         flip = np.diag([1.0, -1.0, -1.0])  # a proper rotation (det +1): winding and normals stay consistent
         out.vertices = o3d.utility.Vector3dVector(np.asarray(out.vertices) @ flip)
@@ -90,13 +91,15 @@ def _write_ply(path: Path, mesh: o3d.geometry.TriangleMesh) -> None:
 
 
 def write_mesh(folder, name: str, mesh: o3d.geometry.TriangleMesh, texture: np.ndarray | None = None, *,
-               y_up: bool = False) -> dict[str, Path]:
+               y_up: bool = False, origin=(0.0, 0.0, 0.0), scale: float = 1.0, units: str = "") -> dict[str, Path]:
     """Write ``name.ply`` and ``name.obj`` (+ ``name.mtl`` and ``name.png`` with a texture) in ``folder``.
 
     mesh : ``open3d.geometry.TriangleMesh``; vertex normals are computed when missing; vertex colours,
         when present, go into both files (OBJ as ``v x y z r g b``, which MeshLab, Blender and open3d read)
     texture : (h, w, 3) uint8 RGB image or None; needs the mesh's ``triangle_uvs`` (one per triangle corner)
     y_up : turn the mesh 180° about x first (module docstring)
+    origin, scale, units : the vertices written are ``(v - origin) * scale``, in ``units`` (named in
+        the OBJ's header), before the turn
 
     Returns the paths written, keyed ``"ply"``, ``"obj"`` and, with a texture, ``"mtl"``, ``"png"``.
     """
@@ -113,7 +116,9 @@ def write_mesh(folder, name: str, mesh: o3d.geometry.TriangleMesh, texture: np.n
         if len(mesh.triangle_uvs) != 3 * len(mesh.triangles):
             raise ValueError(f"a texture needs triangle_uvs (3 per triangle = {3 * len(mesh.triangles)}), "
                              f"the mesh has {len(mesh.triangle_uvs)}")
-    m = _oriented(mesh, y_up)
+    if not (np.isfinite(scale) and scale > 0):
+        raise ValueError(f"scale must be positive and finite, got {scale}")
+    m = _oriented(mesh, y_up, origin, scale)
     paths: dict[str, Path] = {}
     if textured:
         paths["png"] = folder / f"{name}.png"
@@ -123,7 +128,8 @@ def write_mesh(folder, name: str, mesh: o3d.geometry.TriangleMesh, texture: np.n
                f"Ks 0.000 0.000 0.000\nd 1.0\nillum 1\nmap_Kd {name}.png\n")
         write_bytes(paths["mtl"], mtl.encode("utf-8"))
     paths["obj"] = folder / f"{name}.obj"
-    write_bytes(paths["obj"], _obj_text(m, name, textured).encode("utf-8"))
+    header = f"# units: {units}\n" if units else ""
+    write_bytes(paths["obj"], (header + _obj_text(m, name, textured)).encode("utf-8"))
     paths["ply"] = folder / f"{name}.ply"
     _write_ply(paths["ply"], m)
     return paths

@@ -20,7 +20,25 @@ import open3d as o3d
 
 from .mesh import grid_triangles, raycasting_scene
 
-__all__ = ["depth_to_mesh", "pixel_uvs", "shaded_previews"]
+__all__ = ["MEAN_IOD_M", "METRIC_UNITS", "depth_to_mesh", "metric_frame", "pixel_uvs", "shaded_previews"]
+
+#: the mean adult distance between the eye centres, metres (about 63 mm): the scale of the meshes
+#: Persona writes, which otherwise have none (a face seen by one camera has no size)
+MEAN_IOD_M = 0.063
+#: how the files say so (OBJ header), with the axes of ``write_mesh(..., y_up=True)``
+METRIC_UNITS = "metres, eye centres 63 mm apart; x right, y up, z towards the viewer; origin between the eyes"
+
+
+def metric_frame(fiducials: np.ndarray, depth: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, float]:
+    """Where the meshes of a face written to files have their origin, and their scale: the origin
+    (x, y, Z) canonical px is the midpoint of the eye centres of the 49 ``fiducials`` (eyes 19-30), at
+    the median depth of the face ``mask``; the scale (metres per canonical px) puts those eye centres
+    :data:`MEAN_IOD_M` apart. Every frame of one face shares them, so a sequence does not jump."""
+    f = np.asarray(fiducials, np.float64)
+    left, right = np.nanmean(f[19:25], axis=0), np.nanmean(f[25:31], axis=0)
+    middle = (left + right) / 2
+    origin = np.array([middle[0], middle[1], float(np.nanmedian(np.asarray(depth)[np.asarray(mask, bool)]))])
+    return origin, MEAN_IOD_M / float(np.linalg.norm(right - left))
 
 
 def pixel_uvs(rows: np.ndarray, cols: np.ndarray, shape: tuple[int, int]) -> np.ndarray:

@@ -64,6 +64,12 @@ def test_shape_stage_writes_meshes_and_previews(drive_run):
         mesh = o3d.io.read_triangle_mesh(pictures["mesh_ply"])
         assert len(mesh.triangles) > 10000 and mesh.has_vertex_colors()
         assert (out / f"{actor}_mesh.obj").is_file() and (out / f"{actor}_mesh.png").is_file()
+        # metres, origin between the eyes (what Blender and MeshLab open at the right size)
+        vertices = np.asarray(mesh.vertices)
+        width = np.ptp(vertices[:, 0])
+        assert 0.10 < width < 0.25, width
+        assert abs(vertices[:, 0].min() + vertices[:, 0].max()) / 2 < 0.01  # centred left-right
+        assert (out / f"{actor}_mesh.obj").read_text().startswith("# units: metres")
         previews = media.decode_image(pictures["mesh_previews"])
         assert previews.shape[1] == 3 * previews.shape[0]  # three views side by side
         coll = Collection(open_store(str(folder / "run.zarr"), mode="r"), actor)

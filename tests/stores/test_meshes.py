@@ -189,3 +189,26 @@ def test_previews_show_the_face_from_several_sides(face, mesh):
     np.testing.assert_array_equal(again[0], views[1])
     with pytest.raises(ValueError, match="mask"):
         shaded_previews(depth)
+
+
+def test_written_meshes_are_in_metres_about_the_eyes(tmp_path, face, mesh):
+    """metric_frame puts the eye centres of the 49 fiducials MEAN_IOD_M apart with the origin
+    between them, and write_mesh writes (v - origin) * scale (then turned y-up) into PLY and OBJ."""
+    from persona.plugins.face.meshing import MEAN_IOD_M, metric_frame
+    from persona.plugins.face.template import generic_template
+
+    depth, mask, texture = face
+    fiducials = generic_template().fiducials3d[:, :2]
+    origin, scale = metric_frame(fiducials, depth, mask)
+    eyes = fiducials[19:25].mean(axis=0), fiducials[25:31].mean(axis=0)
+    assert np.linalg.norm(eyes[1] - eyes[0]) * scale == pytest.approx(MEAN_IOD_M)
+    np.testing.assert_allclose(origin[:2], (eyes[0] + eyes[1]) / 2)
+    paths = write_mesh(tmp_path, "m", mesh, texture, y_up=True, origin=origin, scale=scale, units="metres")
+    expect = (np.asarray(mesh.vertices) - origin) * scale * np.array([1.0, -1.0, -1.0])
+    ply = np.asarray(o3d.io.read_triangle_mesh(str(paths["ply"])).vertices)
+    np.testing.assert_allclose(ply, expect, atol=1e-6)
+    obj = np.asarray(o3d.io.read_triangle_mesh(str(paths["obj"])).vertices)  # open3d reorders OBJ vertices
+    np.testing.assert_allclose(np.unique(obj.round(5), axis=0), np.unique(expect.round(5), axis=0), atol=2e-5)
+    assert paths["obj"].read_text().startswith("# units: metres\n")
+    with pytest.raises(ValueError):
+        write_mesh(tmp_path, "n", mesh, scale=0.0)
