@@ -73,7 +73,7 @@ def _retarget(runner, drive, frames, puppet, found, prov, sigma: float) -> None:
     target = retarget(driver_fiducials, mean_shape(fiducials[found]),
                       puppet.array("aligned/mean_fiducials")[...].astype(np.float64))
     for name, value, tail, dims in (
-            ("target", target, (49, 2), ("frame", "point", "xy")),
+            ("target", target, (49, 2), ("frame", "fiducial", "xy")),
             ("pose", pose, (10,), ("frame", "field")),
             ("bridged", ~found, (), ("frame",))):
         drive.create(name, tail, value.dtype, dims, prov)[:] = value

@@ -338,7 +338,7 @@ class Runner:
         coll.create_single("aligned/mean", mean, ("y", "x", "channel"), prov)
         coll.create_single("aligned/coverage", (count / ok.sum()).astype(np.float32), ("y", "x"), prov)
         fiducials = mean_shape(coll.array("aligned/fiducials")[:][ok])
-        coll.create_single("aligned/mean_fiducials", fiducials, ("point", "xy"), prov)
+        coll.create_single("aligned/mean_fiducials", fiducials, ("fiducial", "xy"), prov)
         return mean
 
     def pictures(self, coll: Collection, mean: np.ndarray | None, n_faces: int = 60) -> dict:

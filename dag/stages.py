@@ -117,15 +117,15 @@ def _frontalize(backend, params, inputs, context):
 INGEST = PhotoStage("ingest", None, None, ("photos/source", "photos/frame"), (
     Output("photos/rgb", (), "uint8", ("photo", "y", "x", "channel")),  # tail = the canvas
     Output("photos/size", (2,), "int32", ("photo", "hw")),
-    Output("photos/hint", (68, 2), "float32", ("photo", "point", "xy")),
+    Output("photos/hint", (68, 2), "float32", ("photo", "landmark", "xy")),
     Output("photos/sha256", (), "str", ("photo",)),
 ), _ingest)
 
 PHOTO_STAGES = {s.name: s for s in (
     INGEST,
     PhotoStage("landmarks", "landmarks", "ingest", ("photos/rgb", "photos/size", "photos/hint"), (
-        Output("landmarks/points", (68, 2), "float32", ("photo", "point", "xy")),
-        Output("landmarks/fiducials", (49, 2), "float32", ("photo", "point", "xy")),
+        Output("landmarks/points", (68, 2), "float32", ("photo", "landmark", "xy")),
+        Output("landmarks/fiducials", (49, 2), "float32", ("photo", "fiducial", "xy")),
         Output("landmarks/box", (4,), "float32", ("photo", "ltrb")),
         Output("landmarks/n_faces", (), "int16", ("photo",)),
     ), _landmarks),
@@ -136,8 +136,8 @@ PHOTO_STAGES = {s.name: s for s in (
                ("photos/rgb", "photos/size", "landmarks/points", "pose"), (
         Output("aligned/rgb", (H, W, 3), "uint8", ("photo", "y", "x", "channel")),
         Output("aligned/mask", (H, W), "bool", ("photo", "y", "x")),
-        Output("aligned/landmarks", (68, 2), "float32", ("photo", "point", "xy")),
-        Output("aligned/fiducials", (49, 2), "float32", ("photo", "point", "xy")),
+        Output("aligned/landmarks", (68, 2), "float32", ("photo", "landmark", "xy")),
+        Output("aligned/fiducials", (49, 2), "float32", ("photo", "fiducial", "xy")),
     ), _frontalize),
 )}
 

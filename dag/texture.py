@@ -78,9 +78,9 @@ def run_texture(runner, coll: Collection, aligned: Provenance) -> dict[str, str]
     row = np.full(coll.n, -1)
     row[ok] = np.arange(len(ok))
     for k in range(cache.levels):
-        for kind, level in (("weighted", cache.weighted[k]), ("detail", cache.detail[k])):
-            array = coll.create(f"texture/{kind}_{k}", level.shape[1:], np.float32, ("photo", "y", "x", "channel"),
-                                prov)
+        y, x = ("y", "x") if k == 0 else (f"y_level{k}", f"x_level{k}")  # one size per name, as xarray needs
+        for kind, level, last in (("weighted", cache.weighted[k], "channel"), ("detail", cache.detail[k], "weight")):
+            array = coll.create(f"texture/{kind}_{k}", level.shape[1:], np.float32, ("photo", y, x, last), prov)
             for start, stop in coll.shard_ranges():  # a shard at a time; rejected photos stay NaN
                 rows = row[start:stop]
                 block = np.full((stop - start, *level.shape[1:]), np.nan, np.float32)

@@ -244,3 +244,28 @@ def test_texture_backend_without_video_mode_falls_back_to_the_static_average(dri
     # and back to the default: the cache and the per-frame textures come back
     assert cli(["run", str(path), "--scheduler", "sync", "--quiet"]) == 0
     assert Collection(open_store(str(folder / "run.zarr"), mode="r"), "puppet").has("texture/neutral")
+
+
+def test_every_group_of_the_store_opens_in_xarray(drive_run):
+    """Each dimension name has one size within a group (49 fiducials are not 68 landmarks, each
+    pyramid level has its own y and x), so xarray.open_zarr opens every group of a run's store."""
+    import xarray as xr
+    import zarr
+
+    folder, _, _ = drive_run
+    store = str(folder / "run.zarr")
+    opened = []
+
+    def walk(group, path):
+        if any(True for _ in group.array_keys()):
+            ds = xr.open_zarr(store, group=path or None, consolidated=False)
+            opened.append(path)
+            assert set(ds.data_vars) == set(group.array_keys()), path
+        for name, child in group.groups():
+            walk(child, f"{path}/{name}" if path else name)
+
+    walk(zarr.open_group(store, mode="r"), "")
+    for path in ("puppet/aligned", "puppet/landmarks", "puppet/texture", "drive", "drive/render"):
+        assert path in opened, opened
+    ds = xr.open_zarr(store, group="puppet/aligned", consolidated=False)
+    assert ds.sizes["fiducial"] == 49 and ds.sizes["landmark"] == 68
