@@ -64,7 +64,7 @@ def _resume_hint(args) -> None:
 
 def _print_report(report: dict) -> None:
     for path, c in report["collections"].items():
-        print(f"{path}: {c['accepted']} of {c['n_photos']} photos aligned")
+        print(f"{path}: {c['accepted']} of {c['n_photos']} {'frames' if path == 'driver/frames' else 'photos'} aligned")
         for name, file in c["pictures"].items():
             print(f"  {name}: {file}")
     for name, file in report.get("videos", {}).items():

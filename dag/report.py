@@ -114,7 +114,7 @@ def write_report(path: Path, *, metrics: dict, pictures: dict[str, np.ndarray], 
             parts.append(_img(src, name))
     for title, image in pictures.items():
         parts += [f"<h2>{html.escape(title)}</h2>", _img(_png(image), title, min(960, image.shape[1]))]
-    counts = [(f"{c}: photos aligned", f"{v['accepted']} of {v['n_photos']}")
+    counts = [(f"{c}: {'frames' if c == 'driver/frames' else 'photos'} aligned", f"{v['accepted']} of {v['n_photos']}")
               for c, v in metrics.get("collections", {}).items()]
     timing = [(f"{r['collection']} {r['stage']} (wall s)", r["wall_seconds"]) for r in metrics.get("stages", [])]
     extra = [(k, v) for k, v in metrics.get("speed", {}).items()]

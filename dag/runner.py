@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import sys
 import time
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -143,6 +144,44 @@ def collection_specs(wf: Workflow) -> list[tuple[str, object]]:
         if wf.driver.video is not None:
             specs.append(("driver/frames", wf.driver.video))
     return specs
+
+
+class _Lines:
+    """Progress for a log file or a batch job: one timestamped line when a step starts and one when
+    it ends, instead of a bar redrawn with carriage returns."""
+
+    def __init__(self, what: str, total: int, unit: str, initial: int):
+        self.what, self.total, self.unit, self.done = " ".join(what.split()), total, unit, initial
+        self.start = time.monotonic()
+        self._say(f"started: {total} {unit}s" + (f", {initial} done before" if initial else ""))
+
+    def _say(self, text: str) -> None:
+        print(f"{time.strftime('%H:%M:%S')} {self.what}: {text}", file=sys.stderr, flush=True)
+
+    def update(self, n: int = 1) -> None:
+        self.done += n
+
+    def close(self) -> None:
+        if self.start is not None:
+            self._say(f"done: {self.done} of {self.total} {self.unit}s in {time.monotonic() - self.start:.1f} s")
+            self.start = None
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+def progress(what: str, total: int, unit: str = "frame", *, initial: int = 0, enabled: bool = True):
+    """A progress display with ``update(n)`` and ``close()`` (also a context manager): a tqdm bar on a
+    terminal, :class:`_Lines` when stderr is a file or pipe, nothing when not ``enabled``."""
+    from tqdm.auto import tqdm
+
+    if enabled and not sys.stderr.isatty():
+        return _Lines(what, total, unit, initial)
+    return tqdm(total=total, initial=initial, desc=what, unit=unit, disable=not enabled, leave=True,
+                dynamic_ncols=True)
 
 
 def check_inputs(wf: Workflow) -> dict[str, int]:
@@ -285,11 +324,8 @@ class Runner:
         self._run(coll, steps, tasks, st.run_chain)
 
     def progress_bar(self, what: str, total: int, unit: str = "frame", initial: int = 0):
-        """A progress bar (hidden with --quiet)."""
-        from tqdm.auto import tqdm
-
-        return tqdm(total=total, initial=initial, desc=what, unit=unit, disable=not self.progress, leave=True,
-                    dynamic_ncols=True)
+        """A progress bar (hidden with --quiet): :func:`progress`."""
+        return progress(what, total, unit, initial=initial, enabled=self.progress)
 
     def _run(self, coll, steps, tasks, fn):
         names = [name for name, _, _ in steps]
@@ -298,7 +334,8 @@ class Runner:
         for name, backend, params in steps:
             self.pm.hook.persona_before_stage(stage=name, collection=coll.path,
                                               info={"backend": backend, "params": params, "n_items": coll.n})
-        bars = {name: self.progress_bar(f"{coll.path:>13} {name:<10}", coll.n, "photo", initial=done[name])
+        unit = "frame" if coll.path in ("driver/frames", "drive") else "photo"
+        bars = {name: self.progress_bar(f"{coll.path:>13} {name:<10}", coll.n, unit, initial=done[name])
                 for name in names}
         try:
             for result in self.executor.run(fn, tasks):

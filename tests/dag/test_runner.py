@@ -1,4 +1,5 @@
 import json
+import re
 import os
 import signal
 import socket
@@ -290,3 +291,24 @@ def test_a_collection_mixes_videos_video_ranges_and_photos(tmp_path, synthetic_p
         h, w = size[row]
         np.testing.assert_array_equal(rgb[row][:h, :w], expected)
     assert (coll.state("ingest") == 1).all()
+
+
+def test_progress_in_a_log_file_is_one_timestamped_line_per_start_and_end(capsys):
+    """stderr is not a terminal under pytest's capture, as in a log file or a batch job: no carriage
+    returns, a line when the step starts and one when it ends, in the step's own unit."""
+    from persona.dag.runner import progress
+
+    with progress("drive render3d", 12, "frame") as bar:
+        for _ in range(3):
+            bar.update(4)
+    with progress("puppet landmarks", 5, "photo", initial=2) as bar:
+        bar.update(3)
+    with progress("hidden", 3, enabled=False) as bar:
+        bar.update(3)
+    err = capsys.readouterr().err
+    lines = err.splitlines()
+    assert "\r" not in err and len(lines) == 4, err
+    assert re.fullmatch(r"\d\d:\d\d:\d\d drive render3d: started: 12 frames", lines[0]), lines[0]
+    assert re.fullmatch(r"\d\d:\d\d:\d\d drive render3d: done: 12 of 12 frames in \d+\.\d s", lines[1]), lines[1]
+    assert lines[2].endswith("puppet landmarks: started: 5 photos, 2 done before")
+    assert "done: 5 of 5 photos" in lines[3]
