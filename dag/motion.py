@@ -35,8 +35,10 @@ def run_motion(runner, drive: Collection, retargeted: Provenance) -> Provenance:
     root = runner.root
     driver, puppet = Collection(root, "driver"), Collection(root, "puppet")
     for coll in (driver, puppet):
-        if not coll.has("shape/depth"):
-            raise Rejected(f"{coll.path}: no 3D shape, so no 3D puppet (see the run's warnings)")
+        problem = runner.shape_problems.get(coll.path) or (None if coll.has("shape/depth") else "not built")
+        if problem:
+            raise Rejected(f"{coll.path} has no 3D shape: {problem}. Without one there is no 3D puppet; "
+                           "render in 2D instead with --set stages.render.backend=tps2d")
     motion = runner.motion_params()
     drive.group.attrs["motion"] = motion
     dynamics = runner.prepare_stage(drive, st.DYNAMICS, {

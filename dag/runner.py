@@ -213,6 +213,8 @@ class Runner:
     progress: bool = True
     pm: object = None
     timer: StageTimer = field(default_factory=StageTimer)
+    #: why a collection has no 3D shape in this run (its arrays from an earlier run must not be used)
+    shape_problems: dict = field(default_factory=dict)
 
     def __post_init__(self):
         if self.pm is None:
@@ -418,6 +420,7 @@ class Runner:
                     if path == "puppet":  # B's expression-dependent texture (video mode)
                         pictures.update(run_texture(self, coll, aligned))
                 except Rejected as exc:  # e.g. too few photos for photometric stereo: the run goes on
+                    self.shape_problems[path] = exc.reason
                     log.warning("%s: no 3D shape: %s", path, exc.reason)
                     report.setdefault("warnings", []).append(f"{path}: no 3D shape: {exc.reason}")
                 shape_seconds = round(time.perf_counter() - t0, 3)

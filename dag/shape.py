@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from persona.plugins.base import Rejected
 from persona.plugins.face.template import CANONICAL_HEIGHT as H, CANONICAL_WIDTH as W
 from persona.stores.layout import OK, Collection
 from persona.stores.provenance import Provenance
@@ -33,6 +34,10 @@ def compute_subspace(runner, coll: Collection, *, source: str, state: str, rank:
     if current is not None and current.key == prov.key:
         return prov
     ok = np.flatnonzero(coll.state(state) == OK)
+    if len(ok) <= rank:
+        raise Rejected(f"{len(ok)} usable photos of {coll.n}, and the rank-{rank} appearance subspace needs at "
+                       f"least {rank + 1} (the 3D shape needs 8 or more): add photos of the same person; "
+                       "`persona inspect` says why the others were rejected")
     chunks = coll.shard
     rgb = da.from_zarr(coll.array(f"{source}/rgb"), chunks=(chunks, H, W, 3))
     mask = da.from_zarr(coll.array(f"{source}/mask"), chunks=(chunks, H, W))

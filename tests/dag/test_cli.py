@@ -1,4 +1,5 @@
 import json
+import re
 import subprocess
 import sys
 import time
@@ -112,3 +113,18 @@ def test_bad_inputs_stop_the_run_before_any_work(tmp_path, capsys, case):
         assert "resume" not in err and "Errno" not in err, err
         assert seconds < 5, seconds
     assert sorted(p.name for p in tmp_path.iterdir()) == ["clip.mp4", "empty", "photos", "w.yaml"]
+
+
+def test_too_few_photos_for_a_3d_puppet_is_a_message_that_says_what_to_do(tmp_path, capsys):
+    """Three photos per person: no traceback (the subspace used to fail reshaping an array), but
+    a one-line error that says how many photos were usable, how many are needed, and the 2D way
+    out; the same run with the 2D renderer finishes."""
+    from persona.dag.demo import make_demo_data
+
+    workflow = make_demo_data(tmp_path, n_photos=3, n_frames=4)
+    assert cli(["run", str(workflow), "--quiet", "--scheduler", "sync"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("error: ") == 1 and "Traceback" not in err and "resume" not in err, err
+    assert re.search(r"[0-3] usable photos of 3", err) and "needs at least 5" in err and "tps2d" in err, err
+    assert cli(["run", str(workflow), "--quiet", "--scheduler", "sync",
+                "--set", "stages.render.backend=tps2d"]) == 0
