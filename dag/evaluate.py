@@ -79,11 +79,7 @@ def analyse_frames(url: str, start: int, stop: int, identity: tuple[str, dict], 
             psnr[j] = ev.masked_psnr(rendered[j], original[j], masks[j])
             ssim[j] = ev.masked_ssim(rendered[j], original[j], masks[j])
         if (start + j) % 4 == 0:
-            alpha = alphas[j].astype(np.float32) / 255
-            a = alpha[..., None]
-            for name, image in (("multiband", composite.multiband(rendered[j], original[j], alpha)),
-                                ("paste", np.round(rendered[j] * a + original[j] * (1 - a)).astype(np.uint8))):
-                found = composite.seam(image, original[j], alpha)
+            for name, found in composite.seams(rendered[j], original[j], alphas[j].astype(np.float32) / 255).items():
                 if found is not None:
                     seams[name].append([found["colour_step"], found["gradient_ratio"]])
     return {"start": start, "landmarks": landmarks, "descriptors": descriptors, "psnr": psnr, "ssim": ssim,

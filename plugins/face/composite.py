@@ -6,7 +6,9 @@ few-pixel feather. Multi-band blending (Burt & Adelson 1983) blends each band of
 pyramid through the mask's Gaussian pyramid at the same level: fine detail switches from A to B
 over a pixel or two, while the low frequencies (skin tone, lighting) cross over a width that
 grows with the band, so the colour step is spread over a good part of the face instead of the
-feather. Inside the face B's own detail and, away from the edge, B's own tone remain.
+feather. Each level's weights come from the mask eroded by half that level's pixel, so the
+coarse transitions lie inside B's face: without that, B's tone spilled as a light halo into A's
+hair. Inside the face B's own detail and, away from the edge, B's own tone remain.
 
 The seam is measured on a ring along the mask's edge (``seam``): the colour step across it (the
 mean colour a few pixels inside minus that a few pixels outside, against the same step in A's own
@@ -29,6 +31,20 @@ def levels_for(mask: np.ndarray) -> int:
     return int(max(1, np.floor(np.log2(max(side, 1) / 4))))
 
 
+def _level_weights(alpha: np.ndarray, levels: int) -> list[np.ndarray]:
+    """The blending weight of each pyramid level 0..levels: the mask eroded by half the level's
+    pixel (2^k / 2 px), then reduced to the level's size. The coarse levels' transitions lie inside
+    B's face, so B's tone does not spill as a halo into A's hair and background."""
+    weights = []
+    for k in range(levels + 1):
+        r = 2 ** k // 2
+        w = cv2.erode(alpha, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))) if r else alpha
+        for _ in range(k):
+            w = cv2.pyrDown(w)
+        weights.append(w)
+    return weights
+
+
 def multiband(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, levels: int | None = None) -> np.ndarray:
     """The composite (h, w, 3) uint8 of ``face`` over ``frame`` (both (h, w, 3) uint8) with the soft
     mask ``alpha`` (h, w) in [0, 1]. Outside the mask the face image is replaced by the frame (the
@@ -40,21 +56,20 @@ def multiband(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, levels: in
     a = alpha[..., None]
     top = np.asarray(face, np.float32) * a + np.asarray(frame, np.float32) * (1 - a)
     bottom = np.asarray(frame, np.float32)
-    weight = alpha
-    bands_top, bands_bottom, weights = [], [], []
+    bands_top, bands_bottom = [], []
     for _ in range(levels):
         small_top, small_bottom = cv2.pyrDown(top), cv2.pyrDown(bottom)
         size = (top.shape[1], top.shape[0])
         bands_top.append(top - cv2.pyrUp(small_top, dstsize=size))
         bands_bottom.append(bottom - cv2.pyrUp(small_bottom, dstsize=size))
-        weights.append(weight)
-        top, bottom, weight = small_top, small_bottom, cv2.pyrDown(weight)
-    w = weight[..., None]
+        top, bottom = small_top, small_bottom
+    weights = _level_weights(alpha, levels)
+    w = weights[levels][..., None]
     out = top * w + bottom * (1 - w)
-    for band_top, band_bottom, weight in zip(reversed(bands_top), reversed(bands_bottom), reversed(weights)):
-        out = cv2.pyrUp(out, dstsize=(band_top.shape[1], band_top.shape[0]))
-        w = weight[..., None]
-        out = out + band_top * w + band_bottom * (1 - w)
+    for k in reversed(range(levels)):
+        out = cv2.pyrUp(out, dstsize=(bands_top[k].shape[1], bands_top[k].shape[0]))
+        w = weights[k][..., None]
+        out = out + bands_top[k] * w + bands_bottom[k] * (1 - w)
     return np.clip(out, 0, 255).round().astype(np.uint8)
 
 
@@ -83,3 +98,15 @@ def seam(image: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, reach: int 
         return float(np.mean((gx ** 2 + gy ** 2)[ring]))
 
     return {"colour_step": step(image) - step(frame), "gradient_ratio": energy(image) / max(energy(frame), 1e-9)}
+
+
+def paste(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray) -> np.ndarray:
+    """The plain composite through the soft mask, ``face α + frame (1 - α)``, uint8 (for comparison)."""
+    a = np.clip(np.asarray(alpha, np.float32), 0, 1)[..., None]
+    return np.round(np.asarray(face, np.float32) * a + np.asarray(frame, np.float32) * (1 - a)).astype(np.uint8)
+
+
+def seams(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray) -> dict[str, dict | None]:
+    """:func:`seam` of the :func:`multiband` composite and of the :func:`paste`, keyed by those names."""
+    return {"multiband": seam(multiband(face, frame, alpha), frame, alpha),
+            "paste": seam(paste(face, frame, alpha), frame, alpha)}
