@@ -80,9 +80,17 @@ def _table(rows: list[tuple[str, object]]) -> str:
 
 
 def write_report(path: Path, *, metrics: dict, pictures: dict[str, np.ndarray], strip: np.ndarray | None,
-                 series: dict | None, threshold: float, fps: float, video: Path | None) -> Path:
-    """Write the page atomically; ``pictures`` are titled images (means, contact sheets)."""
+                 series: dict | None, threshold: float, fps: float, videos: list[Path] = ()) -> Path:
+    """Write the page atomically; ``pictures`` are titled images (means, contact sheets); ``videos``
+    are embedded in their order (the composite first), each up to ``MAX_EMBEDDED_VIDEO`` bytes."""
     parts = [f"<h1>Persona — {html.escape(str(metrics.get('workflow', '')))}</h1>"]
+    if metrics.get("warnings"):
+        parts += ["<h2>Warnings</h2><ul>"] + [f"<li>{html.escape(str(w))}</li>" for w in metrics["warnings"]] + ["</ul>"]
+    shown = [v for v in videos if v.is_file() and v.stat().st_size <= MAX_EMBEDDED_VIDEO]
+    for v in shown:
+        data = base64.b64encode(v.read_bytes()).decode()
+        parts += [f"<h2>{html.escape(v.stem.replace('_', ' '))}</h2>",
+                  f'<video controls loop width="720" src="data:video/mp4;base64,{data}"></video>']
     ev = metrics.get("evaluation")
     if ev:
         rows = [("frames", ev["frames"]), ("frames bridged (no face in the driver)", ev["bridged_frames"]),
@@ -103,10 +111,6 @@ def write_report(path: Path, *, metrics: dict, pictures: dict[str, np.ndarray], 
                   f"{a['gain']:.2f}, {a['r']:.2f}") for who, figures in ev.get("motion", {}).items()
                  for k, a in figures.items()]
         parts += ["<h2>Figures</h2>", _table(rows)]
-    if video is not None and video.is_file() and video.stat().st_size <= MAX_EMBEDDED_VIDEO:
-        data = base64.b64encode(video.read_bytes()).decode()
-        parts += ["<h2>Driver and puppet</h2>",
-                  f'<video controls loop muted width="720" src="data:video/mp4;base64,{data}"></video>']
     if strip is not None:
         parts += ["<h2>Driver frames (top) and output frames (bottom)</h2>", _img(_png(strip), "frames", 960)]
     if series:

@@ -472,7 +472,8 @@ class Runner:
             strip = np.concatenate([top, bottom], axis=0)
         fps = float(self.root["driver/frames"].attrs["fps"]) if strip is not None else 25.0
         return write_report(out / "report.html", metrics=report, pictures=pictures, strip=strip, series=series,
-                            threshold=self.wf.evaluate.threshold, fps=fps, video=out / "side_by_side.mp4")
+                            threshold=self.wf.evaluate.threshold, fps=fps,
+                            videos=[out / f"{name}.mp4" for name in ("composite", "puppet", "side_by_side")])
 
 
 def _stat(path: str) -> tuple[int, int]:

@@ -105,8 +105,9 @@ def test_report_is_one_self_contained_page(drive_run):
     folder, _, _ = drive_run
     page = (folder / "output" / "report.html").read_text()
     assert page.count("data:image/png;base64,") >= 5  # means, sheets, strip, plots
-    assert "data:video/mp4;base64," in page
-    assert "B and not A" in page
+    assert page.count("data:video/mp4;base64,") == 3  # composite, puppet, side by side
+    assert page.index("<h2>composite</h2>") < page.index("<h2>puppet</h2>") < page.index("<h2>Figures</h2>")
+    assert "B and not A" in page and "composite seam (multiband)" in page
     assert 'src="http' not in page  # nothing fetched from elsewhere
 
 
