@@ -47,7 +47,8 @@ def main() -> None:
     print("|---|---|---|---|")
     for name, rows in found.items():
         a = np.array(rows)
-        print(f"| {name} | {np.median(a[:, 0]):.1f} | {np.median(a[:, 1]):.2f} | {1000 * np.median(seconds[name]):.1f} |")
+        ms = 1000 * np.median(seconds[name])
+        print(f"| {name} | {np.median(a[:, 0]):.1f} | {np.median(a[:, 1]):.2f} | {ms:.1f} |")
 
 
 if __name__ == "__main__":

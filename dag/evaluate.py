@@ -8,7 +8,9 @@ Figures (paper §6, with dlib's descriptor and landmarks only; nothing downloade
   width between A's video and the output (landmarks found anew in the output frames);
 - amplitude: for the same signals, the gain (slope of the output's signal on the driver's:
   1 = the same amplitude, which a correlation cannot see), the correlation and both ranges;
-- stability: landmark jitter and face-colour flicker, output over driver;
+- stability: landmark jitter and face-colour flicker, output over driver; and the texture's own
+  change from frame to frame (B's synthesized texture against A's frontalized frames, both in
+  the canonical frame, median mean absolute change inside the face: details that come and go);
 - composite: the seam of composite.mp4 along the rendered face's edge (colour step across it beyond
   the driver frame's own, gradient energy on it over the frame's), medians over every 4th frame,
   beside the same for a plain paste through the mask;
@@ -29,6 +31,7 @@ import numpy as np
 from persona.plugins.builtin import evaluate as ev
 from persona.plugins.builtin.landmarks import DlibLandmarks
 from persona.plugins.face import composite
+from persona.plugins.face.template import generic_template
 from persona.plugins.base import Rejected
 from persona.plugins.manager import default_registry
 from persona.stores.errors import InputError
@@ -82,7 +85,11 @@ def analyse_frames(url: str, start: int, stop: int, identity: tuple[str, dict], 
             for name, found in composite.seams(rendered[j], original[j], alphas[j].astype(np.float32) / 255).items():
                 if found is not None:
                     seams[name].append([found["colour_step"], found["gradient_ratio"]])
+    face = generic_template().mask  # B's synthesized textures and A's frontalized frames, canonical
+    texture_change = ev.frame_changes(drive.array("texture/rgb")[start:stop], face)
+    driver_change = ev.frame_changes(frames.array("aligned/rgb")[start:stop], face)
     return {"start": start, "landmarks": landmarks, "descriptors": descriptors, "psnr": psnr, "ssim": ssim,
+            "texture_change": texture_change, "driver_change": driver_change,
             **{f"seam_{k}": np.array(v).reshape(-1, 2) for k, v in seams.items()},
             "colour_output": ev.masked_mean_colours(rendered, masks),
             "colour_driver": ev.masked_mean_colours(original, masks)}
@@ -119,6 +126,9 @@ def evaluate(store: str, executor, *, identity: tuple[str, dict], threshold: flo
     stability["colour_change_driver"] = ev.flicker(joined["colour_driver"])
     stability["colour_change_output"] = ev.flicker(joined["colour_output"])
     stability["colour_change_ratio"] = _ratio(stability["colour_change_output"], stability["colour_change_driver"])
+    stability["texture_change_output"] = _median(joined["texture_change"])
+    stability["texture_change_driver"] = _median(joined["driver_change"])
+    stability["texture_change_ratio"] = _ratio(stability["texture_change_output"], stability["texture_change_driver"])
     result = {
         "identity": {k: v for k, v in identity_figures.items() if not isinstance(v, np.ndarray)},
         "expression": video["expression"],
@@ -168,8 +178,8 @@ def _ratio(a: float, b: float) -> float:
     return a / b if np.isfinite(a) and np.isfinite(b) and b != 0 else float("nan")
 
 
-def _median(values: np.ndarray) -> float | None:
-    return float(np.median(values)) if len(values) else None
+def _median(values: np.ndarray) -> float:
+    return float(np.median(values)) if len(values) else float("nan")
 
 
 def _nanmean(values: np.ndarray) -> float:

@@ -85,7 +85,8 @@ def write_report(path: Path, *, metrics: dict, pictures: dict[str, np.ndarray], 
     are embedded in their order (the composite first), each up to ``MAX_EMBEDDED_VIDEO`` bytes."""
     parts = [f"<h1>Persona — {html.escape(str(metrics.get('workflow', '')))}</h1>"]
     if metrics.get("warnings"):
-        parts += ["<h2>Warnings</h2><ul>"] + [f"<li>{html.escape(str(w))}</li>" for w in metrics["warnings"]] + ["</ul>"]
+        items = [f"<li>{html.escape(str(w))}</li>" for w in metrics["warnings"]]
+        parts += ["<h2>Warnings</h2><ul>", *items, "</ul>"]
     shown = [v for v in videos if v.is_file() and v.stat().st_size <= MAX_EMBEDDED_VIDEO]
     for v in shown:
         data = base64.b64encode(v.read_bytes()).decode()

@@ -358,6 +358,16 @@ def flicker(colours) -> float:
     return _finite_mean(np.linalg.norm(np.diff(colours, axis=0), axis=-1))
 
 
+def frame_changes(frames, mask) -> np.ndarray:
+    """(n - 1,) the mean absolute change (grey levels, over RGB) inside ``mask`` (h, w) between
+    consecutive frames (n, h, w, 3): how much an image sequence flickers, detail and all (the
+    mean colour of :func:`flicker` cannot see details that come and go)."""
+    f = np.asarray(frames, np.float32)
+    if len(f) < 2:
+        return np.zeros(0)
+    return np.abs(np.diff(f, axis=0))[:, np.asarray(mask, bool)].mean(axis=(1, 2)).astype(np.float64)
+
+
 # --------------------------------------------------------------------------- identity figures
 
 

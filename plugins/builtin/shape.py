@@ -184,7 +184,8 @@ class TemplatePhotometricStereo(ShapeBackend):
         if self.params.dark_threshold > 0:
             seen &= ~(grey < self.params.dark_threshold)
         if n < self.params.min_images:
-            raise Rejected(f"shape: {n} images, need at least {self.params.min_images} for photometric stereo: add photos of the same person")
+            raise Rejected(f"shape: {n} images, need at least {self.params.min_images} for photometric stereo: "
+                           "add photos of the same person")
         tnorm = np.linalg.norm(tn, axis=2)
         use = mask & np.isfinite(tnorm) & (tnorm > 0)
         use &= seen.mean(axis=0) >= max(self.params.min_visible, 4.0 / n)

@@ -11,7 +11,7 @@ from pydantic import ValidationError
 
 from persona.plugins.base import Rejected
 from persona.plugins.builtin.evaluate import (DlibIdentity, IdentityBackend, centroid, colour_change,
-                                              compare_videos, expression_signals, identity_figures,
+                                              compare_videos, expression_signals, frame_changes, identity_figures,
                                               interocular, jitter, masked_psnr, masked_ssim, pearson)
 from persona.plugins.manager import default_registry
 
@@ -268,3 +268,16 @@ def test_descriptor_of_a_photo_is_at_distance_zero_from_itself(lfw_descriptors):
     image, landmarks, descriptor = lfw_descriptors["george_w_bush"][0]
     again = DlibIdentity().describe(image, landmarks)
     assert np.linalg.norm(again - descriptor) == 0.0
+
+
+def test_frame_changes_see_details_that_come_and_go():
+    """A texture whose mean colour stays put but whose detail flips every frame changes; a still one
+    does not; a slow drift changes by its step."""
+    rng = np.random.default_rng(0)
+    base = rng.integers(60, 200, (16, 16, 3)).astype(np.float32)
+    mask = np.ones((16, 16), bool)
+    flipping = np.stack([base, base[::-1]] * 3)
+    assert np.all(frame_changes(flipping, mask) > 10)
+    np.testing.assert_allclose(frame_changes(np.stack([base] * 4), mask), 0)
+    np.testing.assert_allclose(frame_changes(np.stack([base + 2 * k for k in range(4)]), mask), 2)
+    assert len(frame_changes(base[None], mask)) == 0
