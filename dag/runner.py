@@ -72,7 +72,7 @@ class Executor:
         if scheduler == "local":
             self._cluster = LocalCluster(
                 n_workers=workers or os.cpu_count() or 1, threads_per_worker=threads_per_worker,
-                processes=True, memory_limit=memory_limit, dashboard_address=":0",
+                processes=True, memory_limit=memory_limit, host="127.0.0.1", dashboard_address="127.0.0.1:0",
                 silence_logs=logging.ERROR)
             self.client = Client(self._cluster)
         else:

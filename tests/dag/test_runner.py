@@ -312,3 +312,20 @@ def test_progress_in_a_log_file_is_one_timestamped_line_per_start_and_end(capsys
     assert re.fullmatch(r"\d\d:\d\d:\d\d drive render3d: done: 12 of 12 frames in \d+\.\d s", lines[1]), lines[1]
     assert lines[2].endswith("puppet landmarks: started: 5 photos, 2 done before")
     assert "done: 5 of 5 photos" in lines[3]
+
+
+def test_the_local_cluster_listens_on_loopback_only():
+    """The scheduler and its dashboard run whatever code reaches them: the local cluster binds
+    them to 127.0.0.1, never to every interface."""
+    from persona.dag.runner import Executor
+
+    ex = Executor("local", 1)
+    try:
+        scheduler = ex._cluster.scheduler
+        assert scheduler.address.startswith("tcp://127.0.0.1:")
+        # the dashboard's link names 127.0.0.1 whatever it binds; its sockets say where it listens
+        # (tornado's HTTPServer keeps them in _sockets; 0.0.0.0 before this was fixed)
+        bound = [sock.getsockname()[0] for sock in scheduler.http_server._sockets.values()]
+        assert bound and set(bound) == {"127.0.0.1"}, bound
+    finally:
+        ex.close()
