@@ -21,7 +21,7 @@ from persona.plugins.face.fiducials import mean_shape
 from persona.plugins.face.tracks import bridge
 from persona.plugins.face.warp import retarget
 from persona.stores import media
-from persona.stores.layout import OK, Collection
+from persona.stores.layout import OK, PENDING, Collection
 from persona.stores.provenance import Provenance
 
 from . import stages as st
@@ -43,7 +43,8 @@ def run_drive(runner) -> Collection:
                            inputs=inputs, persona_version=runner.version)
     drive = Collection(runner.root, "drive")
     current = drive.provenance("status/retarget/state") if drive.exists() else None
-    if current is None or current.key != prov.key:
+    # the status is created before the targets and written after them: done only when no frame is pending
+    if current is None or current.key != prov.key or (drive.state("retarget") == PENDING).any():
         _retarget(runner, drive, frames, puppet, found, prov, sigma)
     textures = run_frame_textures(runner, drive, puppet, prov)
     inputs = {"retarget": prov.key, "texture": textures.key}

@@ -48,9 +48,10 @@ def compute_subspace(runner, coll: Collection, *, source: str, state: str, rank:
     basis = basis.astype(np.float32).reshape(rank, H, W, 3)
     if basis[0].sum() < 0:  # the first component is the average face: keep it positive
         basis[0] *= -1
-    coll.create_single("subspace/basis", basis, ("component", "y", "x", "channel"), prov)
+    # the basis last: its provenance marks the step done, so what defines it is written before it
     coll.create_single("subspace/singular_values", np.asarray(singular, np.float64), ("component",), prov)
     coll.root[f"{coll.path}/subspace"].attrs.update({"rank": rank, "tps_lambda": tps_lambda})
+    coll.create_single("subspace/basis", basis, ("component", "y", "x", "channel"), prov)
     return prov
 
 
@@ -127,14 +128,16 @@ def run_shape(runner, coll: Collection, aligned: Provenance) -> dict[str, str]:
         result.normals, mask, reference=template.depth)
     lighting = np.full((coll.n, result.lighting.shape[1]), np.nan)
     lighting[ok] = result.lighting
-    for name, value, dims in (("shape/depth", depth, ("y", "x")), ("shape/normals", result.normals, ("y", "x", "xyz")),
-                              ("shape/albedo", result.albedo, ("y", "x")), ("shape/mask", mask, ("y", "x")),
-                              ("shape/texture", texture, ("y", "x", "channel")),
-                              ("shape/lighting", lighting, ("photo", "sh"))):
-        coll.create_single(name, np.asarray(value), dims, prov)
     mesh = clean_mesh(depth_to_mesh(depth, mask, texture))
     origin, scale = metric_frame(coll.array("aligned/mean_fiducials")[...], depth, mask)
-    written = write_mesh(out, f"{slug}_mesh", mesh, texture, y_up=True, origin=origin, scale=scale, units=METRIC_UNITS)
+    written = write_mesh(out, f"{slug}_mesh", mesh, texture, y_up=True, origin=origin, scale=scale,
+                         units=METRIC_UNITS)
     previews = shaded_previews(depth, mask)
     media.write_png(files["mesh_previews"], np.concatenate(previews, axis=1))
+    # shape/depth last: its provenance marks the step done (files above, arrays it depends on before it)
+    for name, value, dims in (("shape/normals", result.normals, ("y", "x", "xyz")),
+                              ("shape/albedo", result.albedo, ("y", "x")), ("shape/mask", mask, ("y", "x")),
+                              ("shape/texture", texture, ("y", "x", "channel")),
+                              ("shape/lighting", lighting, ("photo", "sh")), ("shape/depth", depth, ("y", "x"))):
+        coll.create_single(name, np.asarray(value), dims, prov)
     return {"mesh_ply": str(written["ply"]), "mesh_obj": str(written["obj"]), "mesh_previews": str(files["mesh_previews"])}

@@ -119,11 +119,12 @@ def run_frame_textures(runner, drive: Collection, puppet: Collection, retargeted
         return prov
     targets = drive.array("target")[:]
     array = drive.create("texture/rgb", puppet.array("aligned/mean").shape, np.uint8, ("frame", "y", "x", "channel"),
-                         prov)
+                         prov, pending=True)
     if texture is None:
         mean = np.clip(puppet.array("aligned/mean")[...], 0, 255).round().astype(np.uint8)
         for start, stop in drive.shard_ranges():
             array[start:stop] = np.broadcast_to(mean, (stop - start, *mean.shape))
+        drive.mark_done("texture/rgb", prov)
         return prov
     cache, fiducials = load_cache(puppet)
     with runner.progress_bar(f"{'drive':>13} texture   ", drive.n) as bar:
@@ -131,6 +132,7 @@ def run_frame_textures(runner, drive: Collection, puppet: Collection, retargeted
             array[start:stop] = np.stack([backend.blend(cache, fiducials, t).round().astype(np.uint8)
                                           for t in targets[start:stop]])
             bar.update(stop - start)
+    drive.mark_done("texture/rgb", prov)  # after the last frame: a killed run leaves no key to trust
     return prov
 
 

@@ -97,11 +97,14 @@ class Collection:
 
     # -- arrays ------------------------------------------------------------------
     def create(self, name: str, tail: tuple[int, ...], dtype, dims: tuple[str, ...],
-               provenance: Provenance, fill_value: Any = None) -> zarr.Array:
+               provenance: Provenance, fill_value: Any = None, *, pending: bool = False) -> zarr.Array:
         """(Re)create a per-photo array of shape (n, *tail).
 
         Images get one photo per chunk, ``photos_per_shard`` chunks per shard; small
         per-photo values get one chunk per shard. Either way a shard of photos is one file.
+        ``pending``: the array is filled later and counts as done (has its provenance) only
+        once :meth:`mark_done` is called after the last write, so that a run killed half-way
+        leaves an array the next run recomputes rather than trusts.
         """
         if len(dims) != 1 + len(tail):
             raise ValueError(f"{name}: {len(dims)} dimension names for {1 + len(tail)} dimensions")
@@ -117,9 +120,14 @@ class Collection:
         array = self.group.create_array(
             name, shape=shape, dtype=dtype, chunks=chunks, shards=shards,
             dimension_names=dims, fill_value=fill_value, overwrite=True)
-        array.attrs["provenance"] = provenance.model_dump()
+        if not pending:
+            array.attrs["provenance"] = provenance.model_dump()
         self._arrays[name] = array
         return array
+
+    def mark_done(self, name: str, provenance: Provenance) -> None:
+        """Record that a ``pending`` array is complete: its provenance, written after its data."""
+        self.array(name).attrs["provenance"] = provenance.model_dump()
 
     def create_single(self, name: str, data: np.ndarray, dims: tuple[str, ...],
                       provenance: Provenance) -> zarr.Array:

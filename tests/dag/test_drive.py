@@ -270,3 +270,52 @@ def test_every_group_of_the_store_opens_in_xarray(drive_run):
         assert path in opened, opened
     ds = xr.open_zarr(store, group="puppet/aligned", consolidated=False)
     assert ds.sizes["fiducial"] == 49 and ds.sizes["landmark"] == 68
+
+
+def test_a_run_killed_during_the_frame_textures_resumes_to_complete_textures(tmp_path, monkeypatch):
+    """A run interrupted after the first shard of per-frame textures (the issue: the array's key was
+    written before its data, the next run skipped it and rendered black faces) resumes to textures
+    equal to the backend's for every frame, none left black."""
+    import persona.dag.texture as texture_module
+    from persona.stores.layout import Collection, open_store
+
+    path = make_demo_data(tmp_path, n_photos=10, n_frames=8)
+    wf = yaml.safe_load(path.read_text())
+    wf["photos_per_shard"] = 4
+    path.write_text(yaml.safe_dump(wf))
+    real = texture_module.texture_backend
+    calls = []
+
+    class Dying:
+        def __init__(self, backend):
+            self.backend = backend
+
+        def __getattr__(self, name):
+            return getattr(self.backend, name)
+
+        def blend(self, *args):
+            calls.append(1)
+            if len(calls) == 7:  # the neutral texture, the first shard of 4 frames, 2 of the next
+                raise KeyboardInterrupt
+            return self.backend.blend(*args)
+
+    def dying_backend(runner):
+        name, params, backend = real(runner)
+        return name, params, Dying(backend)
+
+    monkeypatch.setattr(texture_module, "texture_backend", dying_backend)
+    with pytest.raises(KeyboardInterrupt):
+        run_workflow(load_workflow(path), scheduler="sync", progress=False)
+    root = open_store(str(tmp_path / "run.zarr"), mode="r")
+    assert Collection(root, "drive").provenance("texture/rgb") is None  # not to be trusted
+    monkeypatch.setattr(texture_module, "texture_backend", real)
+    run_workflow(load_workflow(path), scheduler="sync", progress=False)
+    root = open_store(str(tmp_path / "run.zarr"), mode="r")
+    drive, puppet = Collection(root, "drive"), Collection(root, "puppet")
+    textures = drive.array("texture/rgb")[:]
+    assert textures.reshape(len(textures), -1).max(axis=1).min() > 0  # no black frame
+    cache, fiducials = texture_module.load_cache(puppet)
+    backend = real(type("R", (), {"wf": load_workflow(path)})())[2]
+    for t in (1, 5, 7):
+        expect = backend.blend(cache, fiducials, drive.array("target")[t]).round().astype(np.uint8)
+        np.testing.assert_array_equal(textures[t], expect)

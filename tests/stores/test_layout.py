@@ -68,3 +68,15 @@ def test_missing_or_foreign_store_is_a_clear_error(tmp_path):
     zarr.open_group(str(tmp_path / "other.zarr"), mode="w")
     with pytest.raises(StoreError, match="not a Persona store"):
         open_store(str(tmp_path / "other.zarr"), mode="r")
+
+
+def test_a_pending_array_counts_as_done_only_once_marked(tmp_path):
+    """An array filled shard by shard is created ``pending``: until mark_done, written after the
+    last shard, it has no provenance, so a run killed half-way leaves nothing to trust."""
+    _, coll = make(tmp_path)
+    arr = coll.create("texture/rgb", (8, 8, 3), "uint8", ("photo", "y", "x", "channel"), prov(a=1), pending=True)
+    arr[0:4] = 7
+    assert coll.has("texture/rgb") and coll.provenance("texture/rgb") is None
+    arr[4:10] = 9
+    coll.mark_done("texture/rgb", prov(a=1))
+    assert coll.provenance("texture/rgb").key == prov(a=1).key
