@@ -52,6 +52,20 @@ def _plan(wf) -> str:
     return "\n".join(lines)
 
 
+def _resolved_stages(wf) -> dict:
+    """Every stage's settings with the defaults filled in: backend and params per backend kind, and
+    the params of the stages without backends."""
+    from persona.plugins.manager import default_registry
+
+    from .workflow import BACKENDLESS
+
+    stages = {name: {"params": wf.backendless(name)} for name in BACKENDLESS}
+    for kind in default_registry().kinds():
+        backend, params = wf.stage(kind)
+        stages[kind] = {"backend": backend, "params": params}
+    return stages
+
+
 def _resume_hint(args) -> None:
     command = ["persona", "run", args.workflow, *sum((["--set", s] for s in args.set), [])]
     if args.scheduler:
@@ -169,6 +183,10 @@ def _cmd_validate(args) -> int:
 
     wf = load_workflow(args.workflow, args.set)
     counts = check_inputs(wf)
+    if args.json:
+        print(json.dumps({"workflow": args.workflow, "valid": True, "counts": counts,
+                          "resolved": {**wf.model_dump(mode="json"), "stages": _resolved_stages(wf)}}, indent=2))
+        return 0
     print(f"{args.workflow}: valid; " + ", ".join(f"{path}: {n} {'frames' if path == 'driver/frames' else 'photos'}"
                                                  for path, n in counts.items()))
     print(_plan(wf))
@@ -245,40 +263,67 @@ def _version() -> str:
     return persona_version()
 
 
+class _HelpFormatter(argparse.RawDescriptionHelpFormatter):
+    """Each option's default after its help (unless the help gives it, or there is none); the
+    example in the epilog kept as written."""
+
+    def _get_help_string(self, action):
+        text = action.help or ""
+        default = action.default
+        if ("default" in text or not action.option_strings or default is None or default is False
+                or default == [] or default is argparse.SUPPRESS):
+            return text
+        return f"{text} (default: {action.default})"
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="persona", description=(
-        "Build a controllable 3D face puppet from a photo collection and drive it with a video."))
+        "Build a controllable 3D face puppet from a photo collection and drive it with a video."),
+        epilog="Start with: persona demo demo   (synthetic faces, every stage, a few minutes)")
     parser.add_argument("--version", action="version", version=f"%(prog)s {_version()}")
-    sub = parser.add_subparsers(dest="command", required=True)
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    def command(name: str, help: str, example: str) -> argparse.ArgumentParser:
+        return sub.add_parser(name, help=help, description=help[0].upper() + help[1:] + ".",
+                              epilog=f"example:\n  {example}",
+                              formatter_class=_HelpFormatter)
+
+    def workflow(p):
+        p.add_argument("workflow", help="the workflow YAML file (see workflows/ for examples)")
+
+    def overrides(p):
+        p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                       help="override a workflow value, e.g. --set stages.landmarks.params.select=largest; "
+                       "repeat for several")
 
     def common_run(p):
-        p.add_argument("--scheduler", help='"local" (default), "sync" (in this process) or a Dask '
-                       "scheduler address such as tcp://HOST:8786")
+        p.add_argument("--scheduler", help='"local" (one worker per core on this machine), "sync" (in this '
+                       "process) or a Dask scheduler address such as tcp://HOST:8786 (default: the "
+                       "workflow's cluster.scheduler, local)")
         p.add_argument("--workers", type=int, help="local Dask workers (default: one per core)")
-        p.add_argument("--quiet", action="store_true", help="no progress bars")
+        p.add_argument("--quiet", action="store_true", help="no progress display")
 
-    p = sub.add_parser("run", help="run a workflow (resumes an interrupted run)")
-    p.add_argument("workflow")
-    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                   help="override a workflow value, e.g. --set stages.landmarks.params.select=largest")
+    p = command("run", "run a workflow (resumes an interrupted run)", "persona run workflows/bush_driven_by_obama.yaml")
+    workflow(p)
+    overrides(p)
     p.add_argument("--dry-run", action="store_true", help="validate and print the plan, compute nothing")
     common_run(p)
     p.set_defaults(func=_cmd_run)
 
-    p = sub.add_parser("demo", help="make synthetic faces and run every stage on them")
+    p = command("demo", "make synthetic faces and run every stage on them", "persona demo demo --photos 24")
     p.add_argument("folder", nargs="?", default="demo", help="where the demo data and results go")
     p.add_argument("--photos", type=int, default=24, help="photos per synthetic collection")
     p.add_argument("--frames", type=int, default=30, help="frames of the synthetic driving video")
     common_run(p)
     p.set_defaults(func=_cmd_demo)
 
-    p = sub.add_parser("evaluate", help="identity, expression and stability figures of a finished run; "
-                       "with --texture, leave-one-out scores of texture synthesis")
-    p.add_argument("workflow")
+    p = command("evaluate", "identity, expression and stability figures of a finished run; with --texture, "
+                "leave-one-out scores of texture synthesis", "persona evaluate workflows/bush_driven_by_obama.yaml")
+    workflow(p)
     p.add_argument("--texture", action="store_true", help="hold out reference photos and score every texture "
                    "method on them (paper Fig. 5): table and picture grid in the output folder")
-    p.add_argument("--collection", default="puppet", help="--texture: the collection (default puppet)")
-    p.add_argument("--references", type=int, default=40, help="--texture: held-out references (default 40)")
+    p.add_argument("--collection", default="puppet", help="--texture: the collection")
+    p.add_argument("--references", type=int, default=40, help="--texture: held-out references")
     p.add_argument("--seed", type=int, default=0, help="--texture: seed of the references' draw")
     p.add_argument("--photos", type=int, help="--texture: synthesize from this many of the other photos, drawn at "
                    "random (default: all of them)")
@@ -286,26 +331,30 @@ def build_parser() -> argparse.ArgumentParser:
                    "reference photo itself (the paper's Fig. 5) or only its fiducials (as in puppetry)")
     p.add_argument("--methods", type=_texture_methods, default=None, help="--texture: comma-separated subset of "
                    "static,weighted,prewarped,multiscale (default: all four)")
-    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
+    overrides(p)
     p.add_argument("--json", action="store_true", help="print one JSON object")
     common_run(p)
     p.set_defaults(func=_cmd_evaluate)
 
-    p = sub.add_parser("validate", help="check a workflow without running it")
-    p.add_argument("workflow")
-    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
+    p = command("validate", "check a workflow without running it: its values, and every photo folder, video "
+                "and frame range it names", "persona validate workflows/bush_driven_by_obama.yaml")
+    workflow(p)
+    overrides(p)
+    p.add_argument("--json", action="store_true", help="print one JSON object: the workflow with every default "
+                   "filled in, and the photos or frames of each collection")
     p.set_defaults(func=_cmd_validate)
 
-    p = sub.add_parser("schema", help="print the workflow JSON schema")
+    p = command("schema", "print the workflow JSON schema", "persona schema > workflow.schema.json")
     p.set_defaults(func=_cmd_schema)
 
-    p = sub.add_parser("plugins", help="list the installed backends")
-    p.add_argument("--json", action="store_true")
+    p = command("plugins", "list the installed backends", "persona plugins --json")
+    p.add_argument("--json", action="store_true", help="print one JSON list, with each backend's params schema")
     p.set_defaults(func=_cmd_plugins)
 
-    p = sub.add_parser("inspect", help="summarise a store: arrays, accepted and rejected photos")
-    p.add_argument("store")
-    p.add_argument("--json", action="store_true")
+    p = command("inspect", "summarise a store: arrays, accepted and rejected photos",
+                "persona inspect runs/bush_obama.zarr")
+    p.add_argument("store", help="the run's Zarr store (the workflow's store:)")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=_cmd_inspect)
     return parser
 

@@ -128,3 +128,35 @@ def test_too_few_photos_for_a_3d_puppet_is_a_message_that_says_what_to_do(tmp_pa
     assert re.search(r"[0-3] usable photos of 3", err) and "needs at least 5" in err and "tps2d" in err, err
     assert cli(["run", str(workflow), "--quiet", "--scheduler", "sync",
                 "--set", "stages.render.backend=tps2d"]) == 0
+
+
+def test_every_command_explains_its_arguments_with_defaults_and_an_example(capsys):
+    """`persona COMMAND --help`: every positional and option has a help text, options with a default
+    show it, and an example closes the page."""
+    from persona.dag.cli import build_parser
+
+    parser = build_parser()
+    commands = parser._subparsers._group_actions[0].choices  # argparse keeps them there
+    for name, sub in commands.items():
+        for action in sub._actions:
+            assert action.help, (name, action.dest)
+        with pytest.raises(SystemExit):
+            cli([name, "--help"])
+        page = capsys.readouterr().out
+        assert "example:\n  persona " + name in page, name
+    with pytest.raises(SystemExit):
+        cli(["evaluate", "--help"])
+    page = capsys.readouterr().out
+    assert "(default: 40)" in page and "(default: 0)" in page
+
+
+def test_validate_json_gives_the_resolved_workflow_and_the_counts(tmp_path, capsys):
+    (tmp_path / "p").mkdir()
+    for i in range(3):
+        cv2.imwrite(str(tmp_path / "p" / f"{i}.png"), np.zeros((64, 64, 3), np.uint8))
+    workflow = tmp_path / "w.yaml"
+    workflow.write_text("version: 1\nname: x\nstore: s.zarr\noutput: out\npuppet: {photos: p}\n")
+    assert cli(["validate", str(workflow), "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["valid"] and out["counts"] == {"puppet": 3}
+    assert out["resolved"]["stages"]["landmarks"]["backend"] == "dlib"  # defaults filled in
