@@ -5,8 +5,9 @@
 #   bash setup.sh test    # install, then run the test suite
 #   bash setup.sh         # install only
 #
-# Installs: the system packages open3d needs (libusb-1.0-0, libgomp1), a virtual
-# environment in .venv with Persona (editable) and its Python dependencies.
+# Installs: the system packages open3d needs (libusb-1.0-0, libgomp1; for `test` also
+# chromium, in which a test opens the report), a virtual environment in .venv with
+# Persona (editable) and its Python dependencies.
 set -euo pipefail
 cd "$(dirname "$0")"
 
@@ -14,8 +15,10 @@ PYTHON=${PYTHON:-python3}
 "$PYTHON" -c 'import sys; sys.exit(sys.version_info < (3, 11))' || {
   echo "Persona needs Python 3.11 or newer; set PYTHON=/path/to/python3.11" >&2; exit 1; }
 
+packages=(libusb-1.0-0 libgomp1)
+[ "${1:-}" = test ] && packages+=(chromium)   # the report's test opens it in a real browser
 missing=()
-for pkg in libusb-1.0-0 libgomp1; do
+for pkg in "${packages[@]}"; do
   dpkg -s "$pkg" >/dev/null 2>&1 || missing+=("$pkg")
 done
 "$PYTHON" -c 'import venv, ensurepip' 2>/dev/null || missing+=("python3-venv")

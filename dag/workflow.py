@@ -165,8 +165,9 @@ class MotionParams(Strict):
                              "0.98 / 0.82 with 'varref', 0.88 / 0.87 / 0.64 with 'dis'")
     transfer: TransferParams = Field(default_factory=TransferParams, description="deformation transfer "
                                      "driver -> puppet (paper §4, ALGORITHMS §10), used by 3D renderers; "
-                                     "its denoiser is stages.denoise (default: huber_rof with TV weight 0.3, "
-                                     "off-mask pixels excluded)")
+                                     "its denoiser is stages.denoise when the workflow names one (with that "
+                                     "backend's own defaults), else huber_rof with TV weight 0.3 and off-mask "
+                                     "pixels excluded")
     correspondence: CorrespondenceParams = Field(default_factory=CorrespondenceParams, description="the "
                                                  "driver <-> puppet correspondence φ, used by 3D renderers")
     export_every: int = Field(0, ge=0, description="with a 3D renderer, also write B's textured mesh of every "

@@ -1,6 +1,7 @@
 """End to end on synthetic faces: a puppet video, its evaluation and its report."""
 
 import json
+import shutil
 
 import numpy as np
 import pytest
@@ -319,3 +320,27 @@ def test_a_run_killed_during_the_frame_textures_resumes_to_complete_textures(tmp
     for t in (1, 5, 7):
         expect = backend.blend(cache, fiducials, drive.array("target")[t]).round().astype(np.uint8)
         np.testing.assert_array_equal(textures[t], expect)
+
+
+@pytest.mark.skipif(shutil.which("chromium") is None and shutil.which("chromium-browser") is None,
+                    reason="no Chromium here (bash setup.sh test installs it)")
+def test_the_report_renders_in_a_real_browser(drive_run, tmp_path):
+    """Headless Chromium loads the self-contained page and draws it: the screenshot shows the videos'
+    frames, pictures and plots (far from a blank page), and the page's DOM has the three videos."""
+    import subprocess
+
+    folder, _, _ = drive_run
+    page = (folder / "output" / "report.html").resolve()
+    browser = shutil.which("chromium") or shutil.which("chromium-browser")
+    shot = tmp_path / "report.png"
+    args = [browser, "--headless", "--no-sandbox", "--disable-gpu", "--hide-scrollbars",
+            "--force-device-scale-factor=1", f"--user-data-dir={tmp_path}"]
+    subprocess.run([*args, "--window-size=1100,2000", f"--screenshot={shot}", page.as_uri()],
+                   check=True, capture_output=True, timeout=120)
+    image = media.decode_image(shot)
+    assert image.shape[0] > image.shape[1] > 500
+    inked = np.mean(np.abs(image.astype(int) - 255).sum(axis=2) > 30)
+    assert inked > 0.15, inked  # text, the videos' first frames, pictures
+    dom = subprocess.run([*args, "--dump-dom", page.as_uri()], check=True, capture_output=True, timeout=120,
+                         text=True).stdout
+    assert dom.count("<video") == 3 and "Figures" in dom
