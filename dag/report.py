@@ -69,14 +69,60 @@ def plots(series: dict, threshold: float, fps: float) -> dict[str, str]:
     return out
 
 
-def _table(rows: list[tuple[str, object]]) -> str:
+def _table(rows: list[tuple]) -> str:
+    """Rows of (label, value) or (label, value, what is good): a table, the guide in a third column."""
     def fmt(v):
         if isinstance(v, float):
             return f"{v:.3f}"
         return html.escape(str(v))
 
-    body = "".join(f"<tr><th>{html.escape(k)}</th><td>{fmt(v)}</td></tr>" for k, v in rows)
+    body = "".join(f"<tr><th>{html.escape(r[0])}</th><td>{fmt(r[1])}</td>"
+                   + (f"<td>{html.escape(r[2])}</td>" if len(r) > 2 else "") + "</tr>" for r in rows)
     return f"<table>{body}</table>"
+
+
+#: what is good for each stability figure, and its target where there is one
+_STABILITY = {"jitter_ratio": "lower is better; target ≤ 1 (the output as steady as the driver)",
+              "colour_change_ratio": "lower is better; target ≤ 1",
+              "texture_change_ratio": "lower is better; ≤ 1: B's texture changes no more than A's face does"}
+
+
+def figure_rows(ev: dict) -> list[tuple]:
+    """The evaluation's figures as (label, value, what is good / target) rows."""
+    identity = ev["identity"]
+    rows = [("frames", ev["frames"], ""),
+            ("frames bridged (no face in the driver)", ev["bridged_frames"], "lower is better"),
+            ("frames that are B and not A", identity["fraction_b_not_a"], "higher is better; target ≥ 0.95"),
+            ("mean distance to B", identity["mean_distance_to_b"], "lower is better; < 0.6 = the same person"),
+            ("mean distance to A", identity["mean_distance_to_a"], "higher is better; > 0.6 = another person"),
+            ("output frames without a face", identity["frames_without_face"], "lower is better; target 0")]
+    rows += [(f"expression correlation: {k.replace('_', ' ')}", v, "higher is better; target ≥ 0.85 (mouth)")
+             for k, v in ev["expression"].items()]
+    rows += [(f"expression gain (output / driver): {k.replace('_', ' ')}", a["gain"],
+              "1 = the driver's amplitude; target 0.7-1.4") for k, a in ev.get("amplitude", {}).items()]
+    rows += [(k.replace("_", " "), v, _STABILITY.get(k, "lower is better")) for k, v in ev["stability"].items()]
+    for how, f in ev.get("composite", {}).items():
+        rows += [(f"composite seam ({how}): colour step beyond the driver's own (grey levels)", f["colour_step"],
+                  "lower is better; 0 = no step beyond the frame's"),
+                 (f"composite seam ({how}): gradient energy over the driver's", f["gradient_ratio"],
+                  "lower is better; 1 = as smooth as the frame")]
+    guide = {"psnr_db": "higher is better; target ≥ 28 dB", "ssim": "higher is better; target ≥ 0.88"}
+    rows += [(f"self-reenactment {k}", v, guide.get(k, "")) for k, v in ev.get("self_reenactment", {}).items()]
+    rows += [(f"{who.replace('_', ' ')} follow A's landmarks: {k.replace('_', ' ')} (gain, r)",
+              f"{a['gain']:.2f}, {a['r']:.2f}", "gain 1 = the driver's amplitude") for who, figures in
+             ev.get("motion", {}).items() for k, a in figures.items()]
+    return rows
+
+
+def identity_caveat(ev: dict) -> str | None:
+    """Why "B and not A" cannot judge identity in this run, when dlib sees B and A as one person."""
+    identity = ev["identity"]
+    near_a, near_b = identity.get("mean_distance_to_a"), identity.get("mean_distance_to_b")
+    if near_a is None or near_b is None or not (near_a < 0.6 and near_b < 0.6):
+        return None
+    return ("dlib's descriptor puts the output within 0.6 of both B and A, i.e. it sees B and A as one person: "
+            "a self-reenactment (B is A), or synthetic faces, which the descriptor was not trained on. "
+            "\"B and not A\" cannot judge identity here; PSNR and SSIM against A's frames (self-reenactment) can.")
 
 
 def write_report(path: Path, *, metrics: dict, pictures: dict[str, np.ndarray], strip: np.ndarray | None,
@@ -94,23 +140,10 @@ def write_report(path: Path, *, metrics: dict, pictures: dict[str, np.ndarray], 
                   f'<video controls loop width="720" src="data:video/mp4;base64,{data}"></video>']
     ev = metrics.get("evaluation")
     if ev:
-        rows = [("frames", ev["frames"]), ("frames bridged (no face in the driver)", ev["bridged_frames"]),
-                ("frames that are B and not A", ev["identity"]["fraction_b_not_a"]),
-                ("mean distance to B", ev["identity"]["mean_distance_to_b"]),
-                ("mean distance to A", ev["identity"]["mean_distance_to_a"]),
-                ("output frames without a face", ev["identity"]["frames_without_face"])]
-        rows += [(f"expression correlation: {k.replace('_', ' ')}", v) for k, v in ev["expression"].items()]
-        rows += [(f"expression gain (output / driver, target 1): {k.replace('_', ' ')}", a["gain"])
-                 for k, a in ev.get("amplitude", {}).items()]
-        rows += [(k.replace("_", " "), v) for k, v in ev["stability"].items()]
-        rows += [(f"composite seam ({how}): colour step beyond the driver's own (grey levels, lower is better)",
-                  f["colour_step"]) for how, f in ev.get("composite", {}).items()]
-        rows += [(f"composite seam ({how}): gradient energy over the driver's (1 = as smooth)", f["gradient_ratio"])
-                 for how, f in ev.get("composite", {}).items()]
-        rows += [(f"self-reenactment {k}", v) for k, v in ev.get("self_reenactment", {}).items()]
-        rows += [(f"{who.replace('_', ' ')} follow A's landmarks: {k.replace('_', ' ')} (gain, r)",
-                  f"{a['gain']:.2f}, {a['r']:.2f}") for who, figures in ev.get("motion", {}).items()
-                 for k, a in figures.items()]
+        rows = figure_rows(ev)
+        caveat = identity_caveat(ev)
+        if caveat:
+            parts.append(f"<p><b>Identity:</b> {html.escape(caveat)}</p>")
         parts += ["<h2>Figures</h2>", _table(rows)]
     if strip is not None:
         parts += ["<h2>Driver frames (top) and output frames (bottom)</h2>", _img(_png(strip), "frames", 960)]
@@ -122,6 +155,8 @@ def write_report(path: Path, *, metrics: dict, pictures: dict[str, np.ndarray], 
     counts = [(f"{c}: {'frames' if c == 'driver/frames' else 'photos'} aligned", f"{v['accepted']} of {v['n_photos']}")
               for c, v in metrics.get("collections", {}).items()]
     timing = [(f"{r['collection']} {r['stage']} (wall s)", r["wall_seconds"]) for r in metrics.get("stages", [])]
+    timing += [(f"{c}: subspace, alignment, shape and texture (wall s)", v["shape_seconds"])
+               for c, v in metrics.get("collections", {}).items() if v.get("shape_seconds") is not None]
     extra = [(k, v) for k, v in metrics.get("speed", {}).items()]
     parts += ["<h2>Counts and timing</h2>", _table(counts + extra + timing),
               "<details><summary>metrics.json</summary><pre>"
