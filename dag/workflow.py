@@ -137,20 +137,16 @@ class CorrespondenceParams(FlowChoice):
     onto A's rank-4 subspace, then a flow between the two.
 
     The paper used Liu's flow with (α, ratio, minWidth, outer, inner, SOR) = (0.02, 0.85, 20, 4, 1,
-    40): ``backend: liu`` with its defaults. On the three real workflows (Powell/woman, Bush/Obama,
-    Obama/Obama) φ takes B's mean fiducials a median 10.5 / 4.2 / 2.9 px from A's with it, 3.7 /
-    3.4 / 2.0 with ``dis``, 1.8 / 2.4 / 1.5 with ``varref``, and 1.1 / 1.1 / 0.8 with ``varref`` and
-    the landmark guide (the default)."""
+    40): ``backend: liu`` with its defaults. The default here, ``varref`` started from the landmark
+    guide and pinned to the fiducials, and what it was chosen against: docs/expression.md."""
 
     landmark_guide: bool = Field(True, description="start from the smoothing TPS that takes B's mean fiducials "
                                  "to A's and let the flow correct it (A's basis is warped by the TPS before "
                                  "the projection); off = the flow alone, as in the paper")
     guide_lambda: float = Field(10.0, ge=0, description="λ of the guide's smoothing TPS (Eq. 1; paper: 10)")
     pin_fiducials: bool = Field(True, description="after the flow, add the smoothing TPS of φ's misses at B's "
-                                "mean fiducials, so that φ takes each of them onto A's (not in the paper). The "
-                                "flow between two blurred averages drifts at the thin lips: on Bush/Obama it "
-                                "took B's lower inner lip 3 px up onto A's lip line, and the transfer then moved "
-                                "it with A's closing lip line (docs/expression.md)")
+                                "mean fiducials, so that φ takes each of them onto A's: the flow between two "
+                                "blurred averages drifts at the thin lips (not in the paper; docs/expression.md)")
     pin_lambda: float = Field(1.0, ge=0, description="λ of the pinning TPS (Eq. 1's units): 0 interpolates")
 
 
@@ -160,9 +156,8 @@ class MotionParams(Strict):
     dynamics: DynamicsParams = Field(default_factory=DynamicsParams, description="the driver's per-frame "
                                      "3D flow (ALGORITHMS §9), used by 3D renderers")
     flow: FlowChoice = Field(default_factory=FlowChoice, description="the 2D flow of the per-frame 3D flow "
-                             "(reference -> frame, after the landmark guide). On the Powell/woman driver "
-                             "video, the driver's meshes follow its mouth/eye/brow landmarks with r = 0.98 / "
-                             "0.98 / 0.82 with 'varref', 0.88 / 0.87 / 0.64 with 'dis'")
+                             "(reference -> frame, after the landmark guide; 'varref' by default, chosen "
+                             "in docs/expression.md)")
     transfer: TransferParams = Field(default_factory=TransferParams, description="deformation transfer "
                                      "driver -> puppet (paper §4, ALGORITHMS §10), used by 3D renderers; "
                                      "its denoiser is stages.denoise when the workflow names one (with that "

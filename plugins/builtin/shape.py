@@ -128,8 +128,7 @@ class TemplatePhotometricStereo(ShapeBackend):
         regularised: bool = Field(True, description="template-regularised alternating least squares "
                                   "instead of SVD + template lights (ALGORITHMS §8.2, §16.9): more robust "
                                   "to residual misalignment, pulls towards the template where the "
-                                  "images say little. The default: through the whole pipeline it beat "
-                                  "plain SVD on synthetic faces (3.4° vs 3.9°) and on real ones")
+                                  "images say little (measured: docs/shape.md)")
         als_iterations: int = Field(30, ge=1, le=1000, description="regularised variant: ALS rounds")
         regularisation: float = Field(0.01, ge=0, description="regularised variant: g = regularisation · "
                                       "trace(LᵀL)/4, the weight of ||S - [ρ; ρ n_t]||²")
@@ -139,22 +138,19 @@ class TemplatePhotometricStereo(ShapeBackend):
             "pull on the normal's direction grows with ρ² while the noise does not: dark pixels (hair, "
             "brows) follow the noise. 'normal': g (mean ρ / ρ_j)², the same pull on the direction at "
             "every pixel, i.e. a fixed angular prior against fixed image noise (a MAP reading; ρ_j "
-            "floored at 5 % of the mean). Measured: synthetic seed 3 (100 photos) 2.51° -> 2.15° with robust weights on")
+            "floored at 5 % of the mean; measured: docs/shape.md)")
         robust: float = Field(1.5, ge=0, description="regularised variant: iteratively reweighted least "
                               "squares against shadows, specularities and residual misalignment. Each "
                               "round weights every image pixel by 1/(1 + (r/(robust·σ))²) (Cauchy), with r "
                               "its residual from the rank-4 model and σ = 1.4826 · median |r| over the whole "
-                              "collection; 0 = plain least squares ([14]). Measured on synthetic seed 3: "
-                              "2.86° -> 2.39°, depth 0.80 -> 0.62 px (error against the truth in the "
-                              "collection's frame)")
+                              "collection; 0 = plain least squares ([14]; measured: docs/shape.md)")
         min_images: int = Field(8, ge=4, description="fewest images; fewer cannot pin down 4 lights "
                                 "robustly and the collection is rejected")
         min_visible: float = Field(0.6, ge=0, le=1, description="a mask pixel seen by fewer than this "
                                    "fraction of the images is left out (NaN in the result). The outer ring of "
                                    "the oval, seen only in part of the photos, is where real collections show "
-                                   "ears, hair and background; its normals tilt the integrated surface. 0.6 "
-                                   "(was 0.25): Bush halves / Bush-vs-Powell 0.55 -> 0.42, the mask 8 % "
-                                   "smaller (29.3k -> 26.9k px); chosen on that benchmark, one value tried")
+                                   "ears, hair and background; its normals tilt the integrated surface "
+                                   "(measured: docs/shape.md)")
         dark_threshold: float = Field(0.0, ge=0, lt=1, description="pixels darker than this are treated "
                                       "as missing (attached shadows break the linear model); 0 = keep all")
 

@@ -38,10 +38,8 @@ class _Alignment(_Weights):
                       "each photo to (paper: 4, lighting only)")
     flow: FlowChoice = Field(default_factory=FlowChoice, description="the flow of the dense warps to a target "
                              "(per-target synthesis and `persona evaluate --texture`; video mode blends the "
-                             "collection as the align stage warped it, with stages.flow). Not the collection "
-                             "flow's dis: on Bush and Powell, 40 held-out references each, ours' median alignment "
-                             "error is 1.94 / 1.93 % of the inter-ocular distance with varref against 2.00 / 1.91 "
-                             "with dis (README, texture)")
+                             "collection as the align stage warped it, with stages.flow); varref rather than the "
+                             "collection flow's dis, as measured in the README (texture)")
 
     def aligned(self, photos, target, flow=None, reference=None) -> align.Aligned:
         """The photos TPS- and flow-aligned to the target, with ``flow`` or else this flow choice's."""
@@ -87,8 +85,7 @@ class MultiscaleTexture(TextureBackend):
         stretch_scale: float = Field(0.3, ge=0, description="s of the alignment confidence's flow term "
                                      "exp(-|∇w_i|² / 2s²), |∇w_i|² the local (σ 3 px) squared Jacobian norm of "
                                      "the photo's dense flow: tears, where the flow jumps, lose their weight. "
-                                     "Not in the paper (0 turns it off); 0.3 chosen on Bush, fiducial mode, "
-                                     "40 references (README, texture)")
+                                     "Not in the paper (0 turns it off; chosen as the README's texture section says)")
         residual_scale: float = Field(0.02, ge=0, description="s of the alignment confidence's residual term "
                                       "exp(-r² / 2s²), r² the local (σ 3 px) squared difference of the band-passed "
                                       "grey (0-1) aligned photo and its rank-k projection: where the flow left a "

@@ -75,13 +75,8 @@ class DynamicsParams(Params):
                                  "Off = the flow alone (ALGORITHMS §9.2.4), which misses wide mouth "
                                  "motion on real video")
     guide_lambda: float = Field(0.1, ge=0, description="λ of the guide's smoothing TPS (Eq. 1; the paper "
-                                "warps photos with 10). On the Powell/woman driver video (177 frames, 'varref' flow), "
-                                "mouth/eye/brow r of the meshes against the frame's landmarks: 0.95 / 0.93 / 0.88 "
-                                "at 10, 0.98 / 0.98 / 0.82 at 1, 0.985 / 0.98 / 0.81 at 0.1; without the guide "
-                                "0.41 / 0.29 / 0.74. A smoothing spline also shrinks the motion it passes on: on the "
-                                "first 150 frames of the Obama address the meshes' gain (slope on the frame's "
-                                "landmarks) for mouth opening / eye openness is 0.56 / 0.49 at 1 and 0.63 / 0.59 at "
-                                "0.1 (docs/expression.md)")
+                                "warps photos with 10): larger is smoother and passes on less of the motion "
+                                "(measured in docs/expression.md)")
     guide_step: int = Field(1, ge=1, le=8, description="evaluate the guide's spline on every n-th canonical row "
                             "and column, bilinearly between: 4 rounds off the eyelids' few-px motion (eye-openness "
                             "gain 0.59 at 4, 0.66 at 1 on the Obama address)")
@@ -124,11 +119,8 @@ class DynamicsParams(Params):
     visibility_step: int = Field(2, ge=1, le=8, description="cast visibility rays on every n-th canonical "
                                  "row and column (1 = every pixel)")
     time_sigma: float = Field(0.75, ge=0, le=10, description="σ in frames of the Gaussian smoothing of the "
-                              "flow and δ over time (0 = off). Speech moves the lips at 3-6 Hz, where σ = 1 at 25 fps "
-                              "passes half the amplitude: on the Obama address the meshes' mouth gain is 0.68 / "
-                              "0.80 / 0.84 at σ 1 / 0.5 / 0, and the jitter of their fiducials 0.21 / 0.56 / 0.81 "
-                              "of dlib's on the frames. On Powell driven by the woman the output's mouth gain is "
-                              "0.78 at both 0.5 and 0.75, its jitter ratio 1.08 and 1.00 (docs/expression.md)")
+                              "flow and δ over time (0 = off): larger is steadier and passes on less of fast "
+                              "motion (speech moves the lips at 3-6 Hz; measured in docs/expression.md)")
     time_radius: int = Field(2, ge=0, le=10, description="frames on each side in the temporal smoothing "
                              "(the halo a chunk of frames needs)")
 
