@@ -130,6 +130,20 @@ def _print_figures(figures: dict, indent: str = "") -> None:
             print(f"{indent}{k:<24} {v:.3f}" if isinstance(v, float) else f"{indent}{k:<24} {v}")
 
 
+def _refresh_report(wf) -> Path | None:
+    """report.html made again with the texture evaluations now in the output folder, when the run
+    left its metrics.json (and series.json, the plots) there; None when there is no run's report."""
+    from persona.stores.layout import open_store
+
+    from .report import write_run_report
+
+    out = Path(wf.output)
+    if not (out / "metrics.json").is_file():
+        return None
+    series = json.loads((out / "series.json").read_text()) if (out / "series.json").is_file() else None
+    return write_run_report(wf, open_store(wf.store, mode="r"), json.loads((out / "metrics.json").read_text()), series)
+
+
 def _texture_methods(value: str) -> tuple[str, ...]:
     from .texture_eval import METHODS
 
@@ -153,6 +167,7 @@ def _evaluate_texture(wf, args) -> int:
         result = evaluate_texture(Runner(wf, ex, progress=not args.json), args.collection, references=args.references,
                                   seed=args.seed, photos=args.photos, mode=args.mode,
                                   **({"methods": args.methods} if args.methods else {}))
+    page = _refresh_report(wf)
     if args.json:
         print(json.dumps(result, indent=2))
         return 0
@@ -172,6 +187,8 @@ def _evaluate_texture(wf, args) -> int:
         se = f" ± {d['standard_error']:.2f}" if d["standard_error"] is not None else ""
         print(f"  {LABELS[name]:<16}median {d['median']:+.2f}, mean {d['mean']:+.2f}{se}, "
               f"ours better on {d['ours_better']} of {d['references']}")
+    if page is not None:
+        print(f"report: {page}")
     print(f"  grid: {result['grid']}")
     return 0
 

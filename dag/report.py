@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from persona.stores import media
+from persona.stores.layout import Collection
 
 MAX_EMBEDDED_VIDEO = 40 * 2**20
 
@@ -125,10 +126,68 @@ def identity_caveat(ev: dict) -> str | None:
             "\"B and not A\" cannot judge identity here; PSNR and SSIM against A's frames (self-reenactment) can.")
 
 
+#: the texture methods of paper Fig. 5, as the report names them
+_TEXTURE_METHODS = {"reference": "reference photo", "static": "(ii) static average", "weighted": "(iii) weighted",
+                    "prewarped": "(iv) prewarped", "multiscale": "ours (multiscale)"}
+
+
+def texture_section(result: dict, grid: np.ndarray | None) -> list[str]:
+    """The Fig. 5 table (one row per method) and picture grid of a texture evaluation."""
+    head = ("<tr><th>method</th><th>alignment, median % IOD (lower is better)</th><th>no face found</th>"
+            "<th>detail over the reference's (1 = as much)</th><th>fidelity, band-pass SSIM (higher is better)</th>"
+            "<th>colour spread % (lower is better)</th></tr>")
+
+    def cell(v, fmt):
+        return "–" if v is None else format(v, fmt)
+
+    rows = "".join(
+        f"<tr><td>{html.escape(_TEXTURE_METHODS.get(name, name))}</td>"
+        f"<td>{cell(r.get('alignment_median_pct_iod'), '.2f')}</td><td>{cell(r.get('no_face_found'), 'd')}</td>"
+        f"<td>{cell(r.get('detail_median'), '.3f')}</td><td>{cell(r.get('fidelity_median'), '.3f')}</td>"
+        f"<td>{cell(r.get('colour_spread_pct'), '.2f')}</td></tr>" for name, r in result["table"].items())
+    target = "each reference photo" if result.get("mode") == "reference" else "each reference's fiducials"
+    parts = [f"<h2>Texture synthesis (paper Fig. 5): {len(result['references'])} held-out references, "
+             f"{result['collection_photos']} photos, target {html.escape(target)}</h2>", f"<table>{head}{rows}</table>"]
+    if grid is not None:
+        parts.append(_img(_png(grid), "reference | ii | iii | iv | ours", min(960, grid.shape[1])))
+    return parts
+
+
+def write_run_report(wf, root, metrics: dict, series: dict | None) -> Path:
+    """report.html in the workflow's output folder, from a run's ``metrics`` (metrics.json), its
+    store (pictures, the frame strip) and ``series`` (the plots); with every texture evaluation
+    found in the folder."""
+    out = Path(wf.output)
+    pictures = {}
+    for path, c in metrics["collections"].items():
+        for kind, file in c["pictures"].items():
+            if str(file).endswith(".png") and Path(file).is_file():
+                pictures[f"{path}: {kind.replace('_', ' ')}"] = media.decode_image(file, max_side=4000)
+    strip = None
+    if root.get("drive") is not None:
+        drive, frames = Collection(root, "drive"), Collection(root, "driver/frames")
+        chosen = np.linspace(0, drive.n - 1, min(6, drive.n)).round().astype(int)
+        top = np.concatenate([frames.array("photos/rgb")[i] for i in chosen], axis=1)
+        bottom = np.concatenate([drive.array("render/rgb")[i] for i in chosen], axis=1)
+        strip = np.concatenate([top, bottom], axis=0)
+    fps = float(root["driver/frames"].attrs["fps"]) if strip is not None else 25.0
+    texture = []
+    for file in sorted(out.glob("*_texture_evaluation*.json")):
+        result = json.loads(file.read_text())
+        grid = Path(result.get("grid", ""))
+        texture.append((result, media.decode_image(grid, max_side=4000) if grid.is_file() else None))
+    return write_report(out / "report.html", metrics=metrics, pictures=pictures, strip=strip, series=series,
+                        threshold=wf.evaluate.threshold, fps=fps,
+                        videos=[out / f"{name}.mp4" for name in ("composite", "puppet", "side_by_side")],
+                        texture=texture)
+
+
 def write_report(path: Path, *, metrics: dict, pictures: dict[str, np.ndarray], strip: np.ndarray | None,
-                 series: dict | None, threshold: float, fps: float, videos: list[Path] = ()) -> Path:
+                 series: dict | None, threshold: float, fps: float, videos: list[Path] = (),
+                 texture: list[tuple[dict, np.ndarray | None]] = ()) -> Path:
     """Write the page atomically; ``pictures`` are titled images (means, contact sheets); ``videos``
-    are embedded in their order (the composite first), each up to ``MAX_EMBEDDED_VIDEO`` bytes."""
+    are embedded in their order (the composite first), each up to ``MAX_EMBEDDED_VIDEO`` bytes;
+    ``texture``: the results of ``persona evaluate --texture`` (its JSON, and its picture grid)."""
     parts = [f"<h1>Persona — {html.escape(str(metrics.get('workflow', '')))}</h1>"]
     if metrics.get("warnings"):
         items = [f"<li>{html.escape(str(w))}</li>" for w in metrics["warnings"]]
@@ -145,6 +204,8 @@ def write_report(path: Path, *, metrics: dict, pictures: dict[str, np.ndarray], 
         if caveat:
             parts.append(f"<p><b>Identity:</b> {html.escape(caveat)}</p>")
         parts += ["<h2>Figures</h2>", _table(rows)]
+    for result, grid in texture:
+        parts += texture_section(result, grid)
     if strip is not None:
         parts += ["<h2>Driver frames (top) and output frames (bottom)</h2>", _img(_png(strip), "frames", 960)]
     if series:

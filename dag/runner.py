@@ -33,7 +33,7 @@ from .drive import run_drive, write_videos
 from .shape import run_alignment, run_shape
 from .texture import run_texture
 from .evaluate import evaluate
-from .report import write_report
+from .report import write_run_report
 from .workflow import VideoRange, Workflow
 
 log = logging.getLogger(__name__)
@@ -444,6 +444,8 @@ class Runner:
             report["speed"]["evaluate_seconds"] = time.perf_counter() - t0
             series = evaluation.pop("series")
             report["evaluation"] = evaluation
+            write_json(Path(self.wf.output) / "series.json",  # the report's plots, should it be made again
+                       {k: np.asarray(v, float).tolist() for k, v in series.items()})
         report["stages"] = self.timer.records
         report["report"] = str(Path(self.wf.output) / "report.html")
         write_json(Path(self.wf.output) / "metrics.json", report)
@@ -457,23 +459,7 @@ class Runner:
 
     def report(self, report: dict, series: dict | None) -> Path:
         """report.html beside metrics.json: figures, pictures, frames and plots."""
-        out = Path(self.wf.output)
-        pictures = {}
-        for path, c in report["collections"].items():
-            for kind, file in c["pictures"].items():
-                if str(file).endswith(".png"):
-                    pictures[f"{path}: {kind.replace('_', ' ')}"] = media.decode_image(file, max_side=4000)
-        strip = None
-        if self.root.get("drive") is not None:
-            drive, frames = Collection(self.root, "drive"), Collection(self.root, "driver/frames")
-            chosen = np.linspace(0, drive.n - 1, min(6, drive.n)).round().astype(int)
-            top = np.concatenate([frames.array("photos/rgb")[i] for i in chosen], axis=1)
-            bottom = np.concatenate([drive.array("render/rgb")[i] for i in chosen], axis=1)
-            strip = np.concatenate([top, bottom], axis=0)
-        fps = float(self.root["driver/frames"].attrs["fps"]) if strip is not None else 25.0
-        return write_report(out / "report.html", metrics=report, pictures=pictures, strip=strip, series=series,
-                            threshold=self.wf.evaluate.threshold, fps=fps,
-                            videos=[out / f"{name}.mp4" for name in ("composite", "puppet", "side_by_side")])
+        return write_run_report(self.wf, self.root, report, series)
 
 
 def _stat(path: str) -> tuple[int, int]:

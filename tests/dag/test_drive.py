@@ -344,3 +344,28 @@ def test_the_report_renders_in_a_real_browser(drive_run, tmp_path):
     dom = subprocess.run([*args, "--dump-dom", page.as_uri()], check=True, capture_output=True, timeout=120,
                          text=True).stdout
     assert dom.count("<video") == 3 and "Figures" in dom
+
+
+def test_a_texture_evaluation_joins_the_report(drive_run):
+    """`persona evaluate --texture` writes its table and grid into the output folder and makes the
+    report again (plots from series.json included): the page then shows the Fig. 5 table."""
+    from persona.dag.cli import _refresh_report
+
+    folder, path, _ = drive_run
+    out = folder / "output"
+    assert (out / "series.json").is_file()
+    grid = np.full((60, 200, 3), 200, np.uint8)
+    media.write_png(out / "puppet_texture_grid.png", grid)
+    table = {m: {"alignment_median_pct_iod": 2.0, "no_face_found": 0, "detail_median": 0.8, "fidelity_median": 0.7,
+                 "colour_spread_pct": 1.0} for m in ("static", "multiscale")}
+    (out / "puppet_texture_evaluation.json").write_text(json.dumps({
+        "collection": "puppet", "mode": "reference", "references": [1, 2, 3], "collection_photos": 7,
+        "table": table, "grid": str(out / "puppet_texture_grid.png")}))
+    try:
+        page = _refresh_report(load_workflow(path)).read_text()
+        assert "Texture synthesis (paper Fig. 5): 3 held-out references" in page and "ours (multiscale)" in page
+        assert page.count("data:image/png;base64,") >= 6  # the grid, besides the plots and pictures
+    finally:
+        (out / "puppet_texture_evaluation.json").unlink()
+        (out / "puppet_texture_grid.png").unlink()
+        _refresh_report(load_workflow(path))
