@@ -46,12 +46,15 @@ def run_drive(runner) -> Collection:
     # the status is created before the targets and written after them: done only when no frame is pending
     if current is None or current.key != prov.key or (drive.state("retarget") == PENDING).any():
         _retarget(runner, drive, frames, puppet, found, prov, sigma)
-    textures = run_frame_textures(runner, drive, puppet, prov)
+    with runner.step("frame textures", "drive"):
+        textures = run_frame_textures(runner, drive, puppet, prov)
     inputs = {"retarget": prov.key, "texture": textures.key}
     stage = st.RENDER
     if st.default_registry().get("render", runner.wf.stage("render")[0]).uses_mesh:
-        inputs["mesh"] = run_motion(runner, drive, prov).key
-        inputs["mouth"] = run_mouth(runner, puppet).key
+        with runner.step("motion", "drive"):
+            inputs["mesh"] = run_motion(runner, drive, prov).key
+        with runner.step("mouth", "puppet"):
+            inputs["mouth"] = run_mouth(runner, puppet).key
         stage = st.RENDER_3D
     drive.group.attrs["stages"] = ["retarget", *(["dynamics"] if stage is st.RENDER_3D else []), stage.name]
     render = runner.prepare_stage(drive, stage, inputs)

@@ -325,6 +325,20 @@ class Runner:
         tasks = [(self.wf.store, coll.path, s, e, steps) for s, e in pending]
         self._run(coll, steps, tasks, st.run_chain)
 
+    @contextmanager
+    def step(self, stage: str, collection: str):
+        """A collection-level step (shape, texture, motion, ...) as the lifecycle hooks and the
+        timing table see a stage: before, after (with its wall time) or error."""
+        self.pm.hook.persona_before_stage(stage=stage, collection=collection, info={})
+        start = time.perf_counter()
+        try:
+            yield
+        except BaseException as exc:
+            self.pm.hook.persona_stage_error(stage=stage, collection=collection, error=exc)
+            raise
+        self.pm.hook.persona_after_stage(stage=stage, collection=collection,
+                                         summary={"seconds": time.perf_counter() - start})
+
     def progress_bar(self, what: str, total: int, unit: str = "frame", initial: int = 0):
         """A progress bar (hidden with --quiet): :func:`progress`."""
         return progress(what, total, unit, initial=initial, enabled=self.progress)
@@ -415,10 +429,12 @@ class Runner:
             if path != "driver/frames":  # the 3D shape comes from photo collections, not video frames
                 t0 = time.perf_counter()
                 try:
-                    aligned = run_alignment(self, coll)
-                    pictures.update(run_shape(self, coll, aligned))
+                    aligned = run_alignment(self, coll)  # per-photo stages: timed as such
+                    with self.step("shape", path):
+                        pictures.update(run_shape(self, coll, aligned))
                     if path == "puppet":  # B's expression-dependent texture (video mode)
-                        pictures.update(run_texture(self, coll, aligned))
+                        with self.step("texture", path):
+                            pictures.update(run_texture(self, coll, aligned))
                 except Rejected as exc:  # e.g. too few photos for photometric stereo: the run goes on
                     self.shape_problems[path] = exc.reason
                     log.warning("%s: no 3D shape: %s", path, exc.reason)
@@ -433,7 +449,8 @@ class Runner:
             t0 = time.perf_counter()
             drive = run_drive(self)
             drive_seconds = time.perf_counter() - t0
-            report["videos"] = write_videos(drive, Collection(self.root, "driver/frames"), Path(self.wf.output))
+            with self.step("videos", "drive"):
+                report["videos"] = write_videos(drive, Collection(self.root, "driver/frames"), Path(self.wf.output))
             render = [r for r in self.timer.records if r["stage"] in ("render", "render3d")][-1]
             report["speed"] = {}
             if render["n_done"] == drive.n:  # timed only when this run rendered every frame

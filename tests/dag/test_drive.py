@@ -45,7 +45,8 @@ def test_metrics_json_has_counts_times_and_figures(drive_run):
     assert metrics["collections"]["puppet"]["n_photos"] == 10
     assert {"accepted", "rejected"} <= set(metrics["collections"]["driver"])
     assert metrics["speed"]["ms_per_driver_frame"] > 0
-    assert {r["stage"] for r in metrics["stages"]} >= {"ingest", "landmarks", "pose", "frontalize", "dynamics",
+    assert {r["stage"] for r in metrics["stages"]} >= {"ingest", "landmarks", "pose", "frontalize", "dynamics", "shape",
+                                                       "texture", "frame textures", "motion", "mouth", "videos",
                                                        "render3d"}
     ev = metrics["evaluation"]
     assert set(ev["expression"]) == set(ev["amplitude"]) == {"mouth_open", "eye_open", "brow_height", "mouth_width"}
