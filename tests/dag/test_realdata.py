@@ -98,3 +98,33 @@ def test_3d_drive_carries_the_drivers_expressions_onto_the_puppet(real_run):
     for meshes in ("driver_meshes", "puppet_meshes"):
         assert evaluation["motion"][meshes]["mouth_open"]["r"] > 0.8, meshes
     assert evaluation["identity"]["fraction_b_not_a"] >= 0.9
+
+
+def test_a_real_run_opens_everywhere(real_run):
+    """What a user opens from a real run: every group of the store in xarray; the three videos with
+    the address's sound cut to frames 900-999 (4 s, within a frame of the video's length); the
+    average meshes in metres, centred between the eyes, a face 12-25 cm wide."""
+    import av
+    import open3d as o3d
+    import xarray as xr
+    import zarr
+
+    folder, report = real_run
+    store = str(folder / "run.zarr")
+
+    def walk(group, path):
+        if any(True for _ in group.array_keys()):
+            xr.open_zarr(store, group=path or None, consolidated=False)
+        for name, child in group.groups():
+            walk(child, f"{path}/{name}" if path else name)
+
+    walk(zarr.open_group(store, mode="r"), "")
+    for name in ("composite", "puppet", "side_by_side"):
+        with av.open(str(folder / "out" / f"{name}.mp4")) as container:
+            video, sound = container.streams.video[0], container.streams.audio[0]
+            seconds = [float(s.duration * s.time_base) for s in (video, sound)]
+        assert abs(seconds[0] - 4.0) < 1e-6 and abs(seconds[1] - seconds[0]) < 1 / 25, (name, seconds)
+    for actor in ("puppet", "driver"):
+        vertices = np.asarray(o3d.io.read_triangle_mesh(report["collections"][actor]["pictures"]["mesh_ply"]).vertices)
+        width = np.ptp(vertices[:, 0])
+        assert 0.12 < width < 0.25 and abs(vertices[:, 0].min() + vertices[:, 0].max()) / 2 < 0.01, (actor, width)
