@@ -78,8 +78,8 @@ class DynamicsParams(Params):
                                 "warps photos with 10): larger is smoother and passes on less of the motion "
                                 "(measured in docs/expression.md)")
     guide_step: int = Field(1, ge=1, le=8, description="evaluate the guide's spline on every n-th canonical row "
-                            "and column, bilinearly between: 4 rounds off the eyelids' few-px motion (eye-openness "
-                            "gain 0.59 at 4, 0.66 at 1 on the Obama address)")
+                            "and column, bilinearly between: more than 1 rounds off the eyelids' few-px motion "
+                            "(measured in docs/expression.md)")
     guide_rim_spacing: int = Field(12, ge=2, le=100, description="px between the points of the average's "
                                    "rim that the guide holds in place (12 on the 244 x 194 grid: ~50 points)")
     shading_refinement: bool = Field(True, description="refine the depth along the camera ray by shading "
