@@ -143,6 +143,20 @@ def _frames_of(path: Path, start: int = 0, stop: int | None = None, step: int = 
     return [(str(path), i) for i in range(n)[start:stop:step]]
 
 
+def _member(path: Path) -> list[tuple[str, int | None]]:
+    """The entries of one file found in a folder or by a glob: a video's frames, or the file as a
+    photo. A file named like a video that does not open as one is kept as a photo, so that ingest
+    rejects it with its reason instead of one stray file stopping the whole collection (a video
+    named on its own is an error: the user asked for it)."""
+    if not is_video(path):
+        return [(str(path), None)]
+    try:
+        return _frames_of(path)
+    except InputError as exc:
+        log.warning("%s", exc)
+        return [(str(path), None)]
+
+
 def _expand_string(text, base_dir: Path) -> list[tuple[str, int | None]]:
     raw = os.fspath(text)
     if not str(raw).strip():
@@ -155,10 +169,7 @@ def _expand_string(text, base_dir: Path) -> list[tuple[str, int | None]]:
             raise InputError(
                 f"folder {where} is empty (no visible files): put photos in it or point to another folder"
             )
-        out: list[tuple[str, int | None]] = []
-        for f in files:
-            out.extend(_frames_of(f) if is_video(f) else [(str(f), None)])
-        return out
+        return [entry for f in files for entry in _member(f)]
     if path.is_file():
         return _frames_of(path) if is_video(path) else [(str(path), None)]
     if any(c in str(raw) for c in _GLOB_CHARS):
@@ -167,10 +178,7 @@ def _expand_string(text, base_dir: Path) -> list[tuple[str, int | None]]:
         )
         if not matches:
             raise InputError(f"glob pattern {where} matches no files: check the pattern and the folder")
-        out = []
-        for f in matches:
-            out.extend(_frames_of(f) if is_video(f) else [(str(f), None)])
-        return out
+        return [entry for f in matches for entry in _member(f)]
     if path.exists():
         raise InputError(f"{where} is neither a file nor a folder: point photos to a folder, a glob, an image or a video")
     raise InputError(f"{where} does not exist: check the path (relative paths resolve against {base_dir})")
@@ -221,7 +229,8 @@ def resolve_sources(spec, base_dir) -> list[Source]:
 
     - a folder: every visible file in it, sorted by name, not recursive (files of every
       extension are listed, so a text file named ``x.jpg`` reaches :func:`decode_image`
-      and is rejected there with a reason);
+      and is rejected there with a reason; a video gives its frames, and a file named like a
+      video that does not open is kept as a photo to reject, not an error);
     - a glob pattern (``*``, ``?``, ``[``), sorted, hidden files skipped;
     - a single image file;
     - a video file (by extension, see :func:`is_video`): every frame;

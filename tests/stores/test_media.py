@@ -668,3 +668,25 @@ def test_sound_is_carried_across_and_cut_to_a_frame_range(tmp_path):
     assert abs(lag) <= rate // 1000, lag
     media.write_video_mp4(tmp_path / "silent.mp4", frames[:5], fps)
     assert media.read_audio(tmp_path / "silent.mp4") is None
+
+
+def test_a_stray_video_in_a_folder_is_a_photo_to_reject_not_the_end_of_the_run(tmp_path, clip):
+    """A file named like a video in a photo folder that does not open as one becomes a photo that
+    ingest rejects with its reason; a real video there still gives its frames; the same broken file
+    named on its own is still an error (the user asked for it)."""
+    path, _ = clip
+    folder = tmp_path / "photos"
+    folder.mkdir()
+    for i in range(2):
+        cv2.imwrite(str(folder / f"{i}.png"), np.zeros((64, 64, 3), np.uint8))
+    (folder / "stray.mp4").write_bytes(os.urandom(3000))
+    (folder / "real.mp4").write_bytes(path.read_bytes())
+    sources = media.resolve_sources("photos", tmp_path)
+    named = [(Path(s.path).name, s.frame) for s in sources]
+    assert named[:2] == [("0.png", None), ("1.png", None)] and ("stray.mp4", None) in named
+    assert sum(1 for name, frame in named if name == "real.mp4" and frame is not None) > 1
+    with pytest.raises(PhotoRejected, match="not an image"):
+        media.decode_image(folder / "stray.mp4")
+    assert len(media.resolve_sources("photos/*.mp4", tmp_path)) == len(named) - 2  # a glob alike
+    with pytest.raises(InputError, match="stray.mp4"):
+        media.resolve_sources("photos/stray.mp4", tmp_path)
