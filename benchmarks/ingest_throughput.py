@@ -89,7 +89,7 @@ def warm_up() -> None:
 def pipeline(photos, workers: int, folder: Path) -> tuple[float, float, dict]:
     """Seconds of ingest -> frontalize on warm workers, seconds including the cluster's
     start and warm-up, and the stage records."""
-    from persona.dag.runner import Runner, executor_for
+    from persona.dag.runner import Runner, executor_for, resolve_inputs
     from persona.dag.stages import accepted
     from persona.dag.workflow import load_workflow
 
@@ -103,7 +103,7 @@ def pipeline(photos, workers: int, folder: Path) -> tuple[float, float, dict]:
         ex.client.run(warm_up)
         runner = Runner(workflow, ex, progress=False)
         t0 = time.perf_counter()
-        coll, video = runner.collection("puppet", workflow.puppet.photos)
+        coll, video = runner.collection("puppet", resolve_inputs(workflow)["puppet"])
         runner.run_photo_stages(coll, video)
         t1 = time.perf_counter()
     return t1 - t0, t1 - t_start, {"stages": runner.timer.records, "accepted": int(accepted(coll).sum())}

@@ -25,7 +25,7 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--sizes", type=int, nargs="+", default=[530, 2000])
     args = ap.parse_args()
-    from persona.dag.runner import Runner, executor_for
+    from persona.dag.runner import Runner, executor_for, resolve_inputs
     from persona.dag.shape import compute_subspace
     from persona.dag.workflow import load_workflow
 
@@ -42,7 +42,7 @@ def main():
             workflow = load_workflow(Path(tmp) / "wf.yaml")
             with executor_for(workflow) as ex:
                 runner = Runner(workflow, ex, progress=False)
-                coll, video = runner.collection("puppet", workflow.puppet.photos)
+                coll, video = runner.collection("puppet", resolve_inputs(workflow)["puppet"])
                 runner.run_photo_stages(coll, video)
                 runner.mean_face(coll)
                 with PeakMemory(interval=0.05) as before:

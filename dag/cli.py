@@ -11,6 +11,7 @@ from pathlib import Path
 from persona.plugins.base import Rejected
 from persona.plugins.manager import PluginError
 from persona.stores.errors import InputError, PersonaError
+from persona.stores.layout import item
 
 
 def _cmd_run(args) -> int:
@@ -78,7 +79,7 @@ def _resume_hint(args) -> None:
 
 def _print_report(report: dict) -> None:
     for path, c in report["collections"].items():
-        print(f"{path}: {c['accepted']} of {c['n_photos']} {'frames' if path == 'driver/frames' else 'photos'} aligned")
+        print(f"{path}: {c['accepted']} of {c['n_photos']} {item(path)}s aligned")
         for name, file in c["pictures"].items():
             print(f"  {name}: {file}")
     for name, file in report.get("videos", {}).items():
@@ -196,16 +197,15 @@ def _evaluate_texture(wf, args) -> int:
 def _cmd_validate(args) -> int:
     from .workflow import load_workflow
 
-    from .runner import check_inputs
+    from .runner import resolve_inputs
 
     wf = load_workflow(args.workflow, args.set)
-    counts = check_inputs(wf)
+    counts = {path: len(sources) for path, sources in resolve_inputs(wf).items()}
     if args.json:
         print(json.dumps({"workflow": args.workflow, "valid": True, "counts": counts,
                           "resolved": {**wf.model_dump(mode="json"), "stages": _resolved_stages(wf)}}, indent=2))
         return 0
-    print(f"{args.workflow}: valid; " + ", ".join(f"{path}: {n} {'frames' if path == 'driver/frames' else 'photos'}"
-                                                 for path, n in counts.items()))
+    print(f"{args.workflow}: valid; " + ", ".join(f"{path}: {n} {item(path)}s" for path, n in counts.items()))
     print(_plan(wf))
     return 0
 

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from persona.stores import media
-from persona.stores.layout import Collection
+from persona.stores.layout import Collection, item
 
 MAX_EMBEDDED_VIDEO = 40 * 2**20
 
@@ -213,7 +213,7 @@ def write_report(path: Path, *, metrics: dict, pictures: dict[str, np.ndarray], 
             parts.append(_img(src, name))
     for title, image in pictures.items():
         parts += [f"<h2>{html.escape(title)}</h2>", _img(_png(image), title, min(960, image.shape[1]))]
-    counts = [(f"{c}: {'frames' if c == 'driver/frames' else 'photos'} aligned", f"{v['accepted']} of {v['n_photos']}")
+    counts = [(f"{c}: {item(c)}s aligned", f"{v['accepted']} of {v['n_photos']}")
               for c, v in metrics.get("collections", {}).items()]
     timing = [(f"{r['collection']} {r['stage']} (wall s)", r["wall_seconds"]) for r in metrics.get("stages", [])]
     timing += [(f"{c}: subspace, alignment, shape and texture (wall s)", v["shape_seconds"])

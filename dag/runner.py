@@ -25,7 +25,7 @@ from persona.plugins.hookspecs import hookimpl
 from persona.plugins.manager import get_plugin_manager
 from persona.stores import media
 from persona.stores.errors import InputError, PersonaError
-from persona.stores.layout import OK, PENDING, REJECTED, Collection, open_store
+from persona.stores.layout import OK, PENDING, REJECTED, Collection, item, open_store
 from persona.stores.provenance import Provenance, cache_key
 
 from . import stages as st
@@ -184,20 +184,19 @@ def progress(what: str, total: int, unit: str = "frame", *, initial: int = 0, en
                 dynamic_ncols=True)
 
 
-def check_inputs(wf: Workflow) -> dict[str, int]:
-    """Resolve every collection's photos and videos before any work is done or any file created:
-    paths that do not exist, empty folders and frame ranges, files that are not videos where a video
-    is needed and videos that do not open raise an :class:`InputError` naming them. Returns the
-    number of photos (or frames) of each collection; takes a second or two (a video's frames are
-    counted, not decoded)."""
-    counts = {}
+def resolve_inputs(wf: Workflow) -> dict[str, list[media.Source]]:
+    """Every collection's photos and video frames, resolved before any work is done or any file
+    created: paths that do not exist, empty folders and frame ranges, files that are not videos
+    where a video is needed and videos that do not open raise an :class:`InputError` naming them.
+    Takes a second or two (a video's frames are counted, not decoded)."""
+    resolved = {}
     for path, spec in collection_specs(wf):
         sources = media.resolve_sources(_media_spec(spec), wf.base_dir)
         if path == "driver/frames" and any(s.frame is None for s in sources):
             raise InputError(f"driver.video: {sources[0].path} is not a video; give a video file (.mp4, .mov, "
                              "...) or a range {video: PATH, start: 0, stop: N}")
-        counts[path] = len(sources)
-    return counts
+        resolved[path] = sources
+    return resolved
 
 
 def _media_spec(spec):
@@ -232,10 +231,10 @@ class Runner:
     def motion_params(self) -> dict:
         return self.wf.backendless("motion")
 
-    def collection(self, path: str, spec) -> tuple[Collection, bool]:
-        """Open (or create anew, when its sources or ingest params changed) a collection."""
+    def collection(self, path: str, sources: list[media.Source]) -> tuple[Collection, bool]:
+        """Open (or create anew, when its sources or ingest params changed) a collection of the
+        resolved ``sources`` (:func:`resolve_inputs`)."""
         params = self._ingest_params()
-        sources = media.resolve_sources(_media_spec(spec), self.wf.base_dir)
         # the frames of one video are decoded in one sequential pass; a mix of photos, videos and
         # video ranges photo by photo (a frame decoded from the start of its video: exact)
         video = sources[0].path if all(s.frame is not None and s.path == sources[0].path for s in sources) else None
@@ -350,8 +349,7 @@ class Runner:
         for name, backend, params in steps:
             self.pm.hook.persona_before_stage(stage=name, collection=coll.path,
                                               info={"backend": backend, "params": params, "n_items": coll.n})
-        unit = "frame" if coll.path in ("driver/frames", "drive") else "photo"
-        bars = {name: self.progress_bar(f"{coll.path:>13} {name:<10}", coll.n, unit, initial=done[name])
+        bars = {name: self.progress_bar(f"{coll.path:>13} {name:<10}", coll.n, item(coll.path), initial=done[name])
                 for name in names}
         try:
             for result in self.executor.run(fn, tasks):
@@ -415,10 +413,11 @@ class Runner:
             media.write_png(written["contact_sheet"], media.contact_sheet(faces[:n_faces], columns=10))
         return {k: str(v) for k, v in written.items()}
 
-    def run(self) -> dict:
+    def run(self, inputs: dict[str, list[media.Source]]) -> dict:
+        """Every stage of the workflow on its resolved ``inputs`` (:func:`resolve_inputs`)."""
         report = {"workflow": self.wf.name, "store": self.wf.store, "collections": {}}
-        for path, spec in collection_specs(self.wf):
-            coll, video = self.collection(path, spec)
+        for path, sources in inputs.items():
+            coll, video = self.collection(path, sources)
             self.run_photo_stages(coll, video)
             if not st.accepted(coll).any():
                 raise RunError(f"{path}: no photo of the {coll.n} got through to an aligned face; "
@@ -466,18 +465,13 @@ class Runner:
         report["stages"] = self.timer.records
         report["report"] = str(Path(self.wf.output) / "report.html")
         write_json(Path(self.wf.output) / "metrics.json", report)
-        self.report(report, series)
+        write_run_report(self.wf, self.root, report, series)
         return report
 
     def evaluate(self) -> dict:
         e = self.wf.evaluate
         return evaluate(self.wf.store, self.executor, identity=self.wf.stage("identity"), threshold=e.threshold,
                         collection_sample=e.collection_sample, self_reenactment=e.self_reenactment)
-
-    def report(self, report: dict, series: dict | None) -> Path:
-        """report.html beside metrics.json: figures, pictures, frames and plots."""
-        return write_run_report(self.wf, self.root, report, series)
-
 
 def _stat(path: str) -> tuple[int, int]:
     try:
@@ -526,8 +520,8 @@ def executor_for(wf: Workflow, scheduler: str | None = None, workers: int | None
 def run_workflow(wf: Workflow, *, scheduler: str | None = None, workers: int | None = None,
                  progress: bool = True) -> dict:
     """Run every stage of a workflow; returns the run report (also in OUTPUT/metrics.json). The
-    inputs are checked first (:func:`check_inputs`): a bad one stops the run before anything is
+    inputs are resolved first (:func:`resolve_inputs`): a bad one stops the run before anything is
     created."""
-    check_inputs(wf)
+    inputs = resolve_inputs(wf)
     with executor_for(wf, scheduler, workers) as ex:
-        return Runner(wf, ex, progress=progress).run()
+        return Runner(wf, ex, progress=progress).run(inputs)

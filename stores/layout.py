@@ -62,6 +62,12 @@ def open_store(url: str, mode: str = "a") -> zarr.Group:
 IMAGE_BYTES = 4096
 
 
+def item(path: str) -> str:
+    """What one item of the collection at ``path`` is: a video's "frame" (the driver's frames, the
+    drive) or a "photo"."""
+    return "frame" if path in ("driver/frames", "drive") else "photo"
+
+
 @dataclass
 class Collection:
     """One collection of photos (or video frames) in a store, e.g. ``puppet`` or ``driver/frames``."""

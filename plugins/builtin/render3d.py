@@ -30,6 +30,7 @@ from pydantic import Field
 from ..base import Params
 from ..face import mouth
 from ..face.mesh import grid_triangles
+from ..face.warp import compose
 from ..hookspecs import hookimpl
 from ..kinds import Pose, Puppet, RenderBackend, Rendered
 
@@ -190,9 +191,7 @@ class RaycastRender(RenderBackend):
         out[y0:y1, x0:x1] = np.clip(blend, 0, 255).round().astype(np.uint8)
         if self.params.mouth and puppet.mouth is not None and puppet.lips is not None:
             lips = np.asarray(puppet.lips, np.float32).reshape(1, -1, 2)
-            on_mesh = np.stack([cv2.remap(np.ascontiguousarray(puppet.mesh[..., c], dtype=np.float32), lips[..., 0],
-                                          lips[..., 1], cv2.INTER_LINEAR)[0] for c in range(3)], axis=-1)
-            xy, z = project(on_mesh, pose)
+            xy, z = project(compose(np.asarray(puppet.mesh, np.float32), lips)[0], pose)  # the mesh at the lips
             if np.all(z > _NEAR):
                 mouth.draw(out, mask, np.asarray(puppet.mouth, np.float32), xy.reshape(2, -1, 2))
         return Rendered(rgb=out, mask=mask)

@@ -13,7 +13,8 @@ grid:
    built once per driver sequence, not per frame;
 3. ``Δ' = M_P(q') - M_P(q)`` is how far the puppet must move to reach the same feature, and
    ``f = Δ̂·Δ'`` the magnitude along the driver's direction ``Δ̂ = Δ/|Δ|``;
-4. ``f* = denoise(f)`` (a ``denoise`` backend; the paper: Huber-ROF, TV weight 1, ε = 0.05; here TV weight 0.3 by default, see DeformationTransfer);
+4. ``f* = denoise(f)`` (a ``denoise`` backend; the paper: Huber-ROF, TV weight 1, ε = 0.05; here
+   TV weight 0.3 by default, see :class:`DeformationTransfer`);
 5. ``M_P^t = M_P + Δ̂ f*``.
 
 Methods (``TransferParams.method``):
@@ -31,7 +32,8 @@ Methods (``TransferParams.method``):
   the lips' motion on real meshes, docs/expression.md). The ratio keeps the paper's comparison of
   the two faces' feature sizes and cancels that shortfall: r = 1 on the same face, the exact
   transfer. On synthetic faces it errs less than the paper's method in self-puppetry (0.02 px
-  RMS with the default denoiser, 0.06 with the paper's TV weight 1, against 0.33) and on the moving eyelids of identity-dependent blinks (test_transfer).
+  RMS with the default denoiser, 0.06 with the paper's TV weight 1, against 0.33) and on the
+  moving eyelids of identity-dependent blinks (test_transfer).
   Not in the paper; r is clipped to [1/max_ratio, max_ratio], and r = 1 where the
   point lands on itself (Δ̂·Δ'_D under half a pixel, a grid step's rounding);
 * ``naive``: ``M_P^t = M_P + Δ``, the unadjusted transfer, for comparison.
@@ -189,7 +191,8 @@ class DeformationTransfer:
         by about 2w/R px, which takes most of a thin eyelid's 1-3 px: on Bush driven by Obama, B's
         meshes keep eye openness 0.73 of the driver's with w = 0.3 against 0.65 with w = 1 (mouth
         0.64 / 0.60), and on synthetic faces w = 0.3 errs less than w = 1 (self-puppetry 0.02 against
-        0.06 px RMS; the moving eyelids of test_transfer's blinks no worse). ``outside='exclude'``: f* is only read on the valid pixels, and leaving the pixels without
+        0.06 px RMS; the moving eyelids of test_transfer's blinks no worse). ``outside='exclude'``:
+        f* is only read on the valid pixels, and leaving the pixels without
         data out of the problem makes it converge linearly (about 60 iterations to the 1e-3 px
         stopping rule) where inpainting them needs thousands. On synthetic self-puppetry the two
         converged solutions differ by 0.01-0.03 px RMS in f* on the valid pixels, and the
