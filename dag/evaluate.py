@@ -131,6 +131,7 @@ def evaluate(store: str, executor, *, identity: tuple[str, dict], threshold: flo
     stability["texture_change_ratio"] = _ratio(stability["texture_change_output"], stability["texture_change_driver"])
     result = {
         "identity": {k: v for k, v in identity_figures.items() if not isinstance(v, np.ndarray)},
+        "texture": texture_figures(root, collection_sample),
         "expression": video["expression"],
         "amplitude": video["amplitude"],
         "stability": stability,
@@ -152,6 +153,37 @@ def evaluate(store: str, executor, *, identity: tuple[str, dict], threshold: flo
     if self_reenactment:
         result["self_reenactment"] = {"psnr_db": _nanmean(joined["psnr"]), "ssim": _nanmean(joined["ssim"])}
     return result
+
+
+def texture_figures(root, sample: int = 100, every: int = 8) -> dict[str, dict[str, float]]:
+    """B's textures against ``sample`` of B's own frontalized photos, inside the face (docs/texture.md).
+
+    tears (:func:`ev.tear_energy`: thin cracks and jumps beyond the photos' own lines there): the
+    median of those photos themselves (the collection's own level), of the same photos as the align
+    stage's collection flow warped them, of the neutral texture and of every ``every``-th frame's
+    texture; ``ratio`` is the frames' over the photos' (≤ 1: no more tears than the photos have).
+    detail (:func:`ev.detail_energy`, band-pass energy): the same medians, ``ratio`` again the frames'
+    over the photos' (1: as sharp as a photo)."""
+    puppet, drive = Collection(root, "puppet"), Collection(root, "drive")
+    chosen = _sample(accepted(puppet), sample)
+    face = generic_template().mask
+    photos = puppet.array("aligned/rgb").oindex[chosen]
+    inside = [face & ev.inner(v) for v in puppet.array("aligned/mask").oindex[chosen]]
+    reference = ev.tear_reference(photos, inside)
+    warped = puppet.array("collection/rgb").oindex[chosen]
+    warped_inside = [face & ev.inner(v) for v in puppet.array("collection/mask").oindex[chosen]]
+    frames = [drive.array("texture/rgb")[t] for t in range(0, drive.n, every)]
+    neutral = [puppet.array("texture/neutral")[...]] if puppet.has("texture/neutral") else []
+    out = {}
+    for name, measure in (("tears", lambda image, mask: ev.tear_energy(image, mask, reference)),
+                          ("detail", ev.detail_energy)):
+        figures = {"photos": _median([measure(p, m) for p, m in zip(photos, inside)]),
+                   "collection_flow": _median([measure(p, m) for p, m in zip(warped, warped_inside)]),
+                   "neutral": _median([measure(t, face) for t in neutral]),
+                   "frames": _median([measure(t, face) for t in frames])}
+        figures["ratio"] = _ratio(figures["frames"], figures["photos"])
+        out[name] = figures
+    return out
 
 
 def driver_frame_landmarks(root) -> np.ndarray:
@@ -178,7 +210,9 @@ def _ratio(a: float, b: float) -> float:
     return a / b if np.isfinite(a) and np.isfinite(b) and b != 0 else float("nan")
 
 
-def _median(values: np.ndarray) -> float:
+def _median(values) -> float:
+    values = np.asarray(values, np.float64)
+    values = values[np.isfinite(values)]
     return float(np.median(values)) if len(values) else float("nan")
 
 

@@ -67,9 +67,14 @@ def run_texture(runner, coll: Collection, aligned: Provenance) -> dict[str, str]
     if current is not None and current.key == prov.key and out.is_file():
         return {"texture_neutral": str(out)}
     ok = np.flatnonzero(coll.state("align") == OK)
+    mean_fiducials = coll.array("aligned/mean_fiducials")[...].astype(np.float64)
     try:
-        cache = backend.cache(Aligned(coll.array("collection/rgb")[:][ok].astype(np.float32),
-                                      coll.array("collection/mask")[:][ok]))
+        if params.get("video_alignment") == "own":  # the backend's own flow, with its misfit measures
+            aligned = backend.params.aligned(texture_photos(coll, ok), mean_fiducials)
+        else:
+            aligned = Aligned(coll.array("collection/rgb")[:][ok].astype(np.float32),
+                              coll.array("collection/mask")[:][ok])
+        cache = backend.cache(aligned)
     except NotImplementedError:
         log.warning("texture backend %s has no video mode: the drive shows the static average", name)
         if coll.has("texture/neutral"):  # another backend's, from an earlier run
@@ -86,7 +91,6 @@ def run_texture(runner, coll: Collection, aligned: Provenance) -> dict[str, str]
                 block = np.full((stop - start, *level.shape[1:]), np.nan, np.float32)
                 block[rows >= 0] = level[rows[rows >= 0]]
                 array[start:stop] = block
-    mean_fiducials = coll.array("aligned/mean_fiducials")[...].astype(np.float64)
     neutral = backend.blend(cache, coll.array("aligned/fiducials")[:][ok], mean_fiducials)
     coll.create_single("texture/neutral", neutral.round().astype(np.uint8), ("y", "x", "channel"), prov)
     media.write_png(out, np.kron(neutral.round().astype(np.uint8), np.ones((2, 2, 1), np.uint8)))

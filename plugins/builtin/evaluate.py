@@ -21,6 +21,7 @@ from __future__ import annotations
 
 from functools import lru_cache
 
+import cv2
 import numpy as np
 from pydantic import Field
 
@@ -366,6 +367,62 @@ def frame_changes(frames, mask) -> np.ndarray:
     if len(f) < 2:
         return np.zeros(0)
     return np.abs(np.diff(f, axis=0))[:, np.asarray(mask, bool)].mean(axis=(1, 2)).astype(np.float64)
+
+
+# --------------------------------------------------------------------------- tears
+
+#: σ (canonical px) of the Hessian that finds thin lines: a crack is one or two px wide
+TEAR_SIGMA = 1.0
+#: a pixel is torn where its line strength exceeds this percentile of the collection's own photos' there
+TEAR_PERCENTILE = 90
+
+
+def line_strength(image) -> np.ndarray:
+    """(h, w) how much each pixel of an RGB image (0-255) lies on a thin line or a step: ||λ1| - |λ2||
+    of the grey image's Hessian at σ = ``TEAR_SIGMA`` (σ²-normalised), λ the two eigenvalues. High
+    across a crack or a jump, low on smooth skin and on round blobs."""
+    grey = np.asarray(image, np.float32) @ np.float32([0.299, 0.587, 0.114]) / 255
+    g = cv2.GaussianBlur(grey, (0, 0), TEAR_SIGMA)
+    xx, yy = cv2.Sobel(g, cv2.CV_32F, 2, 0, ksize=3), cv2.Sobel(g, cv2.CV_32F, 0, 2, ksize=3)
+    xy = cv2.Sobel(g, cv2.CV_32F, 1, 1, ksize=3)
+    mean, half = (xx + yy) / 2, np.sqrt(((xx - yy) / 2) ** 2 + xy ** 2)
+    return np.abs(np.abs(mean + half) - np.abs(mean - half)) * np.float32(TEAR_SIGMA ** 2)
+
+
+def inner(valid, margin: int = 2) -> np.ndarray:
+    """``valid`` (h, w) bool eroded by ``margin`` px: where a photo's view ends its image jumps to 0."""
+    size = 2 * margin + 1
+    return cv2.erode(np.asarray(valid, np.uint8), np.ones((size, size), np.uint8)) > 0
+
+
+def tear_reference(photos, masks) -> np.ndarray:
+    """(h, w) the ``TEAR_PERCENTILE``-th percentile of :func:`line_strength` over the photos (n, h, w, 3)
+    whose mask (n, h, w; their view, :func:`inner`) holds each pixel: the lines a collection's own
+    photos have there (eyelids, lips, creases). NaN where no photo counts."""
+    strengths = np.stack([np.where(m, line_strength(p), np.nan) for p, m in zip(photos, masks)])
+    seen = np.isfinite(strengths).any(axis=0)
+    out = np.full(seen.shape, np.nan)
+    out[seen] = np.nanpercentile(strengths[:, seen], TEAR_PERCENTILE, axis=0)
+    return out
+
+
+def tear_energy(image, mask, reference) -> float:
+    """The tears of one image (h, w, 3) in the canonical frame: the mean square (×1000) inside ``mask``
+    of its line strength beyond the collection's ``reference`` (:func:`tear_reference`). A collection's
+    own photos score about the same as one another (each exceeds the others' percentile here and
+    there); a clean blend of them scores less, cracks that no photo has score more."""
+    excess = np.maximum(line_strength(image) - reference, 0)
+    inside = np.asarray(mask, bool) & np.isfinite(reference)
+    return float(1000 * np.mean(excess[inside] ** 2)) if inside.any() else float("nan")
+
+
+def detail_energy(image, mask) -> float:
+    """Fine detail of an image (h, w, 3, 0-255) inside ``mask``: the mean square of its grey band-pass
+    (difference of Gaussians, σ 1 and 4 px, grey in [0, 1]) ×1000; a blur lowers it, tears raise it."""
+    grey = np.asarray(image, np.float32) @ np.float32([0.299, 0.587, 0.114]) / 255
+    band = cv2.GaussianBlur(grey, (0, 0), 1.0) - cv2.GaussianBlur(grey, (0, 0), 4.0)
+    inside = np.asarray(mask, bool)
+    return float(1000 * np.mean(band[inside] ** 2)) if inside.any() else float("nan")
 
 
 # --------------------------------------------------------------------------- identity figures

@@ -11,6 +11,8 @@
 
 from __future__ import annotations
 
+from typing import Literal
+
 import cv2
 import numpy as np
 from pydantic import Field
@@ -37,9 +39,9 @@ class _Alignment(_Weights):
     rank: int = Field(4, ge=1, le=16, description="rank of the appearance subspace the dense flow aligns "
                       "each photo to (paper: 4, lighting only)")
     flow: FlowChoice = Field(default_factory=FlowChoice, description="the flow of the dense warps to a target "
-                             "(per-target synthesis and `persona evaluate --texture`; video mode blends the "
-                             "collection as the align stage warped it, with stages.flow); varref rather than the "
-                             "collection flow's dis, as measured in the README (texture)")
+                             "(per-target synthesis, `persona evaluate --texture` and, with video_alignment own, "
+                             "the drive); varref rather than the collection flow's dis, as measured in "
+                             "docs/texture.md")
 
     def aligned(self, photos, target, flow=None, reference=None) -> align.Aligned:
         """The photos TPS- and flow-aligned to the target, with ``flow`` or else this flow choice's."""
@@ -65,7 +67,9 @@ class MultiscaleTexture(TextureBackend):
     description = ("expression-dependent texture: photos aligned to the target (TPS + flow), blended in a "
                    "Laplacian pyramid with expression and detail weights (paper §5, Eq. 3)")
     default = True
-    version = "3"  # 2: the alignment confidence (stretch_scale, residual_scale); 3: its own flow (varref)
+    #: 2: the alignment confidence (stretch_scale, residual_scale); 3: its own flow (varref); 4: video mode
+    #: aligns the collection with that flow too (video_alignment)
+    version = "4"
 
     class Params(_Alignment):
         levels: int = Field(5, ge=2, le=8, description="pyramid levels p (the paper does not say; 5 gives a "
@@ -80,6 +84,11 @@ class MultiscaleTexture(TextureBackend):
         detail_blur: float = Field(1.0, ge=0, description="σ (px) of the Gaussian blur before the Laplacian "
                                    "filter of the detail response L^i (the paper does not say)")
         detail_floor: float = Field(1e-6, gt=0, description="added to |Laplacian| so flat regions keep a weight")
+        video_alignment: Literal["own", "collection"] = Field(
+            "own", description="video mode (the drive): B's collection aligned to B's mean fiducials with this "
+            "backend's own `flow`, and blended with the alignment confidence (own); or blended as the align "
+            "stage's collection flow (stages.flow, dis) warped it, without a confidence (collection: a minute "
+            "faster, but it tears tight low-resolution crops; docs/texture.md)")
         skip: float = Field(1e-6, ge=0, lt=1, description="photos with e_i below skip · max(e) are left out of "
                             "the fine levels' sums (their share there is below this); 0 keeps every photo")
         stretch_scale: float = Field(0.3, ge=0, description="s of the alignment confidence's flow term "
