@@ -107,6 +107,11 @@ def figure_rows(ev: dict) -> list[tuple]:
                   "lower is better; 0 = no step beyond the frame's"),
                  (f"composite seam ({how}): gradient energy over the driver's", f["gradient_ratio"],
                   "lower is better; 1 = as smooth as the frame")]
+    texture = ev.get("texture", {})
+    rows += [(f"texture tears: {k.replace('_', ' ')}", v, "lower is better; the ratio (frames over B's photos) "
+              "target ≤ 1" if k == "ratio" else "lower is better") for k, v in texture.get("tears", {}).items()]
+    rows += [(f"texture detail: {k.replace('_', ' ')}", v, "the ratio (frames over B's photos) target ≥ 0.6"
+              if k == "ratio" else "band-pass energy; higher is sharper") for k, v in texture.get("detail", {}).items()]
     guide = {"psnr_db": "higher is better; target ≥ 28 dB", "ssim": "higher is better; target ≥ 0.88"}
     rows += [(f"self-reenactment {k}", v, guide.get(k, "")) for k, v in ev.get("self_reenactment", {}).items()]
     rows += [(f"{who.replace('_', ' ')} follow A's landmarks: {k.replace('_', ' ')} (gain, r)",

@@ -13,6 +13,7 @@ from persona.plugins.base import Rejected
 from persona.plugins.builtin.evaluate import (DlibIdentity, IdentityBackend, centroid, colour_change,
                                               compare_videos, expression_signals, frame_changes, identity_figures,
                                               interocular, jitter, masked_psnr, masked_ssim, pearson)
+from persona.plugins.builtin import evaluate as ev
 from persona.plugins.manager import default_registry
 
 SHARED_DATA = Path(__file__).resolve().parents[3] / "shared" / "data"
@@ -281,3 +282,59 @@ def test_frame_changes_see_details_that_come_and_go():
     np.testing.assert_allclose(frame_changes(np.stack([base] * 4), mask), 0)
     np.testing.assert_allclose(frame_changes(np.stack([base + 2 * k for k in range(4)]), mask), 2)
     assert len(frame_changes(base[None], mask)) == 0
+
+
+# --------------------------------------------------------------------------- tears and detail
+
+@pytest.fixture(scope="module")
+def canonical_photos():
+    """Twelve canonical (frontalized, aligned) photos of one synthetic face: random expressions and
+    lights, 1 % noise; and each one's view."""
+    from persona.plugins.face import synthetic
+    from persona.plugins.face.template import FaceIdentity
+
+    rng = np.random.default_rng(3)
+    identity = FaceIdentity.random(rng)
+    photos, masks = [], []
+    for _ in range(12):
+        face = synthetic.render_canonical(synthetic.make_face(identity, synthetic.random_expression(rng)))
+        light = synthetic.Light.random(rng)
+        shade = np.maximum(0, light.ambient + face["normals"] @ np.asarray(light.direction))
+        image = face["albedo"] * shade[..., None] + rng.normal(0, 0.01, face["albedo"].shape)
+        photos.append(np.clip(image * 255, 0, 255).round().astype(np.uint8))
+        masks.append(ev.inner(face["mask"]))
+    return np.stack(photos), np.stack(masks)
+
+
+def _cracks(image, rng, n=8):
+    """``image`` with n thin random polylines, each a little darker or brighter than the skin."""
+    out = image.astype(np.float32)
+    for _ in range(n):
+        points = np.cumsum(rng.normal(0, 6, (6, 2)), axis=0) + rng.uniform((60, 40), (134, 200))
+        line = np.zeros(image.shape[:2], np.uint8)
+        cv2.polylines(line, [points.round().astype(np.int32)], False, 1, 1)
+        out[line > 0] += rng.choice([-45, 45])
+    return np.clip(out, 0, 255).astype(np.uint8)
+
+
+def test_tears_are_caught_in_cracked_images_and_not_in_a_clean_blend(canonical_photos):
+    photos, masks = canonical_photos
+    reference = ev.tear_reference(photos[:8], masks[:8])
+    face = masks.all(axis=0)
+    own = np.median([ev.tear_energy(p, m, reference) for p, m in zip(photos[8:], masks[8:])])
+    blend = photos[8:].astype(np.float32).mean(axis=0)  # a clean texture: the held-out photos' mean
+    rng = np.random.default_rng(0)
+    cracked = [ev.tear_energy(_cracks(p, rng), m, reference) for p, m in zip(photos[8:], masks[8:])]
+    assert ev.tear_energy(blend, face, reference) <= own  # a clean blend: at or below the photos' level
+    assert min(cracked) > 3 * own  # every cracked photo: far above it
+    # a seam where the content jumps by 3 px is a tear too
+    seam = photos[8].copy()
+    seam[:, 97:] = photos[8][:, 94:-3]
+    assert ev.tear_energy(seam, masks[8] & masks[8][:, ::-1], reference) > 3 * own
+
+
+def test_detail_energy_falls_with_blur(canonical_photos):
+    photos, masks = canonical_photos
+    sharp = ev.detail_energy(photos[0], masks[0])
+    blurred = ev.detail_energy(cv2.GaussianBlur(photos[0], (0, 0), 2.0), masks[0])
+    assert 0 < blurred < 0.7 * sharp  # measured 0.49
