@@ -13,13 +13,18 @@ set -euo pipefail
 start=$(date +%s)
 done_in() { echo "slurm-up: $1 ($(( $(date +%s) - start )) s)"; }
 
-SUDO=""; [ "$(id -u)" -eq 0 ] || SUDO="sudo"
+SUDO=""; [ "$(id -u)" -eq 0 ] || SUDO="sudo -n"   # never a password prompt: fail instead
 node=$(hostname -s)
 
 node_state() { sinfo -h -N -n "$node" -o %T 2>/dev/null | head -1 | tr -d '*~#'; }
+header="# written by Persona's .ci/slurm-up.sh: a single-node SLURM for tests"
 
 if command -v sinfo >/dev/null && [[ "$(node_state)" =~ ^(idle|mixed|allocated)$ ]]; then
   done_in "SLURM already up, node $node $(node_state)"; exit 0
+fi
+if [ -f /etc/slurm/slurm.conf ] && [ "$(head -1 /etc/slurm/slurm.conf)" != "$header" ]; then
+  echo "slurm-up: /etc/slurm/slurm.conf was not written by this script: leaving this machine's SLURM alone" >&2
+  exit 1
 fi
 
 if ! command -v slurmctld >/dev/null || ! command -v munged >/dev/null; then
@@ -43,7 +48,7 @@ munge -n </dev/null | unmunge >/dev/null || { echo "slurm-up: munged does not an
 # slurm.conf: this machine as the one node, with what slurmd itself detects (CPUs, memory)
 hardware=$(slurmd -C | head -1 | sed 's/^NodeName=[^ ]* //')
 conf=$(cat <<EOF
-# written by Persona's .ci/slurm-up.sh: a single-node SLURM for tests
+$header
 ClusterName=persona
 SlurmctldHost=$node
 SlurmUser=root
