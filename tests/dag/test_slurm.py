@@ -66,6 +66,7 @@ def test_a_refused_job_and_a_job_that_never_starts_stop_the_run_with_what_to_do(
     assert "PENDING" not in listed, listed  # cancelled (squeue may still show it CANCELLED for a moment)
 
 
+@pytest.mark.slow  # 15-30 s: a worker job's start, and every per-photo stage twice
 @needs_slurm
 def test_slurm_workers_give_the_same_store_as_a_local_run(tmp_path, synthetic_photos):
     """The per-photo stages run on a Dask worker that sbatch started (its SLURM_JOB_ID is seen in a
