@@ -60,6 +60,11 @@ def start_batch_cluster(config: Cluster):
     host = config.host or scheduler_host()
     logs = Path(config.log_directory).expanduser()
     logs.mkdir(parents=True, exist_ok=True)
+    try:  # dask-jobqueue turns a scheduler that cannot listen into an unrelated error: checked first
+        socket.create_server((host, 0)).close()
+    except OSError as exc:
+        raise RunError(f"the Dask scheduler cannot listen on {host} ({exc.strerror or exc}): set cluster.host to "
+                       "an address of this machine that the worker nodes reach") from None
     cluster = cluster_class(
         cores=config.cores, processes=config.cores, memory=config.memory, queue=config.queue,
         walltime=config.walltime, job_extra_directives=config.job_extra_directives,

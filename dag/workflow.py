@@ -101,6 +101,17 @@ class Cluster(Strict):
             raise ValueError(f'"{v}" is neither "local", "sync" nor a scheduler address such as tcp://host:8786')
         return v
 
+    @field_validator("memory")
+    @classmethod
+    def _memory(cls, v: str) -> str:
+        from dask.utils import parse_bytes
+
+        try:
+            parse_bytes(v)
+        except ValueError:
+            raise ValueError(f'"{v}" is not an amount of memory such as "4GiB" or "16GB"') from None
+        return v
+
     @model_validator(mode="after")
     def _one_scheduler(self) -> "Cluster":
         if self.kind != "local" and self.scheduler != "local":

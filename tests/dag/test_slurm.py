@@ -7,9 +7,11 @@ CI starts a single-node SLURM with .ci/slurm-up.sh (called by `bash setup.sh tes
 import os
 import shutil
 import subprocess
+import sys
 
 import pytest
 
+from persona.dag.batch import scheduler_host
 from persona.dag.runner import Runner, RunError, executor_for, resolve_inputs, run_workflow
 from persona.dag.workflow import WorkflowError, load_workflow, parse_workflow
 
@@ -37,15 +39,25 @@ def test_a_batch_kind_and_a_scheduler_address_do_not_mix():
         parse_workflow({**base, "cluster": {"kind": "slurm", "scheduler": "tcp://10.0.0.5:8786"}})
     with pytest.raises(WorkflowError, match="cluster.kind"):
         parse_workflow({**base, "cluster": {"kind": "kubernetes"}})
+    with pytest.raises(WorkflowError, match='cluster.memory: .*"lots" is not an amount of memory'):
+        parse_workflow({**base, "cluster": {"kind": "slurm", "memory": "lots"}})
     old = parse_workflow({**base, "cluster": {"scheduler": "local", "workers": 2}})  # workflows before kind
     assert (old.cluster.kind, old.cluster.workers) == ("local", 2)
 
 
-def test_no_sbatch_says_so(tmp_path, synthetic_photos, monkeypatch):
+def test_no_sbatch_no_dask_jobqueue_or_a_host_not_here_says_so(tmp_path, synthetic_photos, monkeypatch):
     photos = write_photos(tmp_path / "photos", synthetic_photos[:1])
     wf = load_workflow(write_workflow(tmp_path, str(photos), cluster=SLURM))
-    monkeypatch.setenv("PATH", str(tmp_path))  # no sbatch here
-    with pytest.raises(RunError, match=r"`sbatch`, which is not on PATH.*slurm-up\.sh"):
+    with monkeypatch.context() as m:
+        m.setenv("PATH", str(tmp_path))  # no sbatch here
+        with pytest.raises(RunError, match=r"`sbatch`, which is not on PATH.*slurm-up\.sh"):
+            run_workflow(wf, progress=False)
+    if shutil.which("sbatch"):
+        elsewhere = load_workflow(write_workflow(tmp_path, str(photos), cluster={**SLURM, "host": "192.0.2.1"}))
+        with pytest.raises(RunError, match="cannot listen on 192.0.2.1 .*set cluster.host"):
+            run_workflow(elsewhere, progress=False)
+    monkeypatch.setitem(sys.modules, "dask_jobqueue", None)  # import dask_jobqueue fails
+    with pytest.raises(RunError, match="needs dask-jobqueue, which is not installed: pip install dask-jobqueue"):
         run_workflow(wf, progress=False)
 
 
@@ -82,6 +94,9 @@ def test_slurm_workers_give_the_same_store_as_a_local_run(tmp_path, synthetic_ph
             runner.run_photo_stages(coll, video)
             runner.mean_face(coll)
             if folder == batch:
+                scheduler = ex._cluster.scheduler  # on the hostname's address; the dashboard on loopback
+                assert scheduler.address.startswith(f"tcp://{scheduler_host()}:")
+                assert {s.getsockname()[0] for s in scheduler.http_server._sockets.values()} == {"127.0.0.1"}
                 jobs = {job.job_id for job in ex._cluster.workers.values()}
                 seen = ex.client.submit(os.getenv, "SLURM_JOB_ID", pure=False).result()
                 queue = subprocess.run(["squeue", "-h", "-o", "%i %j %T"], capture_output=True, text=True).stdout
