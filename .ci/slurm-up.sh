@@ -19,7 +19,10 @@ node=$(hostname -s)
 node_state() { sinfo -h -N -n "$node" -o %T 2>/dev/null | head -1 | tr -d '*~#'; }
 header="# written by Persona's .ci/slurm-up.sh: a single-node SLURM for tests"
 
-if command -v sinfo >/dev/null && [[ "$(node_state)" =~ ^(idle|mixed|allocated)$ ]]; then
+alive() { [ -f "$1" ] && $SUDO kill -0 "$(cat "$1")" 2>/dev/null; }
+
+if command -v sinfo >/dev/null && [[ "$(node_state)" =~ ^(idle|mixed|allocated)$ ]] \
+   && alive /run/slurmctld.pid && alive /run/slurmd.pid; then
   done_in "SLURM already up, node $node $(node_state)"; exit 0
 fi
 if [ -f /etc/slurm/slurm.conf ] && [ "$(head -1 /etc/slurm/slurm.conf)" != "$header" ]; then
@@ -79,7 +82,6 @@ if [ "$(cat /etc/slurm/slurm.conf 2>/dev/null)" != "$conf" ]; then
   scontrol ping >/dev/null 2>&1 && $SUDO scontrol reconfigure || true
 fi
 
-alive() { [ -f "$1" ] && $SUDO kill -0 "$(cat "$1")" 2>/dev/null; }
 alive /run/slurmctld.pid || $SUDO /usr/sbin/slurmctld
 alive /run/slurmd.pid || $SUDO /usr/sbin/slurmd
 
