@@ -28,7 +28,8 @@ def _slurm_problem() -> str | None:
     return None
 
 
-needs_slurm = pytest.mark.skipif(_slurm_problem() is not None, reason=str(_slurm_problem()))
+_PROBLEM = _slurm_problem()
+needs_slurm = pytest.mark.skipif(_PROBLEM is not None, reason=str(_PROBLEM))
 
 SLURM = {"kind": "slurm", "jobs": 1, "cores": 1, "memory": "2GiB", "start_timeout": 120}
 
