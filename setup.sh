@@ -7,7 +7,9 @@
 #
 # Installs: the system packages open3d needs (libusb-1.0-0, libgomp1; for `test` also
 # chromium, in which a test opens the report), a virtual environment in .venv with
-# Persona (editable) and its Python dependencies.
+# Persona (editable) and its Python dependencies. For `test` it also starts a single-node
+# SLURM (.ci/slurm-up.sh: Debian's slurm-wlm and munge); when that fails, the tests that
+# need it skip.
 set -euo pipefail
 cd "$(dirname "$0")"
 
@@ -31,6 +33,11 @@ fi
 
 [ -x .venv/bin/python ] || "$PYTHON" -m venv .venv
 .venv/bin/python -m pip install -q -e ".[test]"
+
+if [ "${1:-}" = test ]; then  # a single-node SLURM for the batch-cluster tests; they skip without it
+  SECONDS=0
+  bash .ci/slurm-up.sh || echo "SLURM not started ($SECONDS s): the tests of cluster.kind slurm will skip"
+fi
 
 case "${1:-}" in
   demo) shift; exec .venv/bin/persona demo "$@" ;;

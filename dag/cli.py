@@ -49,7 +49,12 @@ def _plan(wf) -> str:
             else:
                 backend, params = wf.stage(stage)
                 lines.append(f"    {stage:<10} {backend} {json.dumps(params)}")
-    lines.append(f"  cluster: {wf.cluster.scheduler} (workers: {wf.cluster.workers or 'one per core'})")
+    c = wf.cluster
+    if c.kind == "local":
+        lines.append(f"  cluster: {c.scheduler} (workers: {c.workers or 'one per core'})")
+    else:
+        lines.append(f"  cluster: {c.kind}, {c.jobs} job(s) of {c.cores} core(s) and {c.memory}, "
+                     f"queue {c.queue or '(default)'}, walltime {c.walltime}")
     return "\n".join(lines)
 
 
@@ -316,7 +321,7 @@ def build_parser() -> argparse.ArgumentParser:
     def common_run(p):
         p.add_argument("--scheduler", help='"local" (one worker per core on this machine), "sync" (in this '
                        "process) or a Dask scheduler address such as tcp://HOST:8786 (default: the "
-                       "workflow's cluster.scheduler, local)")
+                       "workflow's cluster; this replaces its scheduler and kind)")
         p.add_argument("--workers", type=int, help="local Dask workers (default: one per core)")
         p.add_argument("--quiet", action="store_true", help="no progress display")
 

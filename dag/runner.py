@@ -34,7 +34,7 @@ from .shape import run_alignment, run_shape
 from .texture import run_texture
 from .evaluate import evaluate
 from .report import write_run_report
-from .workflow import VideoRange, Workflow
+from .workflow import Cluster, VideoRange, Workflow
 
 log = logging.getLogger(__name__)
 
@@ -58,18 +58,25 @@ class RunError(PersonaError, RuntimeError):
 # -- executing tasks ---------------------------------------------------------------------
 
 class Executor:
-    """Runs task functions on a Dask cluster (local or remote) or, for "sync", in-process."""
+    """Runs task functions on a Dask cluster (local, remote, or batch jobs: ``batch``, a
+    :class:`Cluster` of a batch kind, see :mod:`persona.dag.batch`) or, for "sync", in-process."""
 
     def __init__(self, scheduler: str, workers: int | None, threads_per_worker: int = 1,
-                 memory_limit: str = "auto"):
+                 memory_limit: str = "auto", batch: Cluster | None = None):
         self.scheduler = scheduler
         self.client = None
         self._cluster = None
+        self._close_cluster = lambda cluster: cluster.close()
         if scheduler == "sync":
             return
         from distributed import Client, LocalCluster
 
-        if scheduler == "local":
+        if scheduler == "local" and batch is not None:
+            from .batch import close, start_batch_cluster
+
+            self._cluster, self.client = start_batch_cluster(batch)
+            self._close_cluster = close
+        elif scheduler == "local":
             self._cluster = LocalCluster(
                 n_workers=workers or os.cpu_count() or 1, threads_per_worker=threads_per_worker,
                 processes=True, memory_limit=memory_limit, host="127.0.0.1", dashboard_address="127.0.0.1:0",
@@ -105,7 +112,7 @@ class Executor:
         if self.client is not None:
             self.client.close()
         if self._cluster is not None:
-            self._cluster.close()
+            self._close_cluster(self._cluster)
 
 
 # -- lifecycle hooks: timing ---------------------------------------------------------------
@@ -509,8 +516,12 @@ def write_json(path: Path, data: dict) -> None:
 
 @contextmanager
 def executor_for(wf: Workflow, scheduler: str | None = None, workers: int | None = None):
-    ex = Executor(scheduler or wf.cluster.scheduler, workers or wf.cluster.workers,
-                  wf.cluster.threads_per_worker, wf.cluster.memory_limit)
+    """The workflow's executor; ``scheduler`` (--scheduler) replaces its cluster.scheduler and kind."""
+    c = wf.cluster
+    batch = None
+    if scheduler is None and c.kind != "local":
+        batch = c.model_copy(update={"log_directory": c.log_directory or str(Path(wf.output) / "worker-logs")})
+    ex = Executor(scheduler or c.scheduler, workers or c.workers, c.threads_per_worker, c.memory_limit, batch)
     try:
         yield ex
     finally:

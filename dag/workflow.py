@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Any, Literal, Union
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from persona.plugins.face.dynamics import DynamicsParams
 from persona.plugins.face.transfer import TransferParams
@@ -59,12 +59,40 @@ class StageConfig(Strict):
 
 
 class Cluster(Strict):
+    """Where the Dask workers run: a local cluster (default), an existing scheduler, or worker jobs
+    submitted to a batch scheduler (SLURM, PBS, SGE, LSF) through dask-jobqueue (docs/cluster.md)."""
+
+    kind: Literal["local", "slurm", "pbs", "sge", "lsf"] = Field(
+        "local", description='"local": workers on this machine (or the `scheduler` given); "slurm", "pbs", '
+        '"sge", "lsf": Persona runs the scheduler in its own process and submits `jobs` batch jobs of Dask '
+        "workers (dask-jobqueue); worker nodes need Persona installed and must reach the store")
     scheduler: str = Field("local", description='"local" (a local Dask cluster), "sync" (no cluster: '
                            'everything in this process, for debugging) or the address of an existing '
                            'dask.distributed scheduler, e.g. tcp://10.0.0.5:8786')
     workers: int | None = Field(None, ge=1, description="local workers (default: one per core)")
     threads_per_worker: int = Field(1, ge=1, description="threads per local worker")
     memory_limit: str = Field("auto", description='memory per local worker, e.g. "2GiB"')
+    # batch kinds
+    jobs: int = Field(1, ge=1, description="batch jobs of workers to submit (batch kinds)")
+    cores: int = Field(1, ge=1, description="cores per batch job; each runs one single-threaded worker process")
+    memory: str = Field("4GiB", description='memory per batch job, e.g. "16GiB", shared by its worker processes')
+    queue: str | None = Field(None, description="queue (SLURM: partition) of the jobs; default: the "
+                              "batch scheduler's default")
+    account: str | None = Field(None, description="account (project) the jobs are charged to")
+    walltime: str = Field("01:00:00", description='time limit of each job, "HH:MM:SS": a run that outlives '
+                          "its workers stops and resumes when run again")
+    job_extra_directives: list[str] = Field(default_factory=list, description='more directives for the job '
+                                            'script, e.g. ["--constraint=avx2"] (SLURM) or ["-l mem=4gb"] (PBS)')
+    job_script_prologue: list[str] = Field(default_factory=list, description="shell lines the job runs before "
+                                           'the worker, e.g. ["module load python", "source ~/persona/.venv/bin/activate"]')
+    host: str | None = Field(None, description="address the scheduler listens on, which the worker nodes must "
+                             "reach (batch kinds). It runs pickled code sent to it: give a private address. "
+                             "Default: the address of this machine's hostname (never 0.0.0.0); the dashboard "
+                             "listens on 127.0.0.1")
+    log_directory: str | None = Field(None, description="where the worker jobs write their logs "
+                                      "(batch kinds); default: OUTPUT/worker-logs")
+    start_timeout: float = Field(600, gt=0, description="seconds to wait for the first worker of the batch jobs "
+                                 "to join before the run stops with the job ids (they may still be queued)")
 
     @field_validator("scheduler")
     @classmethod
@@ -72,6 +100,24 @@ class Cluster(Strict):
         if v not in ("local", "sync") and "://" not in v:
             raise ValueError(f'"{v}" is neither "local", "sync" nor a scheduler address such as tcp://host:8786')
         return v
+
+    @field_validator("memory")
+    @classmethod
+    def _memory(cls, v: str) -> str:
+        from dask.utils import parse_bytes
+
+        try:
+            parse_bytes(v)
+        except ValueError:
+            raise ValueError(f'"{v}" is not an amount of memory such as "4GiB" or "16GB"') from None
+        return v
+
+    @model_validator(mode="after")
+    def _one_scheduler(self) -> "Cluster":
+        if self.kind != "local" and self.scheduler != "local":
+            raise ValueError(f'kind "{self.kind}" starts its own scheduler; scheduler "{self.scheduler}" connects '
+                             "to an existing one: give one of the two")
+        return self
 
 
 class Evaluation(Strict):
@@ -263,6 +309,8 @@ def _params_errors(exc: ValidationError, prefix: str, model: type[BaseModel]) ->
 def _resolve_paths(wf: Workflow, base: Path) -> None:
     wf.store = _resolve(wf.store, base)
     wf.output = _resolve(wf.output, base)
+    if wf.cluster.log_directory is not None:
+        wf.cluster.log_directory = _resolve(wf.cluster.log_directory, base)
     for actor in (wf.puppet, wf.driver):
         if actor is None:
             continue

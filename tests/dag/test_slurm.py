@@ -1,0 +1,107 @@
+"""``cluster: {kind: slurm}``: Dask workers as SLURM batch jobs (dask-jobqueue), on a real SLURM.
+
+CI starts a single-node SLURM with .ci/slurm-up.sh (called by `bash setup.sh test`); without
+`sbatch` or an idle node these tests skip with the reason.
+"""
+
+import os
+import shutil
+import subprocess
+import sys
+
+import pytest
+
+from persona.dag.batch import scheduler_host
+from persona.dag.runner import Runner, RunError, executor_for, resolve_inputs, run_workflow
+from persona.dag.workflow import WorkflowError, load_workflow, parse_workflow
+
+from pipeline import assert_same_store, write_photos, write_workflow
+
+
+def _slurm_problem() -> str | None:
+    """Why no job can run on SLURM here, or None."""
+    if shutil.which("sbatch") is None:
+        return "sbatch not found: start a single-node SLURM with `bash .ci/slurm-up.sh` (root, Debian)"
+    states = subprocess.run(["sinfo", "-h", "-o", "%T"], capture_output=True, text=True, timeout=30)
+    if not {"idle", "mixed"} & set(states.stdout.split()):
+        return f"no idle SLURM node (sinfo: {(states.stdout + states.stderr).strip() or 'nothing'}): bash .ci/slurm-up.sh"
+    return None
+
+
+_PROBLEM = _slurm_problem()
+needs_slurm = pytest.mark.skipif(_PROBLEM is not None, reason=str(_PROBLEM))
+
+SLURM = {"kind": "slurm", "jobs": 1, "cores": 1, "memory": "2GiB", "start_timeout": 120}
+
+
+def test_a_batch_kind_and_a_scheduler_address_do_not_mix():
+    base = {"name": "x", "store": "s.zarr", "output": "o", "puppet": {"photos": "p"}}
+    with pytest.raises(WorkflowError, match='kind "slurm" starts its own scheduler'):
+        parse_workflow({**base, "cluster": {"kind": "slurm", "scheduler": "tcp://10.0.0.5:8786"}})
+    with pytest.raises(WorkflowError, match="cluster.kind"):
+        parse_workflow({**base, "cluster": {"kind": "kubernetes"}})
+    with pytest.raises(WorkflowError, match='cluster.memory: .*"lots" is not an amount of memory'):
+        parse_workflow({**base, "cluster": {"kind": "slurm", "memory": "lots"}})
+    old = parse_workflow({**base, "cluster": {"scheduler": "local", "workers": 2}})  # workflows before kind
+    assert (old.cluster.kind, old.cluster.workers) == ("local", 2)
+
+
+def test_no_sbatch_no_dask_jobqueue_or_a_host_not_here_says_so(tmp_path, synthetic_photos, monkeypatch):
+    photos = write_photos(tmp_path / "photos", synthetic_photos[:1])
+    wf = load_workflow(write_workflow(tmp_path, str(photos), cluster=SLURM))
+    with monkeypatch.context() as m:
+        m.setenv("PATH", str(tmp_path))  # no sbatch here
+        with pytest.raises(RunError, match=r"`sbatch`, which is not on PATH.*slurm-up\.sh"):
+            run_workflow(wf, progress=False)
+    if shutil.which("sbatch"):
+        elsewhere = load_workflow(write_workflow(tmp_path, str(photos), cluster={**SLURM, "host": "192.0.2.1"}))
+        with pytest.raises(RunError, match="cannot listen on 192.0.2.1 .*set cluster.host"):
+            run_workflow(elsewhere, progress=False)
+    monkeypatch.setitem(sys.modules, "dask_jobqueue", None)  # import dask_jobqueue fails
+    with pytest.raises(RunError, match="needs dask-jobqueue, which is not installed: pip install dask-jobqueue"):
+        run_workflow(wf, progress=False)
+
+
+@needs_slurm
+def test_a_refused_job_and_a_job_that_never_starts_stop_the_run_with_what_to_do(tmp_path, synthetic_photos):
+    photos = write_photos(tmp_path / "photos", synthetic_photos[:1])
+    refused = load_workflow(write_workflow(tmp_path, str(photos), cluster={**SLURM, "queue": "no-such-partition"}))
+    with pytest.raises(RunError, match=r"`sbatch` refused every worker job.*sbatch .*job\.sh"):
+        run_workflow(refused, progress=False)
+    # a job held in the queue for an hour: no worker within the timeout, the job cancelled
+    queued = load_workflow(write_workflow(tmp_path, str(photos), cluster={
+        **SLURM, "start_timeout": 3, "job_extra_directives": ["--begin=now+3600"]}))
+    with pytest.raises(RunError, match=r"no Dask worker joined within 3 s .* slurm jobs (\d+).*squeue -j") as err:
+        run_workflow(queued, progress=False)
+    job = err.value.args[0].split("slurm jobs ")[1].split(":")[0]
+    assert str(tmp_path / "out" / "worker-logs") in str(err.value)
+    listed = subprocess.run(["squeue", "-h", "-j", job, "-o", "%i %T"], capture_output=True, text=True).stdout
+    assert "PENDING" not in listed, listed  # cancelled (squeue may still show it CANCELLED for a moment)
+
+
+@pytest.mark.slow  # 15-30 s: a worker job's start, and every per-photo stage twice
+@needs_slurm
+def test_slurm_workers_give_the_same_store_as_a_local_run(tmp_path, synthetic_photos):
+    """The per-photo stages run on a Dask worker that sbatch started (its SLURM_JOB_ID is seen in a
+    task), and the store is the same as a run in this process."""
+    photos = write_photos(tmp_path / "photos", synthetic_photos[:6])
+    batch, local = tmp_path / "slurm", tmp_path / "local"
+    for folder, cluster in ((batch, SLURM), (local, {"scheduler": "sync"})):
+        folder.mkdir()
+        wf = load_workflow(write_workflow(folder, str(photos), cluster=cluster))
+        with executor_for(wf) as ex:
+            runner = Runner(wf, ex, progress=False)
+            coll, video = runner.collection("puppet", resolve_inputs(wf)["puppet"])
+            runner.run_photo_stages(coll, video)
+            runner.mean_face(coll)
+            if folder == batch:
+                scheduler = ex._cluster.scheduler  # on the hostname's address; the dashboard on loopback
+                assert scheduler.address.startswith(f"tcp://{scheduler_host()}:")
+                assert {s.getsockname()[0] for s in scheduler.http_server._sockets.values()} == {"127.0.0.1"}
+                jobs = {job.job_id for job in ex._cluster.workers.values()}
+                seen = ex.client.submit(os.getenv, "SLURM_JOB_ID", pure=False).result()
+                queue = subprocess.run(["squeue", "-h", "-o", "%i %j %T"], capture_output=True, text=True).stdout
+    assert len(jobs) == 1 and seen in jobs, (jobs, seen)
+    assert f"{seen} persona-worker RUNNING" in queue, queue
+    assert (batch / "out" / "worker-logs" / f"persona-worker-{seen}.err").is_file()
+    assert_same_store(batch / "run.zarr", local / "run.zarr")
