@@ -95,10 +95,8 @@ class Executor:
             for args in argument_lists:
                 yield fn(*args)
             return
-        from distributed import as_completed
-
         futures = [self.client.submit(fn, *args, pure=False) for args in argument_lists]
-        for future in as_completed(futures):
+        for future in self._as_completed(futures):
             yield future.result()
 
     def compute(self, *collections):
@@ -106,7 +104,37 @@ class Executor:
 
         if self.client is None:
             return dask.compute(*collections, scheduler="synchronous")
-        return self.client.compute(list(collections), sync=True)
+        futures = self.client.compute(list(collections))
+        for _ in self._as_completed(futures):
+            pass
+        return self.client.gather(futures)
+
+    #: seconds the cluster may have no worker at all, with tasks waiting, before the run stops
+    workerless_seconds = 120.0
+
+    def _as_completed(self, futures):
+        """The futures as they finish. When every worker is gone (killed, out of walltime) and none
+        comes back within ``workerless_seconds``, a RunError rather than a wait without end."""
+        from distributed import wait
+
+        remaining, gone_since = set(futures), None
+        while remaining:
+            try:
+                done, remaining = wait(remaining, timeout=2, return_when="FIRST_COMPLETED")
+            except TimeoutError:  # nothing finished in 2 s: is anyone still working?
+                if self.client.scheduler_info(n_workers=1)["workers"]:
+                    gone_since = None
+                elif gone_since is None:
+                    gone_since = time.monotonic()
+                    log.warning("the Dask scheduler has no worker left; waiting %.0f s for one to come back",
+                                self.workerless_seconds)
+                elif time.monotonic() - gone_since > self.workerless_seconds:
+                    raise RunError(f"every Dask worker left the scheduler ({self.scheduler}) and none came "
+                                   f"back within {self.workerless_seconds:.0f} s; the run stops here. Finished "
+                                   "shards are kept: start workers again (or run locally) and re-run the "
+                                   "workflow to resume") from None
+                continue
+            yield from done
 
     def close(self):
         if self.client is not None:

@@ -330,3 +330,23 @@ def test_the_local_cluster_listens_on_loopback_only():
         assert bound and set(bound) == {"127.0.0.1"}, bound
     finally:
         ex.close()
+
+
+def test_a_run_whose_workers_are_all_gone_stops_with_a_clear_error():
+    """With every worker gone the run stops, naming the scheduler and how to resume, instead of
+    waiting forever."""
+    from persona.dag.runner import Executor, RunError
+
+    executor = Executor("local", workers=1)
+    try:
+        executor.workerless_seconds = 1.0
+        executor._cluster.scale(0)
+        deadline = time.monotonic() + 30
+        while executor.client.scheduler_info(n_workers=1)["workers"] and time.monotonic() < deadline:
+            time.sleep(0.2)
+        start = time.monotonic()
+        with pytest.raises(RunError, match="every Dask worker left the scheduler .* re-run the workflow to resume"):
+            list(executor.run(time.sleep, [(0.1,)]))
+        assert time.monotonic() - start < 20
+    finally:
+        executor.close()
