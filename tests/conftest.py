@@ -36,7 +36,7 @@ def s3_server():
     server = pytest.importorskip("moto.server").ThreadedMotoServer(ip_address="127.0.0.1", port=0, verbose=False)
     server.start()
     host, port = server.get_host_and_port()
-    yield {"endpoint_url": f"http://{host}:{port}", "key": "testing", "secret": "testing"}
+    yield {"endpoint_url": f"http://{host}:{port}", "key": "persona-test-key", "secret": "persona-test-secret"}
     server.stop()
 
 
