@@ -128,17 +128,19 @@ def _hidden(path) -> bool:
 
 
 def _located(text, base_dir: Path):
-    """(the path: a Path, or a URL string as given; how to name it in an error). A URL's bucket is
-    checked first, so that a missing bucket or an unreachable endpoint is said as such."""
+    """(the path: a Path, or a URL string as given; how to name it in an error; what to check when it
+    does not exist). A URL's bucket is reached first, so that a missing bucket or an unreachable
+    endpoint is said as such."""
     raw = os.fspath(text)
     if storage.is_url(raw):
         storage.check(raw, "input")
-        return raw, repr(raw)
+        return raw, repr(raw), "check the URL (the bucket exists; the key or prefix does not)"
     p = Path(os.path.expanduser(raw))
     if not p.is_absolute():
         p = base_dir / p
     path = Path(os.path.abspath(p))
-    return path, f"{raw!r}" if str(raw) == str(path) else f"{raw!r} (resolved to {path})"
+    where = f"{raw!r}" if str(raw) == str(path) else f"{raw!r} (resolved to {path})"
+    return path, where, f"check the path (relative paths resolve against {base_dir})"
 
 
 def _video_frame_count(path) -> int:
@@ -169,7 +171,7 @@ def _expand_string(text, base_dir: Path) -> list[tuple[str, int | None]]:
     raw = os.fspath(text)
     if not str(raw).strip():
         raise InputError(f"empty path in photos (relative to {base_dir}): give a folder, a glob, an image or a video")
-    path, where = _located(raw, base_dir)
+    path, where, check = _located(raw, base_dir)
     if storage.isdir(path):
         files = [p for p in storage.files_in(path) if not _hidden(p)]
         if not files:
@@ -186,7 +188,7 @@ def _expand_string(text, base_dir: Path) -> list[tuple[str, int | None]]:
         return [entry for f in matches for entry in _member(f)]
     if storage.exists(path):
         raise InputError(f"{where} is neither a file nor a folder: point photos to a folder, a glob, an image or a video")
-    raise InputError(f"{where} does not exist: check the path (relative paths resolve against {base_dir})")
+    raise InputError(f"{where} does not exist: {check}")
 
 
 def _as_int(spec: dict, key: str, default, *, minimum: int) -> int | None:
@@ -213,9 +215,9 @@ def _expand_range(spec: dict, base_dir: Path) -> list[tuple[str, int | None]]:
     stop = _as_int(spec, "stop", None, minimum=0)
     step = _as_int(spec, "step", 1, minimum=1)
     raw = spec["video"]
-    path, where = _located(raw, base_dir)
+    path, where, check = _located(raw, base_dir)
     if not storage.isfile(path):
-        raise InputError(f"video {where} does not exist: check the path (relative paths resolve against {base_dir})")
+        raise InputError(f"video {where} does not exist: {check}")
     n = _video_frame_count(path)
     frames = range(n)[start:stop:step]
     if not frames:

@@ -39,7 +39,7 @@ HINT = ("check the URL, storage_options.endpoint_url (or AWS_ENDPOINT_URL) and t
 
 def is_url(path) -> bool:
     """True for an fsspec URL such as ``s3://bucket/key``; False for a local path."""
-    return "://" in str(path) and not str(path).startswith("file://")
+    return "://" in str(path)
 
 
 def configure(options: dict | None) -> None:

@@ -86,7 +86,7 @@ def test_a_missing_bucket_key_or_endpoint_is_named_with_what_to_check(tmp_path, 
         open_store(f"s3://{bucket}/run.zarr", mode="r")
     with pytest.raises(StorageError, match="input s3://no-such-bucket/photos: bucket 'no-such-bucket' does not exist"):
         media.resolve_sources("s3://no-such-bucket/photos", tmp_path)
-    with pytest.raises(InputError, match=f"'s3://{bucket}/photos' does not exist"):
+    with pytest.raises(InputError, match=f"'s3://{bucket}/photos' does not exist: check the URL"):
         media.resolve_sources(f"s3://{bucket}/photos", tmp_path)
     with pytest.raises(InputError, match=f"glob pattern 's3://{bucket}/photos/\\*.png' matches no files"):
         media.resolve_sources(f"s3://{bucket}/photos/*.png", tmp_path)
