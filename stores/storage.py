@@ -52,7 +52,9 @@ def configure(options: dict | None) -> None:
 def options(url: str) -> dict:
     """The storage options to open ``url`` with (fsspec's ``storage_options``)."""
     protocol = str(url).split("://", 1)[0]
-    return dict(_S3_OPTIONS) if protocol in S3_PROTOCOLS else {}
+    if protocol in S3_PROTOCOLS:
+        return dict(_S3_OPTIONS)
+    return {"auto_mkdir": True} if protocol in ("file", "local") else {}  # file://: folders made as needed
 
 
 def filesystem(url: str):
@@ -196,6 +198,8 @@ def check(url: str, what: str) -> None:
     if not is_url(url):
         return
     fs, p = filesystem(url)
+    if "file" in fs.protocol:  # a file:// URL: a local path, nothing to reach
+        return
     bucket = p.split("/", 1)[0]
     with translated(url, what, missing=f"bucket {bucket!r} does not exist: create it, or correct the URL or the endpoint"):
         if not fs.exists(bucket):

@@ -15,7 +15,7 @@ from persona.dag.workflow import load_workflow
 from pipeline import assert_same_store, write_photos, write_workflow
 
 
-@pytest.mark.slow  # about 2 minutes: moto answers each of the store's many small requests in tens of ms
+@pytest.mark.slow  # 2 to 3 minutes: moto answers each of the store's many small requests in tens of ms
 def test_a_run_in_a_bucket_gives_the_store_and_outputs_of_a_local_run(tmp_path, synthetic_photos, s3_bucket,
                                                                        dask_cluster):
     bucket, options = s3_bucket
