@@ -13,7 +13,10 @@ only ever sees NumPy arrays:
 - :func:`read_landmark_sidecar` / :func:`write_landmark_sidecar`: iBUG ``.pts`` files.
 - :func:`write_png`, :func:`write_video_mp4` (H.264, yuv420p, even size) and
   :func:`contact_sheet` for the outputs people open. Writes are atomic: a temporary
-  file in the same folder, then :func:`os.replace`.
+  file in the same folder, then :func:`os.replace` (for a URL: a local temporary file, uploaded).
+
+Any path may also be an fsspec URL (``s3://bucket/key``): every file is reached through
+:mod:`persona.stores.storage`.
 
 This module imports neither ``persona.plugins`` nor ``persona.dag``.
 """
