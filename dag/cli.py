@@ -136,18 +136,19 @@ def _print_figures(figures: dict, indent: str = "") -> None:
             print(f"{indent}{k:<24} {v:.3f}" if isinstance(v, float) else f"{indent}{k:<24} {v}")
 
 
-def _refresh_report(wf) -> Path | None:
+def _refresh_report(wf) -> Path | str | None:
     """report.html made again with the texture evaluations now in the output folder, when the run
     left its metrics.json (and series.json, the plots) there; None when there is no run's report."""
+    from persona.stores import storage
     from persona.stores.layout import open_store
 
     from .report import write_run_report
 
-    out = Path(wf.output)
-    if not (out / "metrics.json").is_file():
+    metrics, series = storage.join(wf.output, "metrics.json"), storage.join(wf.output, "series.json")
+    if not storage.isfile(metrics):
         return None
-    series = json.loads((out / "series.json").read_text()) if (out / "series.json").is_file() else None
-    return write_run_report(wf, open_store(wf.store, mode="r"), json.loads((out / "metrics.json").read_text()), series)
+    series = json.loads(storage.read_text(series)) if storage.isfile(series) else None
+    return write_run_report(wf, open_store(wf.store, mode="r"), json.loads(storage.read_text(metrics)), series)
 
 
 def _texture_methods(value: str) -> tuple[str, ...]:

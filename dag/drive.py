@@ -11,7 +11,6 @@ the ``drive`` collection, whose photo axis is the driver's frame axis.
 from __future__ import annotations
 
 import logging
-from pathlib import Path
 
 import numpy as np
 
@@ -20,7 +19,7 @@ from persona.plugins.face.dynamics import smooth_in_time
 from persona.plugins.face.fiducials import mean_shape
 from persona.plugins.face.tracks import bridge
 from persona.plugins.face.warp import retarget
-from persona.stores import media
+from persona.stores import media, storage
 from persona.stores.layout import OK, PENDING, Collection
 from persona.stores.provenance import Provenance
 
@@ -97,7 +96,7 @@ def driver_sound(frames: Collection, fps: float) -> media.Audio | None:
     return media.read_audio(sources.pop(), index[0] / fps, (index[-1] + 1) / fps)
 
 
-def write_videos(drive: Collection, frames: Collection, output: Path) -> dict[str, str]:
+def write_videos(drive: Collection, frames: Collection, output) -> dict[str, str]:
     """puppet.mp4 (the puppet as rendered), side_by_side.mp4 (driver | puppet) and composite.mp4
     (the puppet's face blended into the driver's frames through the render's soft mask, band by
     band: :func:`persona.plugins.face.composite.multiband`), at the video's fps, with the driver
@@ -114,7 +113,8 @@ def write_videos(drive: Collection, frames: Collection, output: Path) -> dict[st
 
     rendered, original, mask = drive.array("render/rgb"), frames.array("photos/rgb"), drive.array("render/mask")
     sound = driver_sound(frames, fps)
-    media.write_video_mp4(output / "puppet.mp4", shards(rendered), fps, sound)
-    media.write_video_mp4(output / "side_by_side.mp4", shards(original, rendered), fps, sound)
-    media.write_video_mp4(output / "composite.mp4", shards(rendered, original, mask, composite=True), fps, sound)
-    return {name: str(output / f"{name}.mp4") for name in ("puppet", "side_by_side", "composite")}
+    files = {name: storage.join(output, f"{name}.mp4") for name in ("puppet", "side_by_side", "composite")}
+    media.write_video_mp4(files["puppet"], shards(rendered), fps, sound)
+    media.write_video_mp4(files["side_by_side"], shards(original, rendered), fps, sound)
+    media.write_video_mp4(files["composite"], shards(rendered, original, mask, composite=True), fps, sound)
+    return {name: str(file) for name, file in files.items()}

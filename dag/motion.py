@@ -117,14 +117,13 @@ def _driver_meshes(drive: Collection, model: DriverModel, params: DynamicsParams
 
 def export_meshes(runner, drive: Collection, every: int) -> list[str]:
     """B's textured mesh of every ``every``-th frame: ``<output>/meshes/frame_<t>.ply`` and ``.obj``."""
-    from pathlib import Path
-
     import open3d as o3d
 
     from persona.plugins.face.meshing import METRIC_UNITS, depth_to_mesh, metric_frame
+    from persona.stores import storage
     from persona.stores.meshes import write_mesh
 
-    folder = Path(runner.wf.output) / "meshes"
+    folder = storage.join(runner.wf.output, "meshes")
     puppet = Collection(runner.root, "puppet")  # B's frame: every exported frame shares it
     origin, scale = metric_frame(puppet.array("aligned/mean_fiducials")[...], puppet.array("shape/depth")[...],
                                  puppet.array("shape/mask")[...])

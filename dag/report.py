@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from persona.stores import media
+from persona.stores import media, storage
 from persona.stores.layout import Collection, item
 
 MAX_EMBEDDED_VIDEO = 40 * 2**20
@@ -158,15 +158,15 @@ def texture_section(result: dict, grid: np.ndarray | None) -> list[str]:
     return parts
 
 
-def write_run_report(wf, root, metrics: dict, series: dict | None) -> Path:
+def write_run_report(wf, root, metrics: dict, series: dict | None) -> Path | str:
     """report.html in the workflow's output folder, from a run's ``metrics`` (metrics.json), its
     store (pictures, the frame strip) and ``series`` (the plots); with every texture evaluation
     found in the folder."""
-    out = Path(wf.output)
+    out = wf.output
     pictures = {}
     for path, c in metrics["collections"].items():
         for kind, file in c["pictures"].items():
-            if str(file).endswith(".png") and Path(file).is_file():
+            if str(file).endswith(".png") and storage.isfile(file):
                 pictures[f"{path}: {kind.replace('_', ' ')}"] = media.decode_image(file, max_side=4000)
     strip = None
     if root.get("drive") is not None:
@@ -177,19 +177,19 @@ def write_run_report(wf, root, metrics: dict, series: dict | None) -> Path:
         strip = np.concatenate([top, bottom], axis=0)
     fps = float(root["driver/frames"].attrs["fps"]) if strip is not None else 25.0
     texture = []
-    for file in sorted(out.glob("*_texture_evaluation*.json")):
-        result = json.loads(file.read_text())
-        grid = Path(result.get("grid", ""))
-        texture.append((result, media.decode_image(grid, max_side=4000) if grid.is_file() else None))
-    return write_report(out / "report.html", metrics=metrics, pictures=pictures, strip=strip, series=series,
-                        threshold=wf.evaluate.threshold, fps=fps,
-                        videos=[out / f"{name}.mp4" for name in ("composite", "puppet", "side_by_side")],
+    for file in storage.glob(storage.join(out, "*_texture_evaluation*.json")):
+        result = json.loads(storage.read_text(file))
+        grid = result.get("grid")
+        texture.append((result, media.decode_image(grid, max_side=4000) if grid and storage.isfile(grid) else None))
+    return write_report(storage.join(out, "report.html"), metrics=metrics, pictures=pictures, strip=strip,
+                        series=series, threshold=wf.evaluate.threshold, fps=fps,
+                        videos=[storage.join(out, f"{name}.mp4") for name in ("composite", "puppet", "side_by_side")],
                         texture=texture)
 
 
-def write_report(path: Path, *, metrics: dict, pictures: dict[str, np.ndarray], strip: np.ndarray | None,
-                 series: dict | None, threshold: float, fps: float, videos: list[Path] = (),
-                 texture: list[tuple[dict, np.ndarray | None]] = ()) -> Path:
+def write_report(path, *, metrics: dict, pictures: dict[str, np.ndarray], strip: np.ndarray | None,
+                 series: dict | None, threshold: float, fps: float, videos: list = (),
+                 texture: list[tuple[dict, np.ndarray | None]] = ()) -> Path | str:
     """Write the page atomically; ``pictures`` are titled images (means, contact sheets); ``videos``
     are embedded in their order (the composite first), each up to ``MAX_EMBEDDED_VIDEO`` bytes;
     ``texture``: the results of ``persona evaluate --texture`` (its JSON, and its picture grid)."""
@@ -197,10 +197,11 @@ def write_report(path: Path, *, metrics: dict, pictures: dict[str, np.ndarray], 
     if metrics.get("warnings"):
         items = [f"<li>{html.escape(str(w))}</li>" for w in metrics["warnings"]]
         parts += ["<h2>Warnings</h2><ul>", *items, "</ul>"]
-    shown = [v for v in videos if v.is_file() and v.stat().st_size <= MAX_EMBEDDED_VIDEO]
+    shown = [v for v in videos if storage.isfile(v) and storage.stat(v)[0] <= MAX_EMBEDDED_VIDEO]
     for v in shown:
-        data = base64.b64encode(v.read_bytes()).decode()
-        parts += [f"<h2>{html.escape(v.stem.replace('_', ' '))}</h2>",
+        data = base64.b64encode(storage.read_bytes(v)).decode()
+        title = storage.name(storage.with_suffix(v, "")).replace("_", " ")
+        parts += [f"<h2>{html.escape(title)}</h2>",
                   f'<video controls loop width="720" src="data:video/mp4;base64,{data}"></video>']
     ev = metrics.get("evaluation")
     if ev:

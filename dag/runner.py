@@ -15,15 +15,15 @@ import sys
 import time
 from contextlib import contextmanager
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
+from distributed.diagnostics.plugin import WorkerPlugin
 
 from persona.plugins.base import Rejected
 from persona.plugins.face.fiducials import mean_shape
 from persona.plugins.hookspecs import hookimpl
 from persona.plugins.manager import get_plugin_manager
-from persona.stores import media
+from persona.stores import media, storage
 from persona.stores.errors import InputError, PersonaError
 from persona.stores.layout import OK, PENDING, REJECTED, Collection, item, open_store
 from persona.stores.provenance import Provenance, cache_key
@@ -62,7 +62,7 @@ class Executor:
     :class:`Cluster` of a batch kind, see :mod:`persona.dag.batch`) or, for "sync", in-process."""
 
     def __init__(self, scheduler: str, workers: int | None, threads_per_worker: int = 1,
-                 memory_limit: str = "auto", batch: Cluster | None = None):
+                 memory_limit: str = "auto", batch: Cluster | None = None, storage_options: dict | None = None):
         self.scheduler = scheduler
         self.client = None
         self._cluster = None
@@ -88,6 +88,8 @@ class Executor:
             except OSError as exc:
                 raise RunError(f"cannot reach the Dask scheduler at {scheduler}: {exc}. Start one with "
                                "`dask scheduler` and `dask worker ADDRESS`, or use --scheduler local") from None
+        if storage_options:  # every worker, on any machine, reaches object storage as this process does
+            self.client.register_plugin(StorageSetup(storage_options), name="persona-storage")
 
     def run(self, fn, argument_lists):
         """Run fn(*args) for each args; yield results as they complete."""
@@ -141,6 +143,20 @@ class Executor:
             self.client.close()
         if self._cluster is not None:
             self._close_cluster(self._cluster)
+
+
+class StorageSetup(WorkerPlugin):
+    """A Dask worker plugin: the run's storage options (:func:`persona.stores.storage.configure`) on
+    every worker, present and future. Sent to the workers, never written anywhere."""
+
+    def __init__(self, options: dict):
+        self.options = options
+
+    def setup(self, worker) -> None:
+        storage.configure(self.options)
+
+    def __repr__(self) -> str:  # no secrets in logs
+        return "StorageSetup(...)"
 
 
 # -- lifecycle hooks: timing ---------------------------------------------------------------
@@ -223,7 +239,10 @@ def resolve_inputs(wf: Workflow) -> dict[str, list[media.Source]]:
     """Every collection's photos and video frames, resolved before any work is done or any file
     created: paths that do not exist, empty folders and frame ranges, files that are not videos
     where a video is needed and videos that do not open raise an :class:`InputError` naming them.
-    Takes a second or two (a video's frames are counted, not decoded)."""
+    Takes a second or two (a video's frames are counted, not decoded). The buckets of a store and an
+    output in object storage are reached first (:func:`persona.stores.storage.check`)."""
+    storage.check(wf.store, "store")
+    storage.check(wf.output, "output")
     resolved = {}
     for path, spec in collection_specs(wf):
         sources = media.resolve_sources(_media_spec(spec), wf.base_dir)
@@ -273,7 +292,7 @@ class Runner:
         # the frames of one video are decoded in one sequential pass; a mix of photos, videos and
         # video ranges photo by photo (a frame decoded from the start of its video: exact)
         video = sources[0].path if all(s.frame is not None and s.path == sources[0].path for s in sources) else None
-        stats = [(s.path, s.frame, *_stat(s.path)) for s in sources]
+        stats = [(s.path, s.frame, *storage.signature(s.path)) for s in sources]
         prov = Provenance.make(stage="ingest", backend="-", backend_version="1", params=params,
                                inputs={"sources": cache_key(sources=stats)}, persona_version=self.version)
         coll = Collection(self.root, path)
@@ -429,12 +448,11 @@ class Runner:
 
     def pictures(self, coll: Collection, mean: np.ndarray | None, n_faces: int = 60) -> dict:
         """The mean aligned face (x2) and a contact sheet of the first accepted aligned faces."""
-        out = Path(self.wf.output)
         slug = coll.path.replace("/", "_")
         written = {}
         if mean is not None:
             big = np.kron(np.clip(mean, 0, 255).round().astype(np.uint8), np.ones((2, 2, 1), np.uint8))
-            written["mean_face"] = out / f"{slug}_mean_face.png"
+            written["mean_face"] = storage.join(self.wf.output, f"{slug}_mean_face.png")
             media.write_png(written["mean_face"], big)
         ok = st.accepted(coll)
         faces = []
@@ -444,7 +462,7 @@ class Runner:
             if ok[start:stop].any():
                 faces += list(coll.array("aligned/rgb")[start:stop][ok[start:stop]])
         if faces:
-            written["contact_sheet"] = out / f"{slug}_contact_sheet.png"
+            written["contact_sheet"] = storage.join(self.wf.output, f"{slug}_contact_sheet.png")
             media.write_png(written["contact_sheet"], media.contact_sheet(faces[:n_faces], columns=10))
         return {k: str(v) for k, v in written.items()}
 
@@ -484,7 +502,7 @@ class Runner:
             drive = run_drive(self)
             drive_seconds = time.perf_counter() - t0
             with self.step("videos", "drive"):
-                report["videos"] = write_videos(drive, Collection(self.root, "driver/frames"), Path(self.wf.output))
+                report["videos"] = write_videos(drive, Collection(self.root, "driver/frames"), self.wf.output)
             render = [r for r in self.timer.records if r["stage"] in ("render", "render3d")][-1]
             report["speed"] = {}
             if render["n_done"] == drive.n:  # timed only when this run rendered every frame
@@ -495,11 +513,11 @@ class Runner:
             report["speed"]["evaluate_seconds"] = time.perf_counter() - t0
             series = evaluation.pop("series")
             report["evaluation"] = evaluation
-            write_json(Path(self.wf.output) / "series.json",  # the report's plots, should it be made again
+            write_json(storage.join(self.wf.output, "series.json"),  # the report's plots, should it be made again
                        {k: np.asarray(v, float).tolist() for k, v in series.items()})
         report["stages"] = self.timer.records
-        report["report"] = str(Path(self.wf.output) / "report.html")
-        write_json(Path(self.wf.output) / "metrics.json", report)
+        report["report"] = str(storage.join(self.wf.output, "report.html"))
+        write_json(storage.join(self.wf.output, "metrics.json"), report)
         write_run_report(self.wf, self.root, report, series)
         return report
 
@@ -507,14 +525,6 @@ class Runner:
         e = self.wf.evaluate
         return evaluate(self.wf.store, self.executor, identity=self.wf.stage("identity"), threshold=e.threshold,
                         collection_sample=e.collection_sample, self_reenactment=e.self_reenactment)
-
-def _stat(path: str) -> tuple[int, int]:
-    try:
-        s = os.stat(path)
-        return s.st_size, s.st_mtime_ns
-    except OSError:
-        return -1, -1
-
 
 def _canvas(sources, params) -> list[int]:
     """The smallest canvas that holds every readable photo and video frame after downscaling to max_side."""
@@ -537,8 +547,8 @@ def _canvas(sources, params) -> list[int]:
     return [h, w]
 
 
-def write_json(path: Path, data: dict) -> None:
-    """A JSON file, written atomically."""
+def write_json(path, data: dict) -> None:
+    """A JSON file (a local path or a URL), written atomically."""
     media.write_bytes(path, json.dumps(data, indent=2, default=str).encode())
 
 
@@ -549,7 +559,8 @@ def executor_for(wf: Workflow, scheduler: str | None = None, workers: int | None
     batch = None
     if scheduler is None and c.kind != "local":
         batch = c.model_copy(update={"log_directory": c.log_directory or str(Path(wf.output) / "worker-logs")})
-    ex = Executor(scheduler or c.scheduler, workers or c.workers, c.threads_per_worker, c.memory_limit, batch)
+    ex = Executor(scheduler or c.scheduler, workers or c.workers, c.threads_per_worker, c.memory_limit, batch,
+                  wf.storage_options.fsspec())
     try:
         yield ex
     finally:

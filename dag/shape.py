@@ -10,12 +10,12 @@
 
 from __future__ import annotations
 
-from pathlib import Path
 
 import numpy as np
 
 from persona.plugins.base import Rejected
 from persona.plugins.face.template import CANONICAL_HEIGHT as H, CANONICAL_WIDTH as W
+from persona.stores import storage
 from persona.stores.layout import OK, Collection
 from persona.stores.provenance import Provenance
 
@@ -102,11 +102,11 @@ def run_shape(runner, coll: Collection, aligned: Provenance) -> dict[str, str]:
                            backend_version=registry.get("shape", shape_name).version,
                            params={"shape": shape_params, "integrate": integrate_params},
                            inputs={"align": aligned.key}, persona_version=runner.version)
-    out, slug = Path(runner.wf.output), coll.path.replace("/", "_")
-    files = {"mesh_ply": out / f"{slug}_mesh.ply", "mesh_obj": out / f"{slug}_mesh.obj",
-             "mesh_previews": out / f"{slug}_mesh_previews.png"}
+    out, slug = runner.wf.output, coll.path.replace("/", "_")
+    files = {"mesh_ply": storage.join(out, f"{slug}_mesh.ply"), "mesh_obj": storage.join(out, f"{slug}_mesh.obj"),
+             "mesh_previews": storage.join(out, f"{slug}_mesh_previews.png")}
     current = coll.provenance("shape/depth")
-    if current is not None and current.key == prov.key and all(f.is_file() for f in files.values()):
+    if current is not None and current.key == prov.key and all(storage.isfile(f) for f in files.values()):
         return {k: str(v) for k, v in files.items()}
     ok = coll.state("align") == OK
     tasks = [(runner.wf.store, coll.path, s, e, "collection", "align") for s, e in coll.shard_ranges() if ok[s:e].any()]

@@ -17,7 +17,6 @@ written last).
 from __future__ import annotations
 
 import logging
-from pathlib import Path
 
 import numpy as np
 
@@ -27,7 +26,7 @@ from persona.plugins.face.blend import BlendCache, level_bias
 from persona.plugins.face.template import generic_template
 from persona.plugins.face.texture import Aligned
 from persona.plugins.kinds import Pose, TexturePhotos
-from persona.stores import media
+from persona.stores import media, storage
 from persona.stores.layout import OK, Collection
 from persona.stores.provenance import Provenance
 
@@ -62,9 +61,9 @@ def run_texture(runner, coll: Collection, aligned: Provenance) -> dict[str, str]
     name, params, backend = texture_backend(runner)
     prov = Provenance.make(stage="texture", backend=name, backend_version=backend.version, params=params,
                            inputs={"align": aligned.key}, persona_version=runner.version)
-    out = Path(runner.wf.output) / f"{coll.path.replace('/', '_')}_texture_neutral.png"
+    out = storage.join(runner.wf.output, f"{coll.path.replace('/', '_')}_texture_neutral.png")
     current = coll.provenance("texture/neutral")
-    if current is not None and current.key == prov.key and out.is_file():
+    if current is not None and current.key == prov.key and storage.isfile(out):
         return {"texture_neutral": str(out)}
     ok = np.flatnonzero(coll.state("align") == OK)
     mean_fiducials = coll.array("aligned/mean_fiducials")[...].astype(np.float64)

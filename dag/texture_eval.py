@@ -21,7 +21,6 @@ Dask tasks of a few references each; a worker builds the collection once and kee
 from __future__ import annotations
 
 from functools import lru_cache
-from pathlib import Path
 
 import cv2
 import numpy as np
@@ -32,7 +31,7 @@ from persona.plugins.base import Rejected
 from persona.plugins.face.template import IDX49, generic_template
 from persona.plugins.face.texture import bandpass as texture_bandpass
 from persona.plugins.face.warp import eye_mouth_scale
-from persona.stores import media
+from persona.stores import media, storage
 from persona.stores.layout import Collection, open_store
 
 from . import stages as st
@@ -199,14 +198,14 @@ def evaluate_texture(runner, path: str = "puppet", *, references: int = 40, seed
             bar.update(len(part))
     results.sort(key=lambda row: row["photo"])
     table = summarize(results)
-    out = Path(runner.wf.output)
+    out = runner.wf.output
     slug, suffix = path.replace("/", "_"), "" if mode == "reference" else "_fiducials"
-    grid_file = out / f"{slug}_texture_grid{suffix}.png"
+    grid_file = storage.join(out, f"{slug}_texture_grid{suffix}.png")
     media.write_png(grid_file, grid(results))
     report = {"collection": path, "mode": mode, "references": [int(i) for i in chosen], "collection_photos": len(rows),
               "methods": params, "table": table,
               "paired_alignment": paired(results),
               "per_reference": [{k: v for k, v in r.items() if k != "images"} for r in results],
               "grid": str(grid_file)}
-    write_json(out / f"{slug}_texture_evaluation{suffix}.json", report)
+    write_json(storage.join(out, f"{slug}_texture_evaluation{suffix}.json"), report)
     return report

@@ -11,11 +11,12 @@ from pathlib import Path
 from typing import Any, Literal, Union
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, SecretStr, ValidationError, field_validator, model_validator
 
 from persona.plugins.face.dynamics import DynamicsParams
 from persona.plugins.face.transfer import TransferParams
 from persona.plugins.manager import FlowChoice, Registry, default_registry, did_you_mean
+from persona.stores import storage
 from persona.stores.errors import PersonaError
 
 
@@ -120,6 +121,40 @@ class Cluster(Strict):
         return self
 
 
+class StorageOptions(Strict):
+    """How to reach the object storage of ``s3://`` URLs (store, photos, videos, output). What is left
+    unset comes from the standard AWS environment variables (AWS_ENDPOINT_URL, AWS_ACCESS_KEY_ID,
+    AWS_SECRET_ACCESS_KEY, AWS_DEFAULT_REGION) or ~/.aws. Key and secret are never written into the
+    store, metrics or report (and print as '**********')."""
+
+    endpoint_url: str | None = Field(None, description="an S3-compatible server, e.g. http://127.0.0.1:9000 "
+                                     "(MinIO) or https://s3.eu-central-1.amazonaws.com; none = AWS")
+    region: str | None = Field(None, description="the bucket's region, e.g. eu-central-1")
+    key: SecretStr | None = Field(None, description="access key id (better: AWS_ACCESS_KEY_ID)")
+    secret: SecretStr | None = Field(None, description="secret access key (better: AWS_SECRET_ACCESS_KEY)")
+    anon: bool = Field(False, description="no credentials at all: a public bucket")
+
+    @field_validator("endpoint_url")
+    @classmethod
+    def _endpoint(cls, v: str | None) -> str | None:
+        if v is not None and not v.startswith(("http://", "https://")):
+            raise ValueError(f'"{v}" is not an http:// or https:// address, e.g. http://127.0.0.1:9000')
+        return v
+
+    def fsspec(self) -> dict:
+        """s3fs's keyword arguments (secrets revealed: for :func:`persona.stores.storage.configure` only)."""
+        options: dict[str, Any] = {"anon": True} if self.anon else {}
+        if self.endpoint_url:
+            options["endpoint_url"] = self.endpoint_url
+        if self.region:
+            options["client_kwargs"] = {"region_name": self.region}
+        if self.key is not None:
+            options["key"] = self.key.get_secret_value()
+        if self.secret is not None:
+            options["secret"] = self.secret.get_secret_value()
+        return options
+
+
 class Evaluation(Strict):
     threshold: float = Field(0.6, gt=0, description="descriptor distance under which two faces are the same person")
     collection_sample: int = Field(100, ge=1, description="photos per collection whose descriptors make its centroid")
@@ -130,8 +165,11 @@ class Evaluation(Strict):
 class Workflow(Strict):
     version: Literal[1] = Field(1, description="workflow format version")
     name: str = Field(description="a short name for the run")
-    store: str = Field(description="the Zarr store of the run (folder or fsspec URL)")
-    output: str = Field(description="folder for the pictures, videos and reports people open")
+    store: str = Field(description="the Zarr store of the run (folder or fsspec URL, e.g. s3://bucket/run.zarr)")
+    output: str = Field(description="folder (or URL, e.g. s3://bucket/run) for the pictures, videos and reports "
+                        "people open")
+    storage_options: StorageOptions = Field(default_factory=StorageOptions, description="how to reach object "
+                                            "storage (s3:// URLs); unset: the AWS environment variables")
     puppet: Actor = Field(description="actor B, whose face is built")
     driver: Actor | None = Field(None, description="actor A, whose video drives the puppet")
     stages: dict[str, StageConfig] = Field(default_factory=dict, description="backend and params per kind")
@@ -362,6 +400,7 @@ def parse_workflow(data: Any, *, source: str = "<workflow>", base_dir: str | Pat
     if errors:
         raise WorkflowError(source, errors)
     _resolve_paths(wf, Path(base_dir))
+    storage.configure(wf.storage_options.fsspec())  # this process's; the runner's Dask workers get them too
     return wf
 
 

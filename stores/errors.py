@@ -11,3 +11,8 @@ class PersonaError(Exception):
 
 class InputError(PersonaError, ValueError):
     """Bad user input: a missing file, an empty folder, a broken video."""
+
+
+class StorageError(PersonaError, RuntimeError):
+    """Object storage cannot be reached: a missing bucket or key, an unreachable endpoint, missing or
+    refused credentials, or fsspec's driver for the URL not installed."""

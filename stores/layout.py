@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 import zarr
 
+from . import storage
 from .errors import PersonaError
 from .provenance import Provenance
 
@@ -44,12 +45,15 @@ class StoreError(PersonaError, ValueError):
 
 
 def open_store(url: str, mode: str = "a") -> zarr.Group:
-    """Open (or create, with mode "a") a Persona store at a local path or fsspec URL."""
+    """Open (or create, with mode "a") a Persona store at a local path or fsspec URL (an ``s3://``
+    URL with the storage options of :mod:`persona.stores.storage`)."""
     try:
-        root = zarr.open_group(str(url), mode=mode, zarr_format=3)
-    except FileNotFoundError:
-        raise StoreError(f"no Persona store at {url}: run `persona run WORKFLOW` first") from None
+        root = zarr.open_group(str(url), mode=mode, zarr_format=3,
+                               storage_options=storage.options(url) if storage.is_url(url) else None)
     except Exception as exc:
+        storage.check(url, "store")  # a missing bucket, an unreachable endpoint, refused credentials
+        if isinstance(exc, FileNotFoundError):
+            raise StoreError(f"no Persona store at {url}: run `persona run WORKFLOW` first") from None
         raise StoreError(f"cannot open {url} as a Zarr v3 store: {exc}") from exc
     if mode != "r" and "persona" not in root.attrs:
         root.attrs["persona"] = {"layout": LAYOUT_VERSION}

@@ -13,7 +13,10 @@ only ever sees NumPy arrays:
 - :func:`read_landmark_sidecar` / :func:`write_landmark_sidecar`: iBUG ``.pts`` files.
 - :func:`write_png`, :func:`write_video_mp4` (H.264, yuv420p, even size) and
   :func:`contact_sheet` for the outputs people open. Writes are atomic: a temporary
-  file in the same folder, then :func:`os.replace`.
+  file in the same folder, then :func:`os.replace` (for a URL: a local temporary file, uploaded).
+
+Any path may also be an fsspec URL (``s3://bucket/key``): every file is reached through
+:mod:`persona.stores.storage`.
 
 This module imports neither ``persona.plugins`` nor ``persona.dag``.
 """
@@ -21,7 +24,6 @@ This module imports neither ``persona.plugins`` nor ``persona.dag``.
 from __future__ import annotations
 
 import contextlib
-import glob
 import hashlib
 import logging
 import math
@@ -40,6 +42,7 @@ import cv2
 import numpy as np
 from PIL import Image, UnidentifiedImageError
 
+from persona.stores import storage
 from persona.stores.errors import InputError
 
 __all__ = [
@@ -121,29 +124,39 @@ def is_video(path) -> bool:
 SIDECAR_EXTENSIONS = (".pts",)
 
 
-def _hidden(path: Path) -> bool:
+def _hidden(path) -> bool:
     """Hidden files and sidecars are not photos; any other file is, and decode judges it."""
-    return path.name.startswith(".") or path.suffix.lower() in SIDECAR_EXTENSIONS
+    name = storage.name(path)
+    return name.startswith(".") or os.path.splitext(name)[1].lower() in SIDECAR_EXTENSIONS
 
 
-def _resolve_path(text, base_dir: Path) -> Path:
-    p = Path(os.path.expanduser(os.fspath(text)))
+def _located(text, base_dir: Path):
+    """(the path: a Path, or a URL string as given; how to name it in an error; what to check when it
+    does not exist). A URL's bucket is reached first, so that a missing bucket or an unreachable
+    endpoint is said as such."""
+    raw = os.fspath(text)
+    if storage.is_url(raw):
+        storage.check(raw, "input")
+        return raw, repr(raw), "check the URL (the bucket exists; the key or prefix does not)"
+    p = Path(os.path.expanduser(raw))
     if not p.is_absolute():
         p = base_dir / p
-    return Path(os.path.abspath(p))
+    path = Path(os.path.abspath(p))
+    where = f"{raw!r}" if str(raw) == str(path) else f"{raw!r} (resolved to {path})"
+    return path, where, f"check the path (relative paths resolve against {base_dir})"
 
 
-def _video_frame_count(path: Path) -> int:
+def _video_frame_count(path) -> int:
     with VideoReader(path) as reader:
         return reader.n_frames
 
 
-def _frames_of(path: Path, start: int = 0, stop: int | None = None, step: int = 1):
+def _frames_of(path, start: int = 0, stop: int | None = None, step: int = 1):
     n = _video_frame_count(path)
     return [(str(path), i) for i in range(n)[start:stop:step]]
 
 
-def _member(path: Path) -> list[tuple[str, int | None]]:
+def _member(path) -> list[tuple[str, int | None]]:
     """The entries of one file found in a folder or by a glob: a video's frames, or the file as a
     photo. A file named like a video that does not open as one is kept as a photo, so that ingest
     rejects it with its reason instead of one stray file stopping the whole collection (a video
@@ -161,27 +174,24 @@ def _expand_string(text, base_dir: Path) -> list[tuple[str, int | None]]:
     raw = os.fspath(text)
     if not str(raw).strip():
         raise InputError(f"empty path in photos (relative to {base_dir}): give a folder, a glob, an image or a video")
-    path = _resolve_path(raw, base_dir)
-    where = f"{raw!r}" if str(raw) == str(path) else f"{raw!r} (resolved to {path})"
-    if path.is_dir():
-        files = sorted(p for p in path.iterdir() if not _hidden(p) and p.is_file())
+    path, where, check = _located(raw, base_dir)
+    if storage.isdir(path):
+        files = [p for p in storage.files_in(path) if not _hidden(p)]
         if not files:
             raise InputError(
                 f"folder {where} is empty (no visible files): put photos in it or point to another folder"
             )
         return [entry for f in files for entry in _member(f)]
-    if path.is_file():
+    if storage.isfile(path):
         return _frames_of(path) if is_video(path) else [(str(path), None)]
     if any(c in str(raw) for c in _GLOB_CHARS):
-        matches = sorted(
-            Path(m) for m in glob.glob(str(path)) if Path(m).is_file() and not _hidden(Path(m))
-        )
+        matches = [m for m in storage.glob(path) if not _hidden(m)]
         if not matches:
             raise InputError(f"glob pattern {where} matches no files: check the pattern and the folder")
         return [entry for f in matches for entry in _member(f)]
-    if path.exists():
+    if storage.exists(path):
         raise InputError(f"{where} is neither a file nor a folder: point photos to a folder, a glob, an image or a video")
-    raise InputError(f"{where} does not exist: check the path (relative paths resolve against {base_dir})")
+    raise InputError(f"{where} does not exist: {check}")
 
 
 def _as_int(spec: dict, key: str, default, *, minimum: int) -> int | None:
@@ -208,10 +218,9 @@ def _expand_range(spec: dict, base_dir: Path) -> list[tuple[str, int | None]]:
     stop = _as_int(spec, "stop", None, minimum=0)
     step = _as_int(spec, "step", 1, minimum=1)
     raw = spec["video"]
-    path = _resolve_path(raw, base_dir)
-    where = f"{raw!r}" if str(raw) == str(path) else f"{raw!r} (resolved to {path})"
-    if not path.is_file():
-        raise InputError(f"video {where} does not exist: check the path (relative paths resolve against {base_dir})")
+    path, where, check = _located(raw, base_dir)
+    if not storage.isfile(path):
+        raise InputError(f"video {where} does not exist: {check}")
     n = _video_frame_count(path)
     frames = range(n)[start:stop:step]
     if not frames:
@@ -291,19 +300,18 @@ def _open_checked(path, max_pixels: int, min_side: int) -> tuple[Image.Image, ob
 
     Must be called inside ``_quiet_warnings()``.
     """
-    p = Path(path)
     try:
-        size = p.stat().st_size
+        size, folder = storage.stat(path)
     except FileNotFoundError:
-        raise PhotoRejected(f"file not found: {p}") from None
+        raise PhotoRejected(f"file not found: {path}") from None
     except OSError as e:
         raise PhotoRejected(f"cannot read file: {e.strerror or e}") from None
-    if p.is_dir():
+    if folder:
         raise PhotoRejected("not an image (a folder)")
     if size == 0:
         raise PhotoRejected("empty file (0 bytes)")
     try:
-        fh = open(p, "rb")
+        fh = storage.open_file(path, "rb")
     except OSError as e:
         raise PhotoRejected(f"cannot read file: {e.strerror or e}") from None
     try:
@@ -486,7 +494,7 @@ def _is_16bit_colour(img: Image.Image) -> bool:
 
 def _decode_16bit_cv2(path) -> np.ndarray:
     """A 16-bit colour PNG/TIFF through OpenCV: (h, w, 3|4) RGB(A) or (h, w, 2) LA, uint8."""
-    data = np.fromfile(str(path), dtype=np.uint8)
+    data = np.frombuffer(storage.read_bytes(path), dtype=np.uint8)
     a = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)  # UNCHANGED: no EXIF rotation here
     if a is None:
         raise PhotoRejected("corrupt 16-bit image: OpenCV cannot decode it")
@@ -619,13 +627,32 @@ def decode_image(
 def sha256_file(path) -> str:
     """Hex SHA-256 of a file's bytes, read in 1 MiB chunks."""
     h = hashlib.sha256()
-    with open(path, "rb") as f:
+    with storage.open_file(path, "rb") as f:
         for chunk in iter(lambda: f.read(1 << 20), b""):
             h.update(chunk)
     return h.hexdigest()
 
 
 # --------------------------------------------------------------------------- video
+
+
+@contextlib.contextmanager
+def _av_open(path, **kwargs):
+    """PyAV's container of a video, closed on exit; raises :class:`InputError` naming the video when
+    it does not open. A local video is opened by name; a URL's on a file object read through fsspec,
+    in which PyAV reads and seeks as in a local file (s3fs fetches the byte ranges asked for, with
+    read-ahead), so a video in object storage is streamed, not copied to a temporary file first."""
+    import av  # local: importing PyAV is not free and only video needs it
+
+    with contextlib.ExitStack() as stack:
+        source = stack.enter_context(storage.open_file(path, "rb")) if storage.is_url(path) else str(path)
+        try:
+            container = av.open(source, **kwargs)
+        except Exception as e:  # noqa: BLE001 - av.error.* and friends
+            raise InputError(f"cannot read video {path}: {_short(e)}; check that it is a complete, "
+                             "playable video file") from None
+        with container:
+            yield container
 
 
 class VideoReader:
@@ -641,35 +668,31 @@ class VideoReader:
     """
 
     def __init__(self, path):
-        import av  # local: importing PyAV is not free and only video needs it
-
-        self._av = av
-        self.path = Path(os.path.abspath(os.fspath(path)))
+        self.path = os.fspath(path) if storage.is_url(path) else Path(os.path.abspath(os.fspath(path)))
         p = self.path
-        if not p.exists():
-            raise InputError(f"video {p} does not exist: check the path")
-        if p.is_dir():
-            raise InputError(f"video {p} is a folder, not a video file")
-        if p.stat().st_size == 0:
-            raise InputError(f"video {p} is an empty file (0 bytes): re-export or re-download it")
-        self._container = None
         try:
-            self._container = av.open(str(p))
-            fmt = self._container.format.name or ""
-            if fmt == "image2" or fmt.endswith("_pipe"):
-                raise InputError(f"{p} is a still image ({fmt}), not a video")
-            if not self._container.streams.video:
-                raise InputError(f"{p} has no video stream: give a video file")
-            stream = self._container.streams.video[0]
-            cc = stream.codec_context
-            rate = stream.average_rate or stream.guessed_rate or stream.base_rate
-            self.fps = float(rate) if rate else 0.0
-            self._declared_frames = int(stream.frames or 0)
-            w, h = int(cc.width), int(cc.height)
+            size, folder = storage.stat(p)
+        except FileNotFoundError:
+            raise InputError(f"video {p} does not exist: check the path") from None
+        if folder:
+            raise InputError(f"video {p} is a folder, not a video file")
+        if size == 0:
+            raise InputError(f"video {p} is an empty file (0 bytes): re-export or re-download it")
+        try:
+            with _av_open(p) as container:
+                fmt = container.format.name or ""
+                if fmt == "image2" or fmt.endswith("_pipe"):
+                    raise InputError(f"{p} is a still image ({fmt}), not a video")
+                if not container.streams.video:
+                    raise InputError(f"{p} has no video stream: give a video file")
+                stream = container.streams.video[0]
+                cc = stream.codec_context
+                rate = stream.average_rate or stream.guessed_rate or stream.base_rate
+                self.fps = float(rate) if rate else 0.0
+                self._declared_frames = int(stream.frames or 0)
+                w, h = int(cc.width), int(cc.height)
             if w <= 0 or h <= 0:
                 raise InputError(f"video {p}: cannot read the frame size; is the file complete?")
-            self._container.close()
-            self._container = None
             # the display rotation is per frame side data in FFmpeg: read the first frame
             frames = self._decode()
             try:
@@ -680,10 +703,8 @@ class VideoReader:
                 raise InputError(f"video {p} has no decodable frames")
             self._rotation = float(getattr(first, "rotation", 0) or 0)
         except InputError:
-            self.close()
             raise
         except Exception as e:  # noqa: BLE001 - av.error.* and friends
-            self.close()
             raise InputError(
                 f"cannot read video {p}: {_short(e)}; check that it is a complete, playable video file"
             ) from None
@@ -699,12 +720,7 @@ class VideoReader:
 
     def _decode(self):
         """Yield decoded av.VideoFrame objects from a fresh container, in order."""
-        av = self._av
-        try:
-            container = av.open(str(self.path))
-        except Exception as e:  # noqa: BLE001
-            raise InputError(f"cannot read video {self.path}: {_short(e)}") from None
-        try:
+        with _av_open(self.path) as container:
             stream = container.streams.video[0]
             stream.thread_type = "AUTO"
             i = 0
@@ -721,8 +737,6 @@ class VideoReader:
                     ) from None
                 yield frame
                 i += 1
-        finally:
-            container.close()
 
     def frames(self, start: int = 0, stop: int | None = None, step: int = 1) -> Iterator[tuple[int, np.ndarray]]:
         """Yield ``(index, (h, w, 3) uint8 RGB)`` for frames ``start, start+step, ... < stop``."""
@@ -745,11 +759,8 @@ class VideoReader:
             self._n_frames = count
 
     def close(self) -> None:
-        if self._container is not None:
-            try:
-                self._container.close()
-            finally:
-                self._container = None
+        """Nothing stays open between calls (each decodes from a fresh container): a no-op, so that a
+        reader is also a context manager."""
 
     def __enter__(self) -> VideoReader:
         return self
@@ -778,8 +789,8 @@ def read_video_frame(path, index: int, *, max_side: int = MAX_SIDE) -> np.ndarra
 # --------------------------------------------------------------------------- landmarks
 
 
-def _sidecar_path(image_path) -> Path:
-    return Path(image_path).with_suffix(".pts")
+def _sidecar_path(image_path):
+    return storage.with_suffix(image_path, ".pts")
 
 
 def read_landmark_sidecar(image_path) -> np.ndarray | None:
@@ -794,14 +805,14 @@ def read_landmark_sidecar(image_path) -> np.ndarray | None:
     malformed file.
     """
     pts = _sidecar_path(image_path)
-    if not pts.is_file():
+    if not storage.isfile(pts):
         return None
 
     def bad(why: str) -> PhotoRejected:
-        return PhotoRejected(f"bad landmark sidecar {pts.name}: {why}")
+        return PhotoRejected(f"bad landmark sidecar {storage.name(pts)}: {why}")
 
     try:
-        text = pts.read_text(encoding="utf-8", errors="strict")
+        text = storage.read_text(pts)
     except (OSError, UnicodeDecodeError) as e:
         raise bad(f"cannot read it ({_short(e)})") from None
     lines = [ln.strip() for ln in text.splitlines()]
@@ -858,7 +869,12 @@ def atomic_path(path, suffix: str | None = None) -> Iterator[str]:
     succeeds, and is removed otherwise, so an interrupted write never leaves half a file.
     ``suffix`` (default: the path's own) lets writers that pick a format by extension work.
     The file gets the mode any new file would (0666 less the umask), not the temporary
-    file's private 0600."""
+    file's private 0600. For a URL the temporary file is local and is uploaded when the block
+    succeeds (an object store's upload is atomic itself)."""
+    if storage.is_url(path):
+        with storage.local_file(path, suffix or os.path.splitext(str(path))[1] or ".tmp") as tmp:
+            yield tmp
+        return
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=suffix or path.suffix or ".tmp")
@@ -920,7 +936,7 @@ def write_png(path, image: np.ndarray) -> None:
     ok, buf = cv2.imencode(".png", np.ascontiguousarray(a))
     if not ok:
         raise OSError(f"OpenCV could not encode a PNG for {path}")
-    write_bytes(Path(path), buf.tobytes())
+    write_bytes(path, buf.tobytes())
 
 
 def contact_sheet(
@@ -973,11 +989,7 @@ def read_audio(path, start: float = 0.0, stop: float | None = None) -> Audio | N
     clock, which starts at its first sample), or None when the file has no sound."""
     import av
 
-    try:
-        container = av.open(str(path))
-    except Exception as e:  # noqa: BLE001 - av.error.*
-        raise InputError(f"cannot read the sound of {path}: {_short(e)}") from None
-    with container:
+    with _av_open(path) as container:
         if not container.streams.audio:
             return None
         stream = container.streams.audio[0]
@@ -1036,7 +1048,6 @@ def write_video_mp4(path, frames: Iterable[np.ndarray], fps: float, audio: Audio
     """
     import av
 
-    path = Path(path)
     rate = _rate(float(fps))
     with atomic_path(path, ".mp4") as tmp:
         container = av.open(tmp, mode="w", format="mp4", options={"movflags": "+faststart"})

@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 import open3d as o3d
 
+from . import storage
 from .media import atomic_path, write_bytes, write_png
 
 __all__ = ["clean_mesh", "write_mesh"]
@@ -77,7 +78,7 @@ def _obj_text(mesh: o3d.geometry.TriangleMesh, name: str, textured: bool) -> str
     return "".join(parts)
 
 
-def _write_ply(path: Path, mesh: o3d.geometry.TriangleMesh) -> None:
+def _write_ply(path, mesh: o3d.geometry.TriangleMesh) -> None:
     with atomic_path(path, ".ply") as tmp:
         plain = o3d.geometry.TriangleMesh(mesh.vertices, mesh.triangles)
         plain.vertex_normals = mesh.vertex_normals
@@ -91,7 +92,7 @@ def _write_ply(path: Path, mesh: o3d.geometry.TriangleMesh) -> None:
 
 
 def write_mesh(folder, name: str, mesh: o3d.geometry.TriangleMesh, texture: np.ndarray | None = None, *,
-               y_up: bool = False, origin=(0.0, 0.0, 0.0), scale: float = 1.0, units: str = "") -> dict[str, Path]:
+               y_up: bool = False, origin=(0.0, 0.0, 0.0), scale: float = 1.0, units: str = "") -> dict[str, Path | str]:
     """Write ``name.ply`` and ``name.obj`` (+ ``name.mtl`` and ``name.png`` with a texture) in ``folder``.
 
     mesh : ``open3d.geometry.TriangleMesh``; vertex normals are computed when missing; vertex colours,
@@ -101,11 +102,12 @@ def write_mesh(folder, name: str, mesh: o3d.geometry.TriangleMesh, texture: np.n
     origin, scale, units : the vertices written are ``(v - origin) * scale``, in ``units`` (named in
         the OBJ's header), before the turn
 
-    Returns the paths written, keyed ``"ply"``, ``"obj"`` and, with a texture, ``"mtl"``, ``"png"``.
+    Returns the paths written (Paths, or URLs in a ``folder`` given as a URL), keyed ``"ply"``,
+    ``"obj"`` and, with a texture, ``"mtl"``, ``"png"``.
     """
     name = _check_name(name)
-    folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
+    if not storage.is_url(folder):
+        Path(folder).mkdir(parents=True, exist_ok=True)
     if not isinstance(mesh, o3d.geometry.TriangleMesh):
         raise TypeError(f"mesh must be an open3d.geometry.TriangleMesh, got {type(mesh).__name__}")
     textured = texture is not None
@@ -119,18 +121,18 @@ def write_mesh(folder, name: str, mesh: o3d.geometry.TriangleMesh, texture: np.n
     if not (np.isfinite(scale) and scale > 0):
         raise ValueError(f"scale must be positive and finite, got {scale}")
     m = _oriented(mesh, y_up, origin, scale)
-    paths: dict[str, Path] = {}
+    paths = {}
     if textured:
-        paths["png"] = folder / f"{name}.png"
+        paths["png"] = storage.join(folder, f"{name}.png")
         write_png(paths["png"], tex)
-        paths["mtl"] = folder / f"{name}.mtl"
+        paths["mtl"] = storage.join(folder, f"{name}.mtl")
         mtl = (f"# Persona mesh material\nnewmtl {name}\nKa 1.000 1.000 1.000\nKd 1.000 1.000 1.000\n"
                f"Ks 0.000 0.000 0.000\nd 1.0\nillum 1\nmap_Kd {name}.png\n")
         write_bytes(paths["mtl"], mtl.encode("utf-8"))
-    paths["obj"] = folder / f"{name}.obj"
+    paths["obj"] = storage.join(folder, f"{name}.obj")
     header = f"# units: {units}\n" if units else ""
     write_bytes(paths["obj"], (header + _obj_text(m, name, textured)).encode("utf-8"))
-    paths["ply"] = folder / f"{name}.ply"
+    paths["ply"] = storage.join(folder, f"{name}.ply")
     _write_ply(paths["ply"], m)
     return paths
 

@@ -4,9 +4,9 @@ from pathlib import Path
 
 import numpy as np
 import yaml
-import zarr
 
 from persona.dag.demo import write_collection
+from persona.stores.layout import open_store
 
 
 def write_photos(folder: Path, photos) -> Path:
@@ -33,7 +33,7 @@ def store_arrays(url) -> dict[str, np.ndarray]:
         for name, child in group.groups():
             walk(child, prefix + name + "/")
 
-    walk(zarr.open_group(str(url), mode="r"), "")
+    walk(open_store(url, mode="r"), "")
     return out
 
 

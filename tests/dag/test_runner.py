@@ -1,8 +1,6 @@
 import json
 import re
-import os
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -194,42 +192,6 @@ def test_resume_after_sigkill_recomputes_nothing_finished(tmp_path, synthetic_ph
 
     run_workflow(load_workflow(clean / "wf.yaml"), scheduler="sync", progress=False)
     assert_same_store(killed / "run.zarr", clean / "run.zarr")
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-@pytest.fixture
-def dask_cluster(tmp_path):
-    """A real dask scheduler and two workers on 127.0.0.1, as separate processes."""
-    port = _free_port()
-    address = f"tcp://127.0.0.1:{port}"
-    dask = str(Path(sys.executable).with_name("dask"))
-    env = {**os.environ, "PERSONA_PLUGINS": ""}
-    procs = [subprocess.Popen([dask, "scheduler", "--host", "127.0.0.1", "--port", str(port),
-                               "--no-dashboard"], env=env, cwd=tmp_path,
-                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)]
-    for _ in range(2):
-        procs.append(subprocess.Popen([dask, "worker", address, "--nthreads", "1", "--no-dashboard",
-                                       "--host", "127.0.0.1"], env=env, cwd=tmp_path,
-                                      stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
-    try:
-        from distributed import Client
-
-        with Client(address, timeout="60s") as client:
-            client.wait_for_workers(2, timeout=60)
-        yield address
-    finally:
-        for p in reversed(procs):
-            p.terminate()
-        for p in procs:
-            try:
-                p.wait(timeout=20)
-            except subprocess.TimeoutExpired:
-                p.kill()
 
 
 def test_distributed_cluster_gives_the_same_store_as_a_local_run(tmp_path, synthetic_photos, dask_cluster):

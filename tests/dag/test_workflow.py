@@ -122,3 +122,24 @@ def test_misspelt_key_inside_a_stage_gets_a_suggestion():
     errors = dict(info.value.errors)
     assert 'Did you mean "backend"' in errors["stages.landmarks.bakend"]
     assert 'Did you mean "scheduler"' in errors["cluster.schedular"]
+
+
+def test_storage_options_are_validated_and_their_secrets_never_printed():
+    from persona.stores import storage
+
+    base = {"version": 1, "name": "t", "store": "s3://bucket/run.zarr", "output": "s3://bucket/out",
+            "puppet": {"photos": "s3://bucket/photos/*.jpg"}}
+    with pytest.raises(WorkflowError) as err:
+        parse_workflow({**base, "storage_options": {"endpoint_url": "127.0.0.1:9000", "secert": "s"}})
+    assert "storage_options.endpoint_url: Value error" in str(err.value) and "http://" in str(err.value)
+    assert 'storage_options.secert: unknown key "secert". Did you mean "secret"?' in str(err.value)
+    wf = parse_workflow({**base, "storage_options": {"endpoint_url": "http://127.0.0.1:9000", "key": "AKIA1",
+                                                     "secret": "shh", "region": "eu-central-1"}})
+    assert wf.store == "s3://bucket/run.zarr" and wf.puppet.photos == "s3://bucket/photos/*.jpg"  # URLs as given
+    printed = f"{wf!r} {wf.model_dump(mode='json')} {wf.model_dump_json()}"
+    assert "AKIA1" not in printed and "shh" not in printed
+    assert storage.options("s3://bucket/x") == {"endpoint_url": "http://127.0.0.1:9000", "key": "AKIA1", "secret": "shh",
+                                                "client_kwargs": {"region_name": "eu-central-1"}}
+    assert storage.options("/local/path") == {} and storage.options("gs://b/x") == {}
+    parse_workflow(base)  # none given: the environment's (AWS_* variables)
+    assert storage.options("s3://bucket/x") == {}
