@@ -170,8 +170,9 @@ def texture_figures(root, sample: int = 100, every: int = 8) -> dict[str, dict[s
     photos = puppet.array("aligned/rgb").oindex[chosen]
     inside = [face & ev.inner(v) for v in puppet.array("aligned/mask").oindex[chosen]]
     reference = ev.tear_reference(photos, inside)
-    warped = puppet.array("collection/rgb").oindex[chosen]
-    warped_inside = [face & ev.inner(v) for v in puppet.array("collection/mask").oindex[chosen]]
+    aligned = puppet.has("collection/rgb")  # not when the collection was too small for a collection flow
+    warped = puppet.array("collection/rgb").oindex[chosen] if aligned else []
+    warped_inside = [face & ev.inner(v) for v in puppet.array("collection/mask").oindex[chosen]] if aligned else []
     frames = [drive.array("texture/rgb")[t] for t in range(0, drive.n, every)]
     neutral = [puppet.array("texture/neutral")[...]] if puppet.has("texture/neutral") else []
     out = {}
