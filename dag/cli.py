@@ -296,7 +296,7 @@ def _verify(args) -> int:
         return 0
     print(f"store {args.store}: {len(problems)} problem{'s' * (len(problems) > 1)}")
     for p in problems:
-        print(f"  {p}" + (f"\n    file {args.store}/{p.chunk}" if p.chunk else ""))
+        print(f"  {p}\n    file {args.store}/{p.chunk or p.array + '/zarr.json'}")
     print(f"would recompute: {', '.join(stages) or '(nothing done depends on them)'}")
     print("Run the workflow again: missing chunks are recomputed before the stages start, damaged ones when "
           "the run reads them. To recompute a damaged one for sure, delete its file first.")

@@ -56,6 +56,7 @@ class _Scan:
     arrays: dict[str, zarr.Array] = field(default_factory=dict)
     broken: dict[str, str] = field(default_factory=dict)
     collections: dict[str, int] = field(default_factory=dict)  #: path -> number of photos
+    _accepted: dict = field(default_factory=dict)
 
     def collection(self, path: str) -> str | None:
         inside = [c for c in self.collections if path.startswith(c + "/")]
@@ -102,10 +103,12 @@ def _accepted_rows(scan: _Scan, path: str) -> np.ndarray | None:
         return None
     if (scan.provenance(status) or {}).get("key") != prov["key"]:
         return None
-    try:
-        return scan.arrays[status][:] == OK
-    except ChunkError:  # the status itself is damaged: its own check names it
-        return None
+    if status not in scan._accepted:
+        try:
+            scan._accepted[status] = scan.arrays[status][:] == OK
+        except ChunkError:  # the status itself is damaged: its own check names it
+            scan._accepted[status] = None
+    return scan._accepted[status]
 
 
 def _problem(scan: _Scan, path: str, coords: tuple[int, ...], chunk: str, what: str) -> Problem:
