@@ -249,11 +249,17 @@ def _cmd_plugins(args) -> int:
 
 
 def _cmd_inspect(args) -> int:
-    from persona.stores.layout import summarize
+    from persona.stores.layout import StoreError, summarize
 
     if args.verify:
         return _verify(args)
-    summary = summarize(args.store)
+    try:
+        summary = summarize(args.store)
+    except PersonaError:
+        raise
+    except Exception as exc:  # e.g. an array's zarr.json that is not JSON
+        raise StoreError(f"{args.store} cannot be read whole ({type(exc).__name__}: {exc}): "
+                         f"`persona inspect --verify {args.store}` names what is damaged") from exc
     if args.json:
         print(json.dumps(summary, indent=2))
         return 0

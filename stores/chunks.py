@@ -54,6 +54,10 @@ class ChunkError(PersonaError, ValueError):
         return self.args[0]
 
     @property
+    def reason(self) -> str:
+        return self.args[2]
+
+    @property
     def array(self) -> str:
         return array_of(self.key)[0]
 

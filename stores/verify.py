@@ -56,7 +56,7 @@ class _Scan:
     arrays: dict[str, zarr.Array] = field(default_factory=dict)
     broken: dict[str, str] = field(default_factory=dict)
     collections: dict[str, int] = field(default_factory=dict)  #: path -> number of photos
-    _accepted: dict = field(default_factory=dict)
+    accepted: dict = field(default_factory=dict)  #: status path -> photos it accepted (read once)
 
     def collection(self, path: str) -> str | None:
         inside = [c for c in self.collections if path.startswith(c + "/")]
@@ -103,12 +103,12 @@ def _accepted_rows(scan: _Scan, path: str) -> np.ndarray | None:
         return None
     if (scan.provenance(status) or {}).get("key") != prov["key"]:
         return None
-    if status not in scan._accepted:
+    if status not in scan.accepted:
         try:
-            scan._accepted[status] = scan.arrays[status][:] == OK
+            scan.accepted[status] = scan.arrays[status][:] == OK
         except ChunkError:  # the status itself is damaged: its own check names it
-            scan._accepted[status] = None
-    return scan._accepted[status]
+            scan.accepted[status] = None
+    return scan.accepted[status]
 
 
 def _problem(scan: _Scan, path: str, coords: tuple[int, ...], chunk: str, what: str) -> Problem:
@@ -131,8 +131,9 @@ def _problem(scan: _Scan, path: str, coords: tuple[int, ...], chunk: str, what: 
 
 
 def check(root: zarr.Group, *, read: bool = False) -> list[Problem]:
-    """Every missing chunk of every done array; with ``read``, also every chunk of every array that
-    cannot be decoded (checksums checked) and every node whose metadata cannot be read."""
+    """Every node whose metadata cannot be read and every missing chunk of every done array (the
+    store's keys listed, no chunk read); with ``read``, also every chunk of every array that cannot
+    be decoded (each read, its checksum checked)."""
     scan = _scan(root)
     problems = [Problem(path, f"metadata cannot be read ({why})") for path, why in scan.broken.items()]
     for path, array in scan.arrays.items():
@@ -146,7 +147,7 @@ def check(root: zarr.Group, *, read: bool = False) -> list[Problem]:
                 try:
                     array[region]
                 except ChunkError as exc:
-                    problems.append(_problem(scan, path, coords, chunk, f"damaged ({exc.args[2]})"))
+                    problems.append(_problem(scan, path, coords, chunk, f"damaged ({exc.reason})"))
     return problems
 
 
@@ -154,7 +155,7 @@ def problem_of(root: zarr.Group, error: ChunkError) -> Problem:
     """The problem a run met reading a damaged chunk."""
     scan = _scan(root)
     path, coords = array_of(error.key)
-    return _problem(scan, path, coords, error.key, f"damaged ({error.args[2]})")
+    return _problem(scan, path, coords, error.key, f"damaged ({error.reason})")
 
 
 def affected(root: zarr.Group, problems: list[Problem]) -> tuple[list[str], list[str]]:

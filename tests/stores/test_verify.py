@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 import zarr
 
+from persona.dag.cli import main as cli
 from persona.stores.chunks import ChunkError, has_checksums
 from persona.stores.layout import OK, REJECTED, Collection, open_store
 from persona.stores.provenance import Provenance
@@ -110,13 +111,17 @@ def test_arrays_from_before_checksums_still_open_and_are_not_counted(tmp_path):
     assert check(root, read=True) == []
 
 
-def test_unreadable_metadata_is_a_problem_and_recovery_deletes_the_array(tmp_path):
+def test_unreadable_metadata_is_a_problem_and_recovery_deletes_the_array(tmp_path, capsys):
     root, url = _store(tmp_path)
     (url / "puppet/mean/zarr.json").write_text("{not json")
     (problem,) = check(root, read=True)
     assert str(problem).startswith("puppet/mean metadata cannot be read (JSONDecodeError")
     with pytest.raises(Exception, match="puppet/mean: its metadata cannot be read"):
         Collection(open_store(url, mode="r"), "puppet").array("mean")
+    assert cli(["inspect", str(url)]) == 2  # an error that points to --verify, not a traceback
+    assert "persona inspect --verify" in capsys.readouterr().err
+    assert cli(["inspect", "--verify", str(url)]) == 1
+    assert f"file {url}/puppet/mean/zarr.json" in capsys.readouterr().out
     (line,) = recover(root, [problem])
     assert "deleted it" in line and not (url / "puppet/mean").exists()
     # its key is unknown: the collection's arrays are all recomputed
