@@ -255,9 +255,17 @@ def _cmd_plugins(args) -> int:
 
 
 def _cmd_inspect(args) -> int:
-    from persona.stores.layout import summarize
+    from persona.stores.layout import StoreError, summarize
 
-    summary = summarize(args.store)
+    if args.verify:
+        return _verify(args)
+    try:
+        summary = summarize(args.store)
+    except PersonaError:
+        raise
+    except Exception as exc:  # e.g. an array's zarr.json that is not JSON
+        raise StoreError(f"{args.store} cannot be read whole ({type(exc).__name__}: {exc}): "
+                         f"`persona inspect --verify {args.store}` names what is damaged") from exc
     if args.json:
         print(json.dumps(summary, indent=2))
         return 0
@@ -278,6 +286,33 @@ def _cmd_inspect(args) -> int:
             dims = ", ".join(f"{d}={s}" for d, s in zip(a["dims"], a["shape"]))
             print(f"    {name:<24} {a['dtype']:<10} ({dims})")
     return 0
+
+
+def _verify(args) -> int:
+    """``inspect --verify``: every chunk of every array read and its checksum checked; exit 1 when
+    something is lost or damaged."""
+    from dataclasses import asdict
+
+    from persona.stores.layout import open_store
+    from persona.stores.verify import affected, check
+
+    root = open_store(args.store, mode="r")
+    problems = check(root, read=True)
+    stages = affected(root, problems)[1] if problems else []
+    if args.json:
+        print(json.dumps({"store": args.store, "problems": [asdict(p) for p in problems],
+                          "would_recompute": stages}, indent=2))
+        return 1 if problems else 0
+    if not problems:
+        print(f"store {args.store}: every chunk of every array is there and reads back intact")
+        return 0
+    print(f"store {args.store}: {len(problems)} problem{'s' * (len(problems) > 1)}")
+    for p in problems:
+        print(f"  {p}\n    file {args.store}/{p.chunk or p.array + '/zarr.json'}")
+    print(f"would recompute: {', '.join(stages) or '(nothing done depends on them)'}")
+    print("Run the workflow again: missing chunks are recomputed before the stages start, damaged ones when "
+          "the run reads them. To recompute a damaged one for sure, delete its file first.")
+    return 1
 
 
 def _version() -> str:
@@ -374,9 +409,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true", help="print one JSON list, with each backend's params schema")
     p.set_defaults(func=_cmd_plugins)
 
-    p = command("inspect", "summarise a store: arrays, accepted and rejected photos",
-                "persona inspect runs/bush_obama.zarr")
+    p = command("inspect", "summarise a store: arrays, accepted and rejected photos; with --verify, check "
+                "every chunk", "persona inspect runs/bush_obama.zarr")
     p.add_argument("store", help="the run's Zarr store (the workflow's store:)")
+    p.add_argument("--verify", action="store_true", help="read every chunk of every array and check its checksum; "
+                   "list what is missing or damaged (array, shard, photos) and the stages a run would "
+                   "recompute; exit 1 when there is any")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=_cmd_inspect)
     return parser

@@ -23,7 +23,8 @@ from persona.plugins.base import Rejected
 from persona.plugins.face.fiducials import mean_shape
 from persona.plugins.hookspecs import hookimpl
 from persona.plugins.manager import get_plugin_manager
-from persona.stores import media, storage
+from persona.stores import media, storage, verify
+from persona.stores.chunks import ChunkError
 from persona.stores.errors import InputError, PersonaError
 from persona.stores.layout import OK, PENDING, REJECTED, Collection, item, open_store
 from persona.stores.provenance import Provenance, cache_key
@@ -98,8 +99,12 @@ class Executor:
                 yield fn(*args)
             return
         futures = [self.client.submit(fn, *args, pure=False) for args in argument_lists]
-        for future in self._as_completed(futures):
-            yield future.result()
+        try:
+            for future in self._as_completed(futures):
+                yield future.result()
+        except BaseException:
+            self.client.cancel(futures)  # the tasks not started yet; a run that goes on must not race them
+            raise
 
     def compute(self, *collections):
         import dask
@@ -467,7 +472,29 @@ class Runner:
         return {k: str(v) for k, v in written.items()}
 
     def run(self, inputs: dict[str, list[media.Source]]) -> dict:
-        """Every stage of the workflow on its resolved ``inputs`` (:func:`resolve_inputs`)."""
+        """Every stage of the workflow on its resolved ``inputs`` (:func:`resolve_inputs`).
+
+        Chunks of finished arrays that are lost (checked before the stages start, by listing the
+        store) or found damaged on the way (a :class:`ChunkError`) are recomputed, with everything
+        made from them: :mod:`persona.stores.verify`, one logged line per problem."""
+        self.recover(verify.check(self.root))
+        met = set()
+        while True:
+            try:
+                return self.run_stages(inputs)
+            except ChunkError as exc:
+                if exc.key in met:  # recomputed and damaged again: not a damaged store, say so
+                    raise
+                met.add(exc.key)
+                self.recover([verify.problem_of(self.root, exc)])
+
+    def recover(self, problems: list[verify.Problem]) -> None:
+        """Make the stages recompute what ``problems`` touch, saying so."""
+        for line in verify.recover(self.root, problems):
+            log.warning("%s", line)
+
+    def run_stages(self, inputs: dict[str, list[media.Source]]) -> dict:
+        """Every stage, in order (:meth:`run`)."""
         report = {"workflow": self.wf.name, "store": self.wf.store, "collections": {}}
         for path, sources in inputs.items():
             coll, video = self.collection(path, sources)

@@ -20,7 +20,9 @@
 
 Per-photo images have one photo per chunk and ``photos_per_shard`` photos per shard;
 small per-photo values (landmarks, pose, status) are chunked by shard. A shard is the
-write unit: one task writes whole shards, no two tasks the same one.
+write unit: one task writes whole shards, no two tasks the same one. Every chunk carries a
+checksum and is written even when empty (:mod:`.chunks`), so :mod:`.verify` can tell a lost
+or damaged shard from one never written.
 """
 
 from __future__ import annotations
@@ -32,6 +34,7 @@ import numpy as np
 import zarr
 
 from . import storage
+from .chunks import COMPRESSORS
 from .errors import PersonaError
 from .provenance import Provenance
 
@@ -67,9 +70,9 @@ IMAGE_BYTES = 4096
 
 
 def item(path: str) -> str:
-    """What one item of the collection at ``path`` is: a video's "frame" (the driver's frames, the
-    drive) or a "photo"."""
-    return "frame" if path in ("driver/frames", "drive") else "photo"
+    """What one item of the collection at ``path`` (or of an array in it) is: a video's "frame" (the
+    driver's frames, the drive) or a "photo"."""
+    return "frame" if any(path == c or path.startswith(c + "/") for c in ("driver/frames", "drive")) else "photo"
 
 
 @dataclass
@@ -129,7 +132,7 @@ class Collection:
             fill_value = np.nan if np.dtype(dtype).kind == "f" else 0
         array = self.group.create_array(
             name, shape=shape, dtype=dtype, chunks=chunks, shards=shards,
-            dimension_names=dims, fill_value=fill_value, overwrite=True)
+            dimension_names=dims, fill_value=fill_value, compressors=COMPRESSORS, overwrite=True)
         if not pending:
             array.attrs["provenance"] = provenance.model_dump()
         self._arrays[name] = array
@@ -143,7 +146,7 @@ class Collection:
                       provenance: Provenance) -> zarr.Array:
         """A collection-level array (e.g. the mean face), written at once."""
         array = self.group.create_array(name, shape=data.shape, dtype=data.dtype, chunks=data.shape,
-                                        dimension_names=dims, overwrite=True)
+                                        dimension_names=dims, compressors=COMPRESSORS, overwrite=True)
         array[...] = data
         array.attrs["provenance"] = provenance.model_dump()
         return array
@@ -154,6 +157,9 @@ class Collection:
                 self._arrays[name] = self.group[name]
             except KeyError:
                 raise StoreError(f"{self.path}/{name} is not in the store: run the stage that makes it") from None
+            except Exception as exc:  # e.g. its zarr.json is not JSON
+                raise StoreError(f"{self.path}/{name}: its metadata cannot be read ({type(exc).__name__}: {exc}); "
+                                 "run the workflow again: a run replaces arrays it cannot open") from exc
         return self._arrays[name]
 
     def has(self, name: str) -> bool:

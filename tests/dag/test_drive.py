@@ -39,6 +39,16 @@ def test_outputs_keep_the_drivers_timing(drive_run):
     assert report["evaluation"]["bridged_frames"] >= 1  # the blank frame was bridged, not dropped
 
 
+def test_every_chunk_of_a_finished_run_is_there_and_intact(drive_run, capsys):
+    """Every stage, the drive's too, leaves every chunk its arrays call for (docs/store.md)."""
+    from persona.stores.layout import open_store
+    from persona.stores.verify import check
+
+    folder, _, _ = drive_run
+    assert check(open_store(str(folder / "run.zarr"), mode="r"), read=True) == []
+    assert cli(["inspect", "--verify", str(folder / "run.zarr")]) == 0
+
+
 def test_metrics_json_has_counts_times_and_figures(drive_run):
     folder, _, _ = drive_run
     metrics = json.loads((folder / "output" / "metrics.json").read_text())
