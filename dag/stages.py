@@ -142,13 +142,22 @@ PHOTO_STAGES = {s.name: s for s in (
 )}
 
 
-def _median_shape(root, path) -> dict:
-    """The context of the screen: the median shape of the collection's frontalized photos."""
+def _screen_context(root, path) -> dict:
+    """The context of the screen: the median shape of the collection's frontalized photos, and the
+    id of the first photo with each file content (byte-identical copies are used once)."""
     coll = Collection(root, path)
-    return {"median": median_shape(coll.array("aligned/fiducials")[:][coll.state("frontalize") == OK])}
+    first = {}
+    for photo, digest in zip(coll.array("photos/ids")[:], coll.array("photos/sha256")[:]):
+        if digest:  # video frames have none
+            first.setdefault(str(digest), str(photo))
+    return {"median": median_shape(coll.array("aligned/fiducials")[:][coll.state("frontalize") == OK]),
+            "first": first}
 
 
 def _screen(backend, params, inputs, context):
+    original = context["first"].get(str(inputs["photos/sha256"]), str(inputs["photos/ids"]))
+    if original != str(inputs["photos/ids"]):
+        raise Rejected(f"a byte-identical copy of {original}, which is used (a photo counts once)")
     distance = shape_distance(inputs["aligned/fiducials"], context["median"])
     if not distance <= params["max_distance"]:
         raise Rejected(f"fiducials {distance:.0f} px (RMS) from the collection's median shape, more than "
@@ -157,10 +166,11 @@ def _screen(backend, params, inputs, context):
 
 
 #: the collection's screen of its frontalized photos: one whose visible fiducials lie far from the
-#: collection's median shape is rejected (docs/fiducials.md); the photos it accepts are the collection's
-SCREEN = PhotoStage("screen", None, "frontalize", ("aligned/fiducials",), (
+#: collection's median shape is rejected (docs/fiducials.md), and so is a byte-identical copy of an
+#: earlier photo; the photos it accepts are the collection's
+SCREEN = PhotoStage("screen", None, "frontalize", ("aligned/fiducials", "photos/sha256", "photos/ids"), (
     Output("aligned/shape_distance", (), "float32", ("photo",)),
-), _screen, _median_shape)
+), _screen, _screen_context)
 PHOTO_STAGES["screen"] = SCREEN
 
 

@@ -49,7 +49,9 @@ def test_a_photo_whose_fiducials_fail_is_screened_out_and_moves_no_statistic(tmp
     write_photos(clean / "photos", synthetic_photos[:12])
     write_photos(dirty / "photos", synthetic_photos[:12])
     bad = dirty / "photos" / "photo9999.png"
-    media.write_png(bad, synthetic_photos[0].image)
+    image = synthetic_photos[0].image.copy()
+    image[0, 0] ^= 1  # another file than photo0000 (a byte-identical copy would be screened as one)
+    media.write_png(bad, image)
     wrong = synthetic_photos[0].landmarks.astype(np.float64).copy()
     centre = wrong[48:68].mean(axis=0)
     wrong[48:68] = centre + 2.5 * (wrong[48:68] - centre)
@@ -312,3 +314,25 @@ def test_a_run_whose_workers_are_all_gone_stops_with_a_clear_error():
         assert time.monotonic() - start < 20
     finally:
         executor.close()
+
+
+def test_a_byte_identical_copy_of_a_photo_is_used_once_and_reported(tmp_path, synthetic_photos):
+    """The same file twice under two names: the first is used, the copy rejected naming it; the
+    collection's mean face is that of the photos without the copy."""
+    import shutil
+
+    for folder, copy in (("once", False), ("twice", True)):
+        write_photos(tmp_path / folder / "photos", synthetic_photos[:6])
+        if copy:
+            for suffix in (".png", ".pts"):
+                shutil.copy(tmp_path / folder / "photos" / f"photo0002{suffix}",
+                            tmp_path / folder / "photos" / f"zcopy{suffix}")
+        wf = load_workflow(write_workflow(tmp_path / folder, "photos", stages={"landmarks": {"backend": "sidecar"}}))
+        run_workflow(wf, scheduler="sync", progress=False)
+    summary = summarize(str(tmp_path / "twice" / "run.zarr"))["collections"]["puppet"]
+    assert summary["accepted"] == 6
+    (reason,) = summary["rejections"].values()
+    assert "byte-identical copy of photo0002" in reason, reason
+    means = [Collection(open_store(str(tmp_path / f / "run.zarr"), mode="r"), "puppet").array("aligned/mean")[:]
+             for f in ("once", "twice")]
+    assert np.array_equal(means[0], means[1])
