@@ -24,7 +24,7 @@ from persona.plugins.base import Rejected
 from persona.plugins.face.dynamics import DriverModel, DynamicsParams, FrameTrack, frame_mesh, smooth_tracks
 from persona.plugins.face.transfer import DeformationTransfer, correspondence
 from persona.plugins.face.warp import pin, tps_map
-from persona.plugins.kinds import FlowBackend, Pose
+from persona.plugins.kinds import Pose
 from persona.stores.layout import OK, Collection
 from persona.stores.provenance import Provenance, cache_key
 

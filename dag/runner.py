@@ -585,7 +585,8 @@ def executor_for(wf: Workflow, scheduler: str | None = None, workers: int | None
     c = wf.cluster
     batch = None
     if scheduler is None and c.kind != "local":
-        batch = c.model_copy(update={"log_directory": c.log_directory or str(Path(wf.output) / "worker-logs")})
+        logs = c.log_directory or str(storage.join(wf.output, "worker-logs"))
+        batch = c.model_copy(update={"log_directory": logs})
     ex = Executor(scheduler or c.scheduler, workers or c.workers, c.threads_per_worker, c.memory_limit, batch,
                   wf.storage_options.fsspec())
     try:

@@ -82,7 +82,7 @@ class NamedChunkErrors(BatchedCodecPipeline):
             await super().read(batch_info, out, drop_axes)
         except ChunkError:
             raise
-        except Exception as exc:
+        except Exception:
             named = [info for info in batch_info if hasattr(info[0], "path")]
             if not named:  # the chunks inside a shard: the shard's own read names the file
                 raise

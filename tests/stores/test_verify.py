@@ -2,7 +2,6 @@
 
 import numpy as np
 import pytest
-import zarr
 
 from persona.dag.cli import main as cli
 from persona.stores.chunks import ChunkError, has_checksums
