@@ -31,6 +31,7 @@ from persona.plugins.face.warp import tps_map
 from persona.plugins.kinds import POSE_FIELDS, Pose, Puppet
 from persona.plugins.manager import default_registry
 from persona.stores import media
+from persona.stores.errors import InputError
 from persona.stores.layout import OK, PENDING, REJECTED, UPSTREAM, Collection, open_store
 
 log = logging.getLogger(__name__)
@@ -378,30 +379,38 @@ def ingest_video(url: str, path: str, params: dict) -> dict:
     done = coll.state("ingest") != PENDING
     ends = dict(coll.shard_ranges())
     buffer: dict[int, np.ndarray] = {}
-    with media.VideoReader(video["path"]) as reader:
-        for index, image in reader.frames(video["start"], video["stop"], video["step"]):
-            i = position.get(index)
-            if i is None or done[i]:
-                continue
-            buffer[i] = image if image.shape[:2] == canvas else cv2.resize(
-                image, (canvas[1], canvas[0]), interpolation=cv2.INTER_AREA)
-            start = i - i % coll.shard
-            if all(k in buffer for k in range(start, ends[start])):
-                _write_frames(coll, start, [buffer.pop(k) for k in range(start, ends[start])], canvas)
+    try:
+        with media.VideoReader(video["path"]) as reader:
+            for index, image in reader.frames(video["start"], video["stop"], video["step"]):
+                i = position.get(index)
+                if i is None or done[i]:
+                    continue
+                buffer[i] = image if image.shape[:2] == canvas else cv2.resize(
+                    image, (canvas[1], canvas[0]), interpolation=cv2.INTER_AREA)
+                start = i - i % coll.shard
+                if all(k in buffer for k in range(start, ends[start])):
+                    _write_frames(coll, start, ends[start], {k: buffer.pop(k) for k in range(start, ends[start])},
+                                  canvas)
+    except InputError as exc:  # damaged part-way: what was decoded before the damage is kept
+        log.warning("%s; the frames decoded before it are kept", exc)
     state = coll.state("ingest")
-    for start, stop in coll.shard_ranges():  # frames the container promised but did not deliver
+    for start, stop in coll.shard_ranges():  # the shards the container did not deliver whole (truncated)
         if (state[start:stop] == PENDING).any():
-            part = state[start:stop]
-            reasons = ["frame could not be decoded" if s == PENDING else "" for s in part]
-            coll.write_status("ingest", start, np.where(part == PENDING, REJECTED, part).astype(np.int8), reasons)
+            _write_frames(coll, start, stop, {k: buffer.pop(k) for k in range(start, stop) if k in buffer}, canvas)
     return {"ingest": _summary(coll.state("ingest"), time.perf_counter() - t0)}
 
 
-def _write_frames(coll: Collection, start: int, frames: list[np.ndarray], canvas) -> None:
-    n = len(frames)
-    stop = start + n
-    coll.array("photos/rgb")[start:stop] = np.stack(frames)
+def _write_frames(coll: Collection, start: int, stop: int, frames: dict[int, np.ndarray], canvas) -> None:
+    """The shard [start, stop) of a video collection: the decoded ``frames`` by index; a frame the
+    container promised but did not deliver (a truncated or damaged file) is rejected, its neighbours kept."""
+    n = stop - start
+    rgb = np.zeros((n, *canvas, 3), np.uint8)
+    decoded = np.zeros(n, bool)
+    for k, image in frames.items():
+        rgb[k - start], decoded[k - start] = image, True
+    coll.array("photos/rgb")[start:stop] = rgb
     coll.array("photos/size")[start:stop] = np.tile(np.array(canvas, np.int32), (n, 1))
     coll.array("photos/hint")[start:stop] = np.full((n, 68, 2), np.nan, np.float32)
     coll.array("photos/sha256")[start:stop] = np.full(n, "", dtype=object).astype(str)
-    coll.write_status("ingest", start, np.full(n, OK, np.int8), [""] * n)
+    coll.write_status("ingest", start, np.where(decoded, OK, REJECTED).astype(np.int8),
+                      ["" if d else "frame could not be decoded" for d in decoded])

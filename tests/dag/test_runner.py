@@ -336,3 +336,31 @@ def test_a_byte_identical_copy_of_a_photo_is_used_once_and_reported(tmp_path, sy
     means = [Collection(open_store(str(tmp_path / f / "run.zarr"), mode="r"), "puppet").array("aligned/mean")[:]
              for f in ("once", "twice")]
     assert np.array_equal(means[0], means[1])
+
+
+def test_every_decodable_frame_of_a_truncated_video_is_kept(tmp_path):
+    """A video cut off part-way through a shard: the frames decoded before the cut are ingested,
+    the frames the container promised but did not deliver are rejected with the reason."""
+    from persona.dag.demo import driver_identity
+    from persona.dag.runner import Executor, Runner, resolve_inputs
+    from persona.plugins.face import synthetic
+    from persona.stores import media
+
+    full, cut = tmp_path / "full.mp4", tmp_path / "cut.mp4"
+    media.write_video_mp4(full, [f.image for f in synthetic.make_driver_video(16, seed=2, identity=driver_identity(0))],
+                          fps=25)
+    data = full.read_bytes()
+    cut.write_bytes(data[:int(0.8 * len(data))])
+    with media.VideoReader(cut) as reader:
+        decodable = [i for i, _ in reader.frames()]
+    assert 0 < len(decodable) < 16 and len(decodable) % 4, decodable  # a shard (4 frames) delivered in part
+    wf = load_workflow(write_workflow(tmp_path, {"video": "cut.mp4"}))
+    runner = Runner(wf, Executor("sync", None), progress=False)
+    coll, video = runner.collection("puppet", resolve_inputs(wf)["puppet"])
+    assert video
+    runner.run_photo_stages(coll, video)
+    ingested = coll.state("ingest")
+    assert list(np.flatnonzero(ingested == 1)) == decodable
+    reasons = coll.array("status/ingest/reason")[:]
+    assert all(reasons[i] == "frame could not be decoded" for i in range(16) if i not in decodable)
+    assert coll.array("photos/rgb")[decodable[-1]].any()  # the last decoded frame itself, not zeros
