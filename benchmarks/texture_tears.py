@@ -18,13 +18,12 @@ import time
 
 import numpy as np
 
-from persona.dag.evaluate import texture_figures
-from persona.dag.texture import texture_photos
+from persona.dag.evaluate import own_photos, texture_figures
+from persona.dag.texture import video_aligned
 from persona.dag.workflow import load_workflow
 from persona.plugins.builtin import evaluate as ev
 from persona.plugins.builtin.texture import MultiscaleTexture
 from persona.plugins.face.template import generic_template
-from persona.plugins.face.texture import Aligned
 from persona.stores import media
 from persona.stores.layout import OK, Collection, open_store
 
@@ -42,20 +41,13 @@ def main() -> None:
     ok = np.flatnonzero(puppet.state("align") == OK)
     target = puppet.array("aligned/mean_fiducials")[...].astype(np.float64)
     fiducials = puppet.array("aligned/fiducials").oindex[ok].astype(np.float64)
-    chosen = ok[np.linspace(0, len(ok) - 1, min(100, len(ok))).round().astype(int)]
+    reference = own_photos(puppet)[3]
     face = generic_template().mask
-    reference = ev.tear_reference(puppet.array("aligned/rgb").oindex[chosen],
-                                  [face & ev.inner(v) for v in puppet.array("aligned/mask").oindex[chosen]])
     textures = []
     for alignment in ("collection", "own"):
         backend = MultiscaleTexture({**wf.stage("texture")[1], "video_alignment": alignment})
         start = time.perf_counter()
-        if alignment == "own":
-            aligned = backend.params.aligned(texture_photos(puppet, ok), target)
-        else:
-            aligned = Aligned(puppet.array("collection/rgb").oindex[ok].astype(np.float32),
-                              puppet.array("collection/mask").oindex[ok])
-        neutral = backend.blend(backend.cache(aligned), fiducials, target)
+        neutral = backend.blend(backend.cache(video_aligned(puppet, ok, backend, alignment)), fiducials, target)
         seconds = time.perf_counter() - start
         print(f"video_alignment {alignment}: neutral texture's tears {ev.tear_energy(neutral, face, reference):.3f}, "
               f"detail {ev.detail_energy(neutral, face):.3f}, {seconds:.0f} s for {len(ok)} photos")

@@ -155,6 +155,16 @@ def evaluate(store: str, executor, *, identity: tuple[str, dict], threshold: flo
     return result
 
 
+def own_photos(puppet: Collection, sample: int = 100):
+    """(rows, photos, masks, tear reference) of ``sample`` of a collection's accepted frontalized
+    photos: what its textures are measured against; masks are the face inside each photo's view."""
+    chosen = _sample(accepted(puppet), sample)
+    face = generic_template().mask
+    photos = puppet.array("aligned/rgb").oindex[chosen]
+    inside = [face & ev.inner(v) for v in puppet.array("aligned/mask").oindex[chosen]]
+    return chosen, photos, inside, ev.tear_reference(photos, inside)
+
+
 def texture_figures(root, sample: int = 100, every: int = 8) -> dict[str, dict[str, float]]:
     """B's textures against ``sample`` of B's own frontalized photos, inside the face (docs/texture.md).
 
@@ -165,11 +175,8 @@ def texture_figures(root, sample: int = 100, every: int = 8) -> dict[str, dict[s
     detail (:func:`ev.detail_energy`, band-pass energy): the same medians, ``ratio`` again the frames'
     over the photos' (1: as sharp as a photo)."""
     puppet, drive = Collection(root, "puppet"), Collection(root, "drive")
-    chosen = _sample(accepted(puppet), sample)
+    chosen, photos, inside, reference = own_photos(puppet, sample)
     face = generic_template().mask
-    photos = puppet.array("aligned/rgb").oindex[chosen]
-    inside = [face & ev.inner(v) for v in puppet.array("aligned/mask").oindex[chosen]]
-    reference = ev.tear_reference(photos, inside)
     aligned = puppet.has("collection/rgb")  # not when the collection was too small for a collection flow
     warped = puppet.array("collection/rgb").oindex[chosen] if aligned else []
     warped_inside = [face & ev.inner(v) for v in puppet.array("collection/mask").oindex[chosen]] if aligned else []

@@ -55,6 +55,17 @@ def texture_backend(runner):
     return name, params, st.default_registry().get("texture", name)(params)
 
 
+def video_aligned(coll: Collection, ok: np.ndarray, backend, alignment: str | None) -> Aligned:
+    """The accepted photos ``ok`` of a collection aligned to its mean fiducials for the video-mode
+    cache: with the texture backend's own flow and misfit measures (``alignment`` "own"), or as the
+    align stage's collection flow warped them (anything else)."""
+    if alignment == "own":
+        target = coll.array("aligned/mean_fiducials")[...].astype(np.float64)
+        return backend.params.aligned(texture_photos(coll, ok), target)
+    return Aligned(coll.array("collection/rgb").oindex[ok].astype(np.float32),
+                   coll.array("collection/mask").oindex[ok])
+
+
 def run_texture(runner, coll: Collection, aligned: Provenance) -> dict[str, str]:
     """The video-mode cache of the aligned collection and its neutral texture; returns the
     picture written (``texture_neutral``)."""
@@ -68,12 +79,7 @@ def run_texture(runner, coll: Collection, aligned: Provenance) -> dict[str, str]
     ok = np.flatnonzero(coll.state("align") == OK)
     mean_fiducials = coll.array("aligned/mean_fiducials")[...].astype(np.float64)
     try:
-        if params.get("video_alignment") == "own":  # the backend's own flow, with its misfit measures
-            aligned = backend.params.aligned(texture_photos(coll, ok), mean_fiducials)
-        else:
-            aligned = Aligned(coll.array("collection/rgb")[:][ok].astype(np.float32),
-                              coll.array("collection/mask")[:][ok])
-        cache = backend.cache(aligned)
+        cache = backend.cache(video_aligned(coll, ok, backend, params.get("video_alignment")))
     except NotImplementedError:
         log.warning("texture backend %s has no video mode: the drive shows the static average", name)
         if coll.has("texture/neutral"):  # another backend's, from an earlier run

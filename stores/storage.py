@@ -115,25 +115,24 @@ def signature(path) -> tuple:
         return -1, -1
 
 
-def isfile(path) -> bool:
+def _ask(path, local, method: str) -> bool:
+    """``local(path)`` for a local path, else the fsspec filesystem's ``method`` on the URL."""
     if not is_url(path):
-        return os.path.isfile(path)
+        return local(path)
     fs, p = filesystem(path)
-    return fs.isfile(p)
+    return getattr(fs, method)(p)
+
+
+def isfile(path) -> bool:
+    return _ask(path, os.path.isfile, "isfile")
 
 
 def isdir(path) -> bool:
-    if not is_url(path):
-        return os.path.isdir(path)
-    fs, p = filesystem(path)
-    return fs.isdir(p)
+    return _ask(path, os.path.isdir, "isdir")
 
 
 def exists(path) -> bool:
-    if not is_url(path):
-        return os.path.exists(path)
-    fs, p = filesystem(path)
-    return fs.exists(p)
+    return _ask(path, os.path.exists, "exists")
 
 
 def files_in(folder) -> list:
