@@ -24,7 +24,6 @@ This module imports neither ``persona.plugins`` nor ``persona.dag``.
 from __future__ import annotations
 
 import contextlib
-import hashlib
 import logging
 import math
 import os
@@ -624,13 +623,7 @@ def decode_image(
     return np.ascontiguousarray(a, dtype=np.uint8)
 
 
-def sha256_file(path) -> str:
-    """Hex SHA-256 of a file's bytes, read in 1 MiB chunks."""
-    h = hashlib.sha256()
-    with storage.open_file(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
+sha256_file = storage.sha256_file  # photos' identity in the store (one home: stores.storage)
 
 
 # --------------------------------------------------------------------------- video

@@ -20,7 +20,9 @@ from __future__ import annotations
 
 import builtins
 import contextlib
+import functools
 import glob as globlib
+import hashlib
 import os
 import posixpath
 import tempfile
@@ -102,17 +104,35 @@ def stat(path) -> tuple[int, bool]:
 
 
 def signature(path) -> tuple:
-    """What changes when a file's content does, for cache keys: (size, mtime in ns) for a local file,
-    (size, ETag or modification time) for a URL; (-1, -1) when it cannot be read."""
+    """What changes when a file's content does, for cache keys: (size, SHA-256 of the bytes) for a
+    local file, so that copying or provisioning the same photos again (new modification times)
+    keeps every stage's results; (size, ETag or modification time) for a URL; (-1, -1) when it
+    cannot be read."""
     try:
         if not is_url(path):
             s = os.stat(path)
-            return s.st_size, s.st_mtime_ns
+            return s.st_size, _content_hash(os.path.realpath(path), s.st_size, s.st_mtime_ns)
         fs, p = filesystem(path)
         info = fs.info(p)
         return int(info.get("size") or 0), str(info.get("ETag") or info.get("LastModified") or info.get("mtime"))
     except OSError:
         return -1, -1
+
+
+@functools.lru_cache(maxsize=65536)
+def _content_hash(path: str, size: int, mtime_ns: int) -> str:
+    """:func:`sha256_file` of a local file, once per process while its size and modification time
+    stay (every frame of a video names the same file)."""
+    return sha256_file(path)
+
+
+def sha256_file(path) -> str:
+    """Hex SHA-256 of a file's bytes, read in 1 MiB chunks."""
+    digest = hashlib.sha256()
+    with open_file(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
 
 
 def _ask(path, local, method: str) -> bool:

@@ -2,6 +2,7 @@
 S3 server (moto's, on 127.0.0.1), the same as from a local folder; clear errors when the bucket,
 the key or the endpoint is not there."""
 
+import os
 import socket
 
 import numpy as np
@@ -96,3 +97,17 @@ def test_a_missing_bucket_key_or_endpoint_is_named_with_what_to_check(tmp_path, 
     storage.configure({**options, "endpoint_url": f"http://127.0.0.1:{port}", "config_kwargs": {"retries": {"max_attempts": 1}}})
     with pytest.raises(StorageError, match=f"output s3://{bucket}/out: cannot reach it .*endpoint_url"):
         storage.check(f"s3://{bucket}/out", "output")
+
+
+def test_signature_follows_content_not_modification_time(tmp_path):
+    """Provisioning the same photo again (a new modification time) keeps its cache key; new
+    bytes of the same size change it."""
+    photo = tmp_path / "a.jpg"
+    photo.write_bytes(b"abcd")
+    before = storage.signature(photo)
+    os.utime(photo, ns=(1, 1))
+    assert storage.signature(photo) == before
+    photo.write_bytes(b"abce")
+    os.utime(photo, ns=(2, 2))
+    assert storage.signature(photo) != before
+    assert storage.signature(tmp_path / "missing.jpg") == (-1, -1)
