@@ -38,7 +38,7 @@ def run_drive(runner) -> Collection:
     inputs = {"frames": frames.provenance("status/screen/state").key,
               "puppet": puppet.provenance("aligned/mean").key}
     sigma = runner.motion_params()["pose_sigma"]
-    prov = Provenance.make(stage="retarget", backend="-", backend_version="1", params={"pose_sigma": sigma},
+    prov = Provenance.make(stage="retarget", backend="-", backend_version="2", params={"pose_sigma": sigma},
                            inputs=inputs, persona_version=runner.version)
     drive = Collection(runner.root, "drive")
     current = drive.provenance("status/retarget/state") if drive.exists() else None

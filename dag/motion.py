@@ -9,7 +9,8 @@
    from the TPS of the two faces' mean fiducials, and pinned to them afterwards;
    ``motion.correspondence`` in the workflow);
 4. the magnitude-adjusted deformation transfer of every frame (:mod:`persona.plugins.face.transfer`):
-   B's meshes M_P^t = M_P + Δ̂ f*.
+   B's meshes M_P^t = M_P + Δ̂ f*, then moved so that their fiducials land on the retargeted ones
+   (``drive/target``, smoothed over time; ``transfer.fiducials``, not in the paper).
 
 Stored in the ``drive`` collection: ``dynamics/flow``, ``dynamics/delta`` (per frame),
 ``motion/driver_mesh`` (M_D^t), ``motion/driver_mean``, ``mesh`` (M_P^t, NaN off B's face) and
@@ -21,8 +22,9 @@ from __future__ import annotations
 import numpy as np
 
 from persona.plugins.base import Rejected
-from persona.plugins.face.dynamics import DriverModel, DynamicsParams, FrameTrack, frame_mesh, smooth_tracks
-from persona.plugins.face.transfer import DeformationTransfer, correspondence
+from persona.plugins.face.dynamics import (DriverModel, DynamicsParams, FrameTrack, frame_mesh, smooth_in_time,
+                                           smooth_tracks)
+from persona.plugins.face.transfer import DeformationTransfer, FiducialFollow, correspondence
 from persona.plugins.face.warp import pin, tps_map
 from persona.plugins.kinds import Pose
 from persona.stores.layout import OK, Collection
@@ -78,11 +80,15 @@ def run_motion(runner, drive: Collection, retargeted: Provenance) -> Provenance:
     denoiser = registry.get("denoise", denoise[0])(denoise[1]) if denoise else None
     transfer = DeformationTransfer(mean, phi, puppet_mean, puppet_mask, model.mask, params=motion["transfer"],
                                    denoiser=denoiser)
+    tp = transfer.params
+    follow = FiducialFollow(puppet.array("aligned/mean_fiducials")[...], puppet_mask, lam=tp.fiducial_lambda)
+    targets = smooth_in_time(drive.array("target")[:].astype(np.float64), tp.fiducial_sigma)
     meshes = drive.create("mesh", puppet_mean.shape, np.float32, ("frame", "y", "x", "xyz"), prov)
     source = drive.array("motion/driver_mesh")
     with runner.progress_bar(f"{'drive':>13} transfer  ", drive.n) as bar:
         for start, stop in drive.shard_ranges():
-            block = np.stack([transfer(m) for m in source[start:stop]]).astype(np.float32)
+            block = np.stack([follow(transfer(m), targets[t], tp.fiducials) if tp.fiducials else transfer(m)
+                              for t, m in zip(range(start, stop), source[start:stop])]).astype(np.float32)
             block[:, ~puppet_mask] = np.nan
             meshes[start:stop] = block
             bar.update(stop - start)

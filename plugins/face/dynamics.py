@@ -53,7 +53,7 @@ from scipy.ndimage import distance_transform_edt
 from ..base import Params, Rejected
 from ..builtin.frontalize import canonical_landmarks, frontalizing_map
 from ..kinds import FlowBackend, Pose
-from .mesh import cast, grid_triangles, raycasting_scene
+from .mesh import cast, grid_triangles, raycasting_scene, rim_points
 from .subspace import project
 from .template import IDX49
 from .tracks import bridge
@@ -231,8 +231,7 @@ class DriverModel:
     @functools.lru_cache(maxsize=4)
     def rim_points(self, spacing: int) -> np.ndarray:
         """(k, 2) float64 canonical (x, y) points every ``spacing`` px along the mask's outer contour."""
-        contours = cv2.findContours(self.mask.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)[0]
-        return max(contours, key=len)[::spacing, 0].astype(np.float64)
+        return rim_points(self.mask, spacing)
 
     @functools.lru_cache(maxsize=4)
     def guide_warp(self, lam: float, spacing: int, step: int = 1) -> TpsWarp:

@@ -2,7 +2,15 @@
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
+
+
+def rim_points(mask: np.ndarray, spacing: int) -> np.ndarray:
+    """(k, 2) float64 canonical (x, y) points every ``spacing`` px along ``mask``'s outer contour:
+    where a spline that moves the face's inside holds still."""
+    contours = cv2.findContours(np.asarray(mask, np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)[0]
+    return max(contours, key=len)[::spacing, 0].astype(np.float64)
 
 
 def grid_triangles(mask: np.ndarray) -> np.ndarray:

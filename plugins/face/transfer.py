@@ -59,12 +59,14 @@ import cv2
 import numba
 import numpy as np
 from pydantic import Field
+from scipy.ndimage import map_coordinates
 from scipy.spatial import cKDTree
 
 from ..base import Params
 from ..kinds import DenoiseBackend, FlowBackend
+from .mesh import rim_points
 from .subspace import project
-from .warp import compose
+from .warp import TpsWarp, compose
 
 #: the TV weight of the default denoiser (the paper's is 1; see DeformationTransfer)
 DEFAULT_TV_WEIGHT = 0.3
@@ -72,7 +74,7 @@ DEFAULT_TV_WEIGHT = 0.3
 #: Δ̂·Δ'_D (canonical px) below which the driver's point counts as landing on itself (``ratio``)
 _LANDS = 0.5
 
-__all__ = ["DeformationTransfer", "TransferFrame", "TransferParams", "correspondence", "grid_normals",
+__all__ = ["DeformationTransfer", "FiducialFollow", "TransferFrame", "TransferParams", "correspondence", "grid_normals",
            "transfer_sequence"]
 
 
@@ -86,6 +88,15 @@ class TransferParams(Params):
         "'normal': the normal part (Δ·N)N added directly and only the tangential part adjusted "
         "(ALGORITHMS §10.3, not in the paper); 'naive': M_P + Δ")
     max_ratio: float = Field(3.0, gt=1, description="'ratio' only: r is clipped to [1/max_ratio, max_ratio]")
+    fiducials: float = Field(
+        1.0, ge=0, le=1, description="how far B's transferred meshes are then moved towards the "
+        "retargeted fiducials (the driver's landmark offsets on B's face, the 2D renderer's targets): "
+        "1 = their fiducials land on them, 0 = the paper's transfer alone (not in the paper; "
+        ":class:`FiducialFollow`)")
+    fiducial_lambda: float = Field(0.1, ge=0, description="λ of the smoothing TPS that spreads the "
+                                   "fiducials' misses over the face (Eq. 1, canonical px)")
+    fiducial_sigma: float = Field(1.0, ge=0, le=10, description="σ in frames of the Gaussian smoothing "
+                                  "of the retargeted fiducials over time (dlib's landmarks jitter)")
     small_motion: float = Field(
         0.3, ge=0, description="δ in canonical px: the displacement is w Δ̂ f* + (1 - w) Δ with "
         "w = min(1, |Δ|/δ), so that sub-pixel motions, whose nearest vertex is the point itself, pass "
@@ -307,6 +318,48 @@ class DeformationTransfer:
     def __call__(self, driver_mesh) -> np.ndarray:
         """M_P^t (H, W, 3) for the driver frame ``M_D^t``."""
         return self.apply(driver_mesh).mesh
+
+
+class FiducialFollow:
+    """B's transferred meshes moved so that their fiducials land on per-frame targets (not in the
+    paper; ``TransferParams.fiducials``).
+
+    The transfer carries the driver's motion through its meshes, and every step on the way (the
+    driver's flow and shading, the correspondence, the denoiser) loses some: on the example drives
+    B's meshes kept 0.57-0.79 of the driver's eye motion and 0.58-0.80 of its mouth's
+    (docs/expression.md). The retargeted fiducials (:func:`persona.plugins.face.warp.retarget`: B's
+    neutral plus the driver's landmark offsets, scaled by the two faces' proportions) say where B's
+    lids, lips and brows should be. Per frame, the misses of B's fiducials (the mesh's (x, y) at
+    B's mean fiducials' texels) are spread over the face by a smoothing TPS that holds the rim of
+    B's mask still, and added to the mesh's (x, y); depth is left to the transfer.
+
+    fiducials : (49, 2) B's mean fiducials on the canonical grid; mask : (H, W) bool, B's face;
+    lam : the spline's λ; spacing : px between the rim's still points; step : the spline is
+    evaluated on every ``step``-th pixel (1: the inner and outer lips are 3-5 px apart and move
+    apart, which a coarser grid blurs).
+    """
+
+    def __init__(self, fiducials: np.ndarray, mask: np.ndarray, *, lam: float = 0.1, spacing: int = 12,
+                 step: int = 1):
+        self.fiducials = np.asarray(fiducials, np.float64)
+        rim = rim_points(mask, spacing)
+        self._still = np.zeros((len(rim), 2))
+        self.warp = TpsWarp(np.concatenate([self.fiducials, rim]), np.asarray(mask).shape, lam=lam, step=step)
+
+    def landmarks(self, mesh: np.ndarray) -> np.ndarray:
+        """(49, 2) where a mesh (H, W, 3) has moved B's fiducials (bilinear in the texels)."""
+        rows_cols = self.fiducials[:, ::-1].T
+        return np.stack([map_coordinates(np.nan_to_num(np.asarray(mesh, np.float64)[..., c]), rows_cols, order=1,
+                                         mode="nearest") for c in (0, 1)], axis=1)
+
+    def __call__(self, mesh: np.ndarray, target: np.ndarray, weight: float = 1.0) -> np.ndarray:
+        """The mesh (H, W, 3) moved ``weight`` of the way to fiducials at ``target`` (49, 2); a
+        target with a NaN moves nothing."""
+        miss = weight * (np.asarray(target, np.float64) - self.landmarks(mesh))
+        miss[~np.isfinite(miss).all(axis=1)] = 0.0
+        out = np.array(mesh, np.float64, copy=True)
+        out[..., :2] += self.warp.map(np.concatenate([miss, self._still]))
+        return out
 
 
 def transfer_sequence(driver_meshes, phi, puppet_mean, puppet_mask, driver_mask=None, *,

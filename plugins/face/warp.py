@@ -9,7 +9,14 @@ import cv2
 import numpy as np
 from scipy.interpolate import RBFInterpolator
 
+from .template import IDX49
+
 Scaling = Literal["objective", "diagonal", "wahba"]
+
+#: (upper, lower) indices among the 49 fiducials of the points that face each other across an eye
+#: (iBUG 37/41, 38/40, 43/47, 44/46) or the inner lips (61/67, 62/66, 63/65)
+FACING = tuple((IDX49.index(a), IDX49.index(b))
+               for a, b in ((37, 41), (38, 40), (43, 47), (44, 46), (61, 67), (62, 66), (63, 65)))
 
 
 def tps_smoothing(lam: float, n_points: int, scaling: Scaling = "objective") -> float:
@@ -124,11 +131,39 @@ def eye_mouth_scale(fiducials: np.ndarray) -> np.ndarray:
     return np.array([np.linalg.norm(eyes_l - eyes_r), np.linalg.norm(mouth - (eyes_l + eyes_r) / 2)])
 
 
-def retarget(driver: np.ndarray, driver_neutral: np.ndarray, puppet_neutral: np.ndarray) -> np.ndarray:
+def eye_opening(fiducials: np.ndarray) -> float:
+    """Mean height (px) between the upper and lower lids of a face's 49 fiducials."""
+    eyes = [pair for pair in FACING if pair[0] < IDX49.index(48)]
+    return float(np.nanmean([fiducials[lower, 1] - fiducials[upper, 1] for upper, lower in eyes]))
+
+
+def retarget(driver: np.ndarray, driver_neutral: np.ndarray, puppet_neutral: np.ndarray,
+             max_eye_ratio: float = 2.0) -> np.ndarray:
     """Target fiducials for the puppet: its neutral plus the driver's offsets from the driver's
-    neutral, scaled per axis by the two faces' proportions (ALGORITHMS §16.7).
+    neutral, scaled per axis by the two faces' proportions (ALGORITHMS §16.7); the eyes' vertical
+    offsets by the two faces' eye openings instead (clipped to [1/max_eye_ratio, max_eye_ratio]),
+    so that the driver's blink closes the puppet's eyes, however their sizes differ. Lids and lips
+    never pass each other (:func:`close_no_further`).
 
     driver : (n, 49, 2); driver_neutral, puppet_neutral : (49, 2) -> (n, 49, 2)
     """
-    scale = eye_mouth_scale(puppet_neutral) / eye_mouth_scale(driver_neutral)
-    return puppet_neutral + (driver - driver_neutral) * scale
+    scale = np.broadcast_to(eye_mouth_scale(puppet_neutral) / eye_mouth_scale(driver_neutral), (49, 2)).copy()
+    eyes = [IDX49.index(i) for i in range(36, 48)]
+    ratio = eye_opening(puppet_neutral) / eye_opening(driver_neutral)
+    if np.isfinite(ratio) and ratio > 0:
+        scale[eyes, 1] = np.clip(ratio, 1 / max_eye_ratio, max_eye_ratio)
+    return close_no_further(puppet_neutral + (driver - driver_neutral) * scale)
+
+
+def close_no_further(fiducials: np.ndarray) -> np.ndarray:
+    """(..., 49, 2) fiducials whose upper lids and lips do not pass below the lower ones: where a
+    :data:`FACING` pair crossed (the driver's blink scaled onto a smaller eye overshoots), both
+    points take their mean height, i.e. the eye or the mouth is just closed."""
+    out = np.array(fiducials, np.float64, copy=True)
+    upper, lower = (list(i) for i in zip(*FACING))
+    top, bottom = out[..., upper, 1], out[..., lower, 1]
+    crossed = top > bottom
+    middle = (top + bottom) / 2
+    out[..., upper, 1] = np.where(crossed, middle, top)
+    out[..., lower, 1] = np.where(crossed, middle, bottom)
+    return out

@@ -8,7 +8,8 @@ from persona.plugins.builtin.frontalize import project, template_points
 from persona.plugins.builtin.render import Tps2dRender, canonical_coordinates
 from persona.plugins.face.template import IDX49, generic_template
 from persona.plugins.face.tracks import bridge
-from persona.plugins.face.warp import TpsWarp, eye_mouth_scale, pin, retarget, tps_map, tps_smoothing
+from persona.plugins.face.warp import (FACING, TpsWarp, close_no_further, eye_mouth_scale, eye_opening, pin, retarget,
+                                       tps_map, tps_smoothing)
 from persona.plugins.kinds import Pose, Puppet
 
 
@@ -150,3 +151,27 @@ def test_pin_sends_the_points_home():
                                           target[:, 1].astype(np.float32)[None], cv2.INTER_LINEAR)[0] - target, axis=1)
         assert np.nanmax(before) > 1.0  # the test would see a no-op
     assert np.all(np.isfinite(pinned))
+
+
+def test_retarget_closes_the_puppets_own_eyes_and_never_crosses_the_lids():
+    """A blink that closes the driver's eyes closes the puppet's, which are 30 % smaller: the lids'
+    offsets are scaled by the eye openings (not by the face's height); a larger offset stops at
+    closed instead of passing the lower lid."""
+    driver_neutral = generic_template().landmarks3d[list(IDX49), :2]
+    puppet_neutral = driver_neutral.copy()
+    for upper, lower in FACING[:4]:  # the puppet's eyes open 30 % less, about their middle line
+        middle, half = (driver_neutral[upper, 1] + driver_neutral[lower, 1]) / 2, (driver_neutral[lower, 1] - driver_neutral[upper, 1]) / 2
+        puppet_neutral[upper, 1], puppet_neutral[lower, 1] = middle - 0.7 * half, middle + 0.7 * half
+    assert eye_opening(puppet_neutral) / eye_opening(driver_neutral) == pytest.approx(0.7)
+    blink = driver_neutral.copy()
+    for upper, lower in FACING[:4]:
+        blink[upper, 1] = blink[lower, 1]  # the upper lid comes down onto the lower one
+    beyond = blink.copy()
+    for upper, _ in FACING[:4]:
+        beyond[upper, 1] += 3.0  # 3 px past it
+    target = retarget(np.stack([driver_neutral, blink, beyond]), driver_neutral, puppet_neutral)
+    np.testing.assert_allclose(target[0], puppet_neutral)
+    for upper, lower in FACING[:4]:
+        assert target[1, lower, 1] - target[1, upper, 1] == pytest.approx(0.0, abs=1e-9)  # closed
+        assert target[2, lower, 1] - target[2, upper, 1] == pytest.approx(0.0, abs=1e-9)  # not crossed
+    np.testing.assert_allclose(close_no_further(puppet_neutral), puppet_neutral)
