@@ -1,0 +1,141 @@
+"""SIGKILL a real run at points spread over its stages, re-run it each time, and compare the final store
+with an uninterrupted run's, array by array.
+
+    .venv/bin/python benchmarks/kill_resume.py workflows/powell_driven_by_woman.yaml --reference STORE [--workers 2]
+
+Without --reference, the workflow is first run uninterrupted into a temporary store. Then one
+store is built by a sequence of runs: attempt k waits until its run prints the k-th trigger line
+(a stage starting or finishing, see ``TRIGGERS``), waits a few seconds more so that the stage is
+busy writing, and SIGKILLs the whole process group (the client and its local Dask workers, as a
+power cut or an out-of-memory killer would). A final run completes the store. Every array of both
+stores is compared: shape, dtype, and values (NaN equal to NaN). Prints one line per kill (when,
+where, the last line the run printed) and the comparison; exit status 1 when an array differs or
+a run failed.
+
+The default triggers fit the example workflows (collections ``puppet``, ``driver``, ``driver/frames``
+and ``drive``): per-photo stages, the collection-level shape and texture, the drive's per-frame
+textures, dynamics, transfer, render and the evaluation.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import re
+import selectors
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import zarr
+
+#: (pattern of a line the run prints, seconds to wait after it before the SIGKILL)
+TRIGGERS = [
+    (r"puppet ingest: started", 4),              # photos: ingest, landmarks, pose, frontalize
+    (r"puppet align: started", 6),               # the collection flow, per photo
+    (r"puppet align: done", 10),                 # the puppet's subspace and shape
+    (r"puppet align: done", 30),                 # the puppet's shape and texture cache
+    (r"driver/frames landmarks: started", 4),    # the driver's frames, per frame
+    (r"drive texture: started", 3),              # the per-frame textures
+    (r"drive dynamics: started", 15),            # the driver's 3D flow
+    (r"drive transfer: started", 6),             # the deformation transfer
+    (r"drive render3d: started", 5),             # the render
+    (r"drive render3d: done", 4),                # videos and the evaluation
+]
+
+
+def run(workflow: str, store: Path, output: Path, workers: int, trigger=None, env=None):
+    """One ``persona run``; with ``trigger`` (pattern, delay), SIGKILLed ``delay`` s after the first
+    line matching it. Returns (return code or "killed", seconds, the last line printed)."""
+    command = [sys.executable, "-m", "persona.dag.cli", "run", workflow, "--workers", str(workers),
+               "--set", f"store={store}", "--set", f"output={output}"]
+    start = time.perf_counter()
+    proc = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                            start_new_session=True, env=env)
+    selector = selectors.DefaultSelector()
+    selector.register(proc.stdout, selectors.EVENT_READ)
+    last, deadline = "", None
+    while True:
+        if deadline is not None and time.perf_counter() >= deadline:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+            return "killed", time.perf_counter() - start, last
+        if selector.select(timeout=0.2):
+            line = proc.stdout.readline()
+            if not line:
+                break
+            last = line.rstrip()[:120] or last
+            if trigger and deadline is None and re.search(trigger[0], line):
+                deadline = time.perf_counter() + trigger[1]
+    proc.wait()
+    return proc.returncode, time.perf_counter() - start, last
+
+
+def arrays(group, prefix=""):
+    """{path: array} of every array under a Zarr group."""
+    out = {}
+    for name, item in group.members():
+        path = f"{prefix}{name}"
+        if isinstance(item, zarr.Array):
+            out[path] = item
+        else:
+            out.update(arrays(item, path + "/"))
+    return out
+
+
+def compare(reference: Path, test: Path) -> list[str]:
+    """Paths of the arrays that differ (or exist in only one store), with how."""
+    ref, got = arrays(zarr.open_group(str(reference), mode="r")), arrays(zarr.open_group(str(test), mode="r"))
+    problems = [f"{p}: only in the reference" for p in sorted(set(ref) - set(got))]
+    problems += [f"{p}: only in the killed run" for p in sorted(set(got) - set(ref))]
+    for path in sorted(set(ref) & set(got)):
+        a, b = ref[path], got[path]
+        if a.shape != b.shape or a.dtype != b.dtype:
+            problems.append(f"{path}: {a.shape} {a.dtype} against {b.shape} {b.dtype}")
+            continue
+        x, y = a[...], b[...]
+        same = np.array_equal(x, y, equal_nan=x.dtype.kind in "fc")
+        if not same:
+            diff = (np.nanmax(np.abs(x.astype(np.float64) - y.astype(np.float64)))
+                    if x.dtype.kind in "fiub" else "n/a")
+            problems.append(f"{path}: values differ (max |difference| {diff})")
+    print(f"{len(set(ref) & set(got))} arrays compared, {len(problems)} differ")
+    return problems
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("workflow")
+    parser.add_argument("--reference", type=Path, help="the store of an uninterrupted run of the same code")
+    parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--folder", type=Path, help="where the killed run's store goes (default: a temporary folder)")
+    args = parser.parse_args()
+    folder = args.folder or Path(tempfile.mkdtemp(prefix="persona-kill-"))
+    folder.mkdir(parents=True, exist_ok=True)
+    workflow = str(Path(args.workflow).resolve())
+    reference = args.reference
+    if reference is None:
+        reference = folder / "reference.zarr"
+        rc, seconds, last = run(workflow, reference, folder / "reference", args.workers)
+        print(f"uninterrupted run: rc {rc}, {seconds:.0f} s")
+        if rc != 0:
+            print(last)
+            return 1
+    store, output = folder / "killed.zarr", folder / "killed"
+    for k, trigger in enumerate(TRIGGERS, 1):
+        rc, seconds, last = run(workflow, store, output, args.workers, trigger)
+        print(f"kill {k:2d} ({trigger[0]} + {trigger[1]} s): {rc} after {seconds:.0f} s; last line: {last}")
+    rc, seconds, last = run(workflow, store, output, args.workers)
+    print(f"final run: rc {rc}, {seconds:.0f} s; last line: {last}")
+    problems = compare(reference, store)
+    for p in problems:
+        print("  " + p)
+    return int(rc != 0 or bool(problems))
+
+
+if __name__ == "__main__":
+    sys.exit(main())
