@@ -3,14 +3,17 @@
 from __future__ import annotations
 
 import argparse
+import errno
 import json
+import os
 import shlex
+import shutil
 import sys
 from pathlib import Path
 
 from persona.plugins.base import Rejected
 from persona.plugins.manager import PluginError
-from persona.stores.errors import InputError, PersonaError
+from persona.stores.errors import InputError, PersonaError, StorageError
 from persona.stores.layout import item
 
 
@@ -29,11 +32,29 @@ def _cmd_run(args) -> int:
         return 130
     except (InputError, Rejected):  # the input must change: running again as it is cannot help
         raise
+    except OSError as exc:
+        _resume_hint(args)
+        if exc.errno not in (errno.ENOSPC, errno.EDQUOT):
+            raise
+        raise StorageError(f"the disk is full ({exc.strerror}) writing {exc.filename or wf.store}: free space "
+                           f"there ({_free_space(exc.filename or wf.store)}) or set store: / output: to a larger "
+                           "disk, then run again (finished work is kept)") from None
     except Exception:
         _resume_hint(args)
         raise
     _print_report(report)
     return 0
+
+
+def _free_space(path) -> str:
+    """What is free on the disk of a local path, as people read it."""
+    folder = os.path.dirname(os.path.abspath(str(path)))
+    while folder and not os.path.isdir(folder):
+        folder = os.path.dirname(folder)
+    try:
+        return f"{shutil.disk_usage(folder).free / 2**20:.1f} MiB free in {folder}"
+    except OSError:
+        return "its free space unknown"
 
 
 def _plan(wf) -> str:

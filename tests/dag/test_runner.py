@@ -364,3 +364,39 @@ def test_every_decodable_frame_of_a_truncated_video_is_kept(tmp_path):
     reasons = coll.array("status/ingest/reason")[:]
     assert all(reasons[i] == "frame could not be decoded" for i in range(16) if i not in decodable)
     assert coll.array("photos/rgb")[decodable[-1]].any()  # the last decoded frame itself, not zeros
+
+
+@pytest.fixture
+def small_disk(tmp_path):
+    """A 1 MiB tmpfs at tmp_path/disk (root only), resized with ``resize(mebibytes)``."""
+    disk = tmp_path / "disk"
+    disk.mkdir()
+    if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=1m", "tmpfs", str(disk)], capture_output=True).returncode:
+        pytest.skip("mounting a tmpfs needs root")
+
+    def resize(mebibytes):
+        subprocess.run(["mount", "-o", f"remount,size={mebibytes}m", str(disk)], check=True)
+
+    yield disk, resize
+    subprocess.run(["umount", str(disk)], check=False)
+
+
+def test_a_full_disk_stops_with_a_clear_error_and_the_run_resumes(tmp_path, synthetic_photos, small_disk, capsys):
+    """The store's disk fills up part-way: the run stops with exit status 2 and a message that says so
+    and what to do (no traceback); with space again the same command finishes, and the store is
+    the one an uninterrupted run makes."""
+    disk, resize = small_disk
+    photos = write_photos(tmp_path / "photos", synthetic_photos[:12])
+    clean = tmp_path / "clean"
+    clean.mkdir()
+    for folder in (tmp_path, clean):
+        write_workflow(folder, str(photos), stages={"landmarks": {"backend": "sidecar"}})
+    command = ["run", str(tmp_path / "wf.yaml"), "--scheduler", "sync", "--quiet", "--set", f"store={disk / 'run.zarr'}"]
+    assert cli(command) == 2
+    err = capsys.readouterr().err
+    assert "error: the disk is full (No space left on device)" in err and "run again" in err, err
+    assert "Traceback" not in err
+    resize(200)
+    assert cli(command) == 0
+    run_workflow(load_workflow(clean / "wf.yaml"), scheduler="sync", progress=False)
+    assert_same_store(disk / "run.zarr", clean / "run.zarr")
