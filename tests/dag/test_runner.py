@@ -1,4 +1,5 @@
 import json
+import os
 import re
 import signal
 import subprocess
@@ -400,3 +401,31 @@ def test_a_full_disk_stops_with_a_clear_error_and_the_run_resumes(tmp_path, synt
     assert cli(command) == 0
     run_workflow(load_workflow(clean / "wf.yaml"), scheduler="sync", progress=False)
     assert_same_store(disk / "run.zarr", clean / "run.zarr")
+
+
+def test_a_worker_killed_mid_stage_leaves_the_run_to_the_others(tmp_path, synthetic_photos, dask_cluster):
+    """One of two workers SIGKILLed while the photos' stages run: Dask gives its tasks to the other,
+    the run exits 0, and the store is the one a run without the kill makes."""
+    from distributed import Client
+
+    photos = write_photos(tmp_path / "photos", synthetic_photos * 2)  # 48 photos, 12 shards
+    remote, local = tmp_path / "remote", tmp_path / "local"
+    for folder in (remote, local):
+        folder.mkdir()
+        write_workflow(folder, str(photos))
+    with Client(dask_cluster, timeout="30s") as client:
+        victim = next(iter(client.run(os.getpid).values()))  # a worker process (its nanny starts another)
+    proc = subprocess.Popen([PERSONA, "run", str(remote / "wf.yaml"), "--scheduler", dask_cluster, "--quiet"],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+
+    def some_done():
+        state = _landmark_states(remote / "run.zarr")
+        return state is not None and (state != PENDING).sum() >= 4
+
+    assert _wait_for(some_done, timeout=120), "the run never got into the landmarks stage"
+    assert (_landmark_states(remote / "run.zarr") == PENDING).any(), "the kill came after the stage"
+    os.kill(victim, signal.SIGKILL)
+    _, err = proc.communicate(timeout=600)
+    assert proc.returncode == 0, err
+    run_workflow(load_workflow(local / "wf.yaml"), scheduler="sync", progress=False)
+    assert_same_store(remote / "run.zarr", local / "run.zarr")
