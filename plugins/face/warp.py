@@ -14,7 +14,7 @@ from .template import IDX49
 Scaling = Literal["objective", "diagonal", "wahba"]
 
 #: (upper, lower) indices among the 49 fiducials of the points that face each other across an eye
-#: (iBUG 37/41, 38/40, 43/47, 44/46) or the inner lips (61/67, 62/66, 63/65)
+#: (iBUG 37/41, 38/40, 43/47, 44/46: the first four) or the inner lips (61/67, 62/66, 63/65)
 FACING = tuple((IDX49.index(a), IDX49.index(b))
                for a, b in ((37, 41), (38, 40), (43, 47), (44, 46), (61, 67), (62, 66), (63, 65)))
 
@@ -133,8 +133,7 @@ def eye_mouth_scale(fiducials: np.ndarray) -> np.ndarray:
 
 def eye_opening(fiducials: np.ndarray) -> float:
     """Mean height (px) between the upper and lower lids of a face's 49 fiducials."""
-    eyes = [pair for pair in FACING if pair[0] < IDX49.index(48)]
-    return float(np.nanmean([fiducials[lower, 1] - fiducials[upper, 1] for upper, lower in eyes]))
+    return float(np.nanmean([fiducials[lower, 1] - fiducials[upper, 1] for upper, lower in FACING[:4]]))
 
 
 def retarget(driver: np.ndarray, driver_neutral: np.ndarray, puppet_neutral: np.ndarray,
