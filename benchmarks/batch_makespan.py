@@ -46,12 +46,12 @@ class Graph:
         return [self.task(seconds / shards, after) for _ in range(shards)]
 
 
-def collection(g: Graph, steps: dict, name: str, n: int, per_shard: int, after=()) -> list[int]:
+def collection(g: Graph, steps: dict, name: str, n: int, per_shard: int) -> list[int]:
     """The per-photo stages of one collection (ingest to align, in order; screen needs all of the
     first chain), then its collection-level shape (and texture for a puppet). Returns the last tasks."""
     shards = max(1, math.ceil(n / per_shard))
     chain = sum(steps.get((s, name), 0.0) for s in ("ingest", "landmarks", "pose", "frontalize"))
-    last = g.stage(chain, shards, after)
+    last = g.stage(chain, shards)
     for stage in ("screen", "align"):
         if (stage, name) in steps:
             last = g.stage(steps[(stage, name)], shards, last)
@@ -92,8 +92,8 @@ def batch(steps: dict, sizes: dict, per_shard: int, puppets: int, drivers: int, 
     return g
 
 
-def schedule(g: Graph, workers: int) -> float:
-    """Makespan of list scheduling, longest path to the end first."""
+def schedule(g: Graph, workers: int) -> tuple[float, float]:
+    """(makespan, critical path) of list scheduling, longest path to the end first."""
     n = len(g.seconds)
     waiting = [len(a) for a in g.after]
     children = defaultdict(list)

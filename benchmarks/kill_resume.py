@@ -75,16 +75,9 @@ def run(workflow: str, store: Path, output: Path, workers: int, trigger=None, en
     return proc.returncode, time.perf_counter() - start, last
 
 
-def arrays(group, prefix=""):
+def arrays(group) -> dict:
     """{path: array} of every array under a Zarr group."""
-    out = {}
-    for name, item in group.members():
-        path = f"{prefix}{name}"
-        if isinstance(item, zarr.Array):
-            out[path] = item
-        else:
-            out.update(arrays(item, path + "/"))
-    return out
+    return {path: item for path, item in group.members(max_depth=None) if isinstance(item, zarr.Array)}
 
 
 def compare(reference: Path, test: Path) -> list[str]:

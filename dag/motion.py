@@ -81,8 +81,9 @@ def run_motion(runner, drive: Collection, retargeted: Provenance) -> Provenance:
     transfer = DeformationTransfer(mean, phi, puppet_mean, puppet_mask, model.mask, params=motion["transfer"],
                                    denoiser=denoiser)
     tp = transfer.params
-    follow = FiducialFollow(puppet.array("aligned/mean_fiducials")[...], puppet_mask, lam=tp.fiducial_lambda)
-    targets = smooth_in_time(drive.array("target")[:].astype(np.float64), tp.fiducial_sigma)
+    if tp.fiducials:
+        follow = FiducialFollow(puppet.array("aligned/mean_fiducials")[...], puppet_mask, lam=tp.fiducial_lambda)
+        targets = smooth_in_time(drive.array("target")[:].astype(np.float64), tp.fiducial_sigma)
     meshes = drive.create("mesh", puppet_mean.shape, np.float32, ("frame", "y", "x", "xyz"), prov)
     source = drive.array("motion/driver_mesh")
     with runner.progress_bar(f"{'drive':>13} transfer  ", drive.n) as bar:

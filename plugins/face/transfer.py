@@ -350,9 +350,8 @@ class FiducialFollow:
 
     def landmarks(self, mesh: np.ndarray) -> np.ndarray:
         """(49, 2) where a mesh (H, W, 3) has moved B's fiducials (bilinear in the texels)."""
-        rows_cols = self.fiducials[:, ::-1].T
-        return np.stack([map_coordinates(np.nan_to_num(np.asarray(mesh, np.float64)[..., c]), rows_cols, order=1,
-                                         mode="nearest") for c in (0, 1)], axis=1)
+        xy, rows_cols = np.nan_to_num(np.asarray(mesh, np.float64)[..., :2]), self.fiducials[:, ::-1].T
+        return np.stack([map_coordinates(xy[..., c], rows_cols, order=1, mode="nearest") for c in (0, 1)], axis=1)
 
     def __call__(self, mesh: np.ndarray, target: np.ndarray, weight: float = 1.0) -> np.ndarray:
         """The mesh (H, W, 3) moved ``weight`` of the way to fiducials at ``target`` (49, 2); a
