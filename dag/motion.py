@@ -2,19 +2,21 @@
 
 1. ``dynamics`` (Dask tasks over shards of frames): each frame's 3D flow of the driver's
    average face, before temporal smoothing (:mod:`persona.plugins.face.dynamics`);
-2. in this process, shard by shard: the flows and depth changes smoothed over time (a halo of
-   ``time_radius`` frames each side), the driver's meshes M_D^t and their mean M̄_D;
+2. Dask tasks over shards: the flows and depth changes smoothed over time (a halo of
+   ``time_radius`` frames each side), the driver's meshes M_D^t; their mean M̄_D from the shards' sums;
 3. the correspondence φ puppet -> driver (ALGORITHMS §7.3): the puppet's 2D average projected
    onto the driver's rank-4 appearance subspace, then a flow between the two (by default started
    from the TPS of the two faces' mean fiducials, and pinned to them afterwards;
    ``motion.correspondence`` in the workflow);
 4. the magnitude-adjusted deformation transfer of every frame (:mod:`persona.plugins.face.transfer`):
    B's meshes M_P^t = M_P + Δ̂ f*, then moved so that their fiducials land on the retargeted ones
-   (``drive/target``, smoothed over time; ``transfer.fiducials``, not in the paper).
+   (``drive/target``, smoothed over time; ``transfer.fiducials``, not in the paper); Dask tasks over
+   shards, each worker building the transfer once.
 
 Stored in the ``drive`` collection: ``dynamics/flow``, ``dynamics/delta`` (per frame),
-``motion/driver_mesh`` (M_D^t), ``motion/driver_mean``, ``mesh`` (M_P^t, NaN off B's face) and
-``motion/correspondence`` (φ, written last: its provenance marks the step complete).
+``motion/driver_mesh`` (M_D^t), ``motion/driver_mean``, ``motion/correspondence`` (φ) and ``mesh``
+(M_P^t, NaN off B's face; written last: its provenance, set after its last shard, marks the step
+complete).
 """
 
 from __future__ import annotations
@@ -22,15 +24,15 @@ from __future__ import annotations
 import numpy as np
 
 from persona.plugins.base import Rejected
-from persona.plugins.face.dynamics import (DriverModel, DynamicsParams, FrameTrack, frame_mesh, smooth_in_time,
-                                           smooth_tracks)
+from persona.plugins.face.dynamics import FrameTrack, frame_mesh, smooth_in_time, smooth_tracks
 from persona.plugins.face.transfer import DeformationTransfer, FiducialFollow, correspondence
 from persona.plugins.face.warp import pin, tps_map
 from persona.plugins.kinds import Pose
-from persona.stores.layout import OK, Collection
+from persona.stores.layout import OK, Collection, open_store
 from persona.stores.provenance import Provenance, cache_key
 
 from . import stages as st
+
 
 def run_motion(runner, drive: Collection, retargeted: Provenance) -> Provenance:
     """Steps 1-4 (see the module's docstring); returns the provenance of ``mesh``."""
@@ -56,17 +58,18 @@ def run_motion(runner, drive: Collection, retargeted: Provenance) -> Provenance:
                            inputs={"dynamics": dynamics.key, "puppet_shape": puppet.provenance("shape/depth").key,
                                    "puppet_texture": puppet.provenance("shape/texture").key},
                            persona_version=runner.version)
-    done = drive.provenance("motion/correspondence")
+    done = drive.provenance("mesh")
     if done is not None and done.key == prov.key:
         return prov
-    registry = st.default_registry()
-    context = st.driver_model(root, drive.path)  # the dynamics stage's own model and params
-    model, params = context["model"], context["dynamics"]
-    with runner.progress_bar(f"{'drive':>13} meshes    ", drive.n) as bar:
-        mean = _driver_meshes(drive, model, params, prov, bar)
+    shape = driver.array("shape/mask").shape
+    drive.create("motion/driver_mesh", (*shape, 3), np.float32, ("frame", "y", "x", "xyz"), prov)
+    sums = runner.map_shards(drive, "meshes", driver_meshes, dynamics.key)
+    mean = (sum(sums.values()) / drive.n).astype(np.float32)
+    drive.create_single("motion/driver_mean", mean, ("y", "x", "xyz"), prov)
 
     puppet_mask = puppet.array("shape/mask")[...]
     corr = motion["correspondence"]
+    registry = st.default_registry()
     guide = tps_map(puppet.array("aligned/mean_fiducials")[...], driver.array("aligned/mean_fiducials")[...],
                     puppet_mask.shape, lam=corr["guide_lambda"], step=4) if corr["landmark_guide"] else None
     phi = correspondence(puppet.array("shape/texture")[...], puppet_mask, driver.array("subspace/basis")[...],
@@ -74,52 +77,66 @@ def run_motion(runner, drive: Collection, retargeted: Provenance) -> Provenance:
     if corr["pin_fiducials"]:
         phi = pin(phi, puppet.array("aligned/mean_fiducials")[...], driver.array("aligned/mean_fiducials")[...],
                   lam=corr["pin_lambda"])
-    depth = puppet.array("shape/depth")[...]
-    ys, xs = np.mgrid[0:depth.shape[0], 0:depth.shape[1]]
-    puppet_mean = np.stack([xs, ys, depth], axis=-1)
-    denoiser = registry.get("denoise", denoise[0])(denoise[1]) if denoise else None
-    transfer = DeformationTransfer(mean, phi, puppet_mean, puppet_mask, model.mask, params=motion["transfer"],
-                                   denoiser=denoiser)
-    tp = transfer.params
-    if tp.fiducials:
-        follow = FiducialFollow(puppet.array("aligned/mean_fiducials")[...], puppet_mask, lam=tp.fiducial_lambda)
-        targets = smooth_in_time(drive.array("target")[:].astype(np.float64), tp.fiducial_sigma)
-    meshes = drive.create("mesh", puppet_mean.shape, np.float32, ("frame", "y", "x", "xyz"), prov)
-    source = drive.array("motion/driver_mesh")
-    with runner.progress_bar(f"{'drive':>13} transfer  ", drive.n) as bar:
-        for start, stop in drive.shard_ranges():
-            block = np.stack([follow(transfer(m), targets[t], tp.fiducials) if tp.fiducials else transfer(m)
-                              for t, m in zip(range(start, stop), source[start:stop])]).astype(np.float32)
-            block[:, ~puppet_mask] = np.nan
-            meshes[start:stop] = block
-            bar.update(stop - start)
     drive.create_single("motion/correspondence", phi.astype(np.float32), ("y", "x", "xy"), prov)
+    drive.create("mesh", (*puppet_mask.shape, 3), np.float32, ("frame", "y", "x", "xyz"), prov, pending=True)
+    runner.map_shards(drive, "transfer", transfer_meshes, prov.key, puppet.path, denoise)
+    drive.mark_done("mesh", prov)  # after the last frame: a killed run leaves no key to trust
     return prov
 
 
-def _driver_meshes(drive: Collection, model: DriverModel, params: DynamicsParams, prov: Provenance,
-                   bar) -> np.ndarray:
-    """M_D^t of every frame into ``motion/driver_mesh``, shard by shard with a halo for the temporal
-    smoothing; returns (and stores) their mean M̄_D. Frames without a track keep the average."""
-    ok = drive.state("dynamics") == OK
-    poses = drive.array("pose")[:]
+def driver_meshes(url: str, path: str, start: int, stop: int, key: str) -> np.ndarray:
+    """One shard's task: M_D^t of frames [start, stop) into ``motion/driver_mesh``, the tracks
+    smoothed over time with a halo of ``time_radius`` frames each side (frames without a track keep
+    the average); returns the shard's sum of meshes, for their mean M̄_D."""
+    root = open_store(url)
+    drive = Collection(root, path)
+    context = st.per_process(key, lambda: st.driver_model(root, path))
+    model, params = context["model"], context["dynamics"]
     halo = params.time_radius
-    out = drive.create("motion/driver_mesh", (*model.shape, 3), np.float32, ("frame", "y", "x", "xyz"), prov)
-    total = np.zeros((*model.shape, 3))
-    for start, stop in drive.shard_ranges():
-        lo, hi = max(0, start - halo), min(drive.n, stop + halo)
-        flows, deltas = drive.array("dynamics/flow")[lo:hi], drive.array("dynamics/delta")[lo:hi]
-        tracks = [FrameTrack(flows[i], deltas[i], np.full(4, np.nan), np.zeros(model.shape, bool),
-                             np.zeros(model.shape, bool)) if ok[lo + i] else None for i in range(hi - lo)]
-        smoothed = smooth_tracks(tracks, params)
-        block = np.stack([model.rest_mesh if track is None else frame_mesh(model, track, Pose.from_vector(poses[t]))
-                          for t, track in zip(range(start, stop), smoothed[start - lo:stop - lo])])
-        out[start:stop] = block
-        total += block.sum(axis=0)
-        bar.update(stop - start)
-    mean = (total / drive.n).astype(np.float32)
-    drive.create_single("motion/driver_mean", mean, ("y", "x", "xyz"), prov)
-    return mean
+    lo, hi = max(0, start - halo), min(drive.n, stop + halo)
+    ok = drive.state("dynamics")[lo:hi] == OK
+    flows, deltas = drive.array("dynamics/flow")[lo:hi], drive.array("dynamics/delta")[lo:hi]
+    tracks = [FrameTrack(flows[i], deltas[i], np.full(4, np.nan), np.zeros(model.shape, bool),
+                         np.zeros(model.shape, bool)) if ok[i] else None for i in range(hi - lo)]
+    smoothed = smooth_tracks(tracks, params)[start - lo:stop - lo]
+    poses = drive.array("pose")[start:stop]
+    block = np.stack([model.rest_mesh if track is None else frame_mesh(model, track, Pose.from_vector(pose))
+                      for track, pose in zip(smoothed, poses)])
+    drive.array("motion/driver_mesh")[start:stop] = block
+    return block.sum(axis=0, dtype=np.float64)
+
+
+def transfer_meshes(url: str, path: str, start: int, stop: int, key: str, puppet: str, denoise) -> None:
+    """One shard's task: B's meshes M_P^t of frames [start, stop) into ``mesh`` (NaN off B's face);
+    the transfer and the follower are built once per worker."""
+    root = open_store(url)
+    drive = Collection(root, path)
+    transfer, follow, targets, mask = st.per_process(
+        key, lambda: _transfer(root, drive, Collection(root, puppet), denoise))
+    block = np.stack([transfer(m) if follow is None else follow(transfer(m), targets[t], transfer.params.fiducials)
+                      for t, m in zip(range(start, stop), drive.array("motion/driver_mesh")[start:stop])])
+    block[:, ~mask] = np.nan
+    drive.array("mesh")[start:stop] = block.astype(np.float32)
+
+
+def _transfer(root, drive: Collection, puppet: Collection, denoise) -> tuple:
+    """The magnitude-adjusted transfer onto ``puppet``, the fiducial follower (None when
+    ``transfer.fiducials`` is 0), the targets it follows (smoothed over time) and B's mask."""
+    motion = drive.attrs["motion"]
+    depth = puppet.array("shape/depth")[...]
+    ys, xs = np.mgrid[0:depth.shape[0], 0:depth.shape[1]]
+    mask = puppet.array("shape/mask")[...]
+    denoiser = st.default_registry().get("denoise", denoise[0])(denoise[1]) if denoise else None
+    transfer = DeformationTransfer(drive.array("motion/driver_mean")[...], drive.array("motion/correspondence")[...],
+                                   np.stack([xs, ys, depth], axis=-1), mask,
+                                   st.driver_model(root, drive.path)["model"].mask, params=motion["transfer"],
+                                   denoiser=denoiser)
+    tp = transfer.params
+    if not tp.fiducials:
+        return transfer, None, None, mask
+    follow = FiducialFollow(puppet.array("aligned/mean_fiducials")[...], mask, lam=tp.fiducial_lambda)
+    targets = smooth_in_time(drive.array("target")[:].astype(np.float64), tp.fiducial_sigma)
+    return transfer, follow, targets, mask
 
 
 def export_meshes(runner, drive: Collection, every: int) -> list[str]:

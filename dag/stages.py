@@ -297,6 +297,26 @@ def _backend(stage: PhotoStage, name: str, params: dict) -> Backend | None:
     return None if stage.kind is None else default_registry().get(stage.kind, name)(params)
 
 
+#: what the last shard task in this process loaded for its stage, under that stage's cache key
+_loaded: dict[str, object] = {}
+
+
+def per_process(key: str, load: Callable[[], object]):
+    """``load()`` once per worker process for the cache key ``key`` (a stage's provenance key, so
+    that changed inputs load anew); the shards a worker runs next share it. One entry is kept."""
+    if key not in _loaded:
+        _loaded.clear()
+        _loaded[key] = load()
+    return _loaded[key]
+
+
+def on_shard(fn: Callable, url: str, path: str, start: int, stop: int, *args) -> tuple[int, int, object]:
+    """A collection-level stage's task: ``fn(url, path, start, stop, *args)`` on frames [start, stop)
+    of one shard, which it reads and writes itself (one writer per shard file); returns the range
+    with ``fn``'s result."""
+    return start, stop, fn(url, path, start, stop, *args)
+
+
 def run_chain(url: str, path: str, start: int, stop: int, steps: list[tuple[str, str, dict]]) -> dict:
     """Run stages ``steps`` = [(stage, backend name, params), ...] on photos [start, stop).
 

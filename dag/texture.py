@@ -27,7 +27,7 @@ from persona.plugins.face.template import generic_template
 from persona.plugins.face.texture import Aligned
 from persona.plugins.kinds import Pose, TexturePhotos
 from persona.stores import media, storage
-from persona.stores.layout import OK, Collection
+from persona.stores.layout import OK, Collection, open_store
 from persona.stores.provenance import Provenance
 
 from . import stages as st
@@ -117,7 +117,6 @@ def run_frame_textures(runner, drive: Collection, puppet: Collection, retargeted
     """B's texture for every driver frame: ``drive/texture/rgb`` (frame, H, W, 3) uint8, from the
     video-mode cache and the frame's target fiducials, or B's static mean face when the texture
     backend has no video mode."""
-    _, _, backend = texture_backend(runner)
     texture = puppet.provenance("texture/neutral")
     source = texture if texture is not None else puppet.provenance("aligned/mean")
     prov = Provenance.make(stage="frame_texture", backend=source.backend, backend_version=source.backend_version,
@@ -126,7 +125,6 @@ def run_frame_textures(runner, drive: Collection, puppet: Collection, retargeted
     current = drive.provenance("texture/rgb")
     if current is not None and current.key == prov.key:
         return prov
-    targets = drive.array("target")[:]
     array = drive.create("texture/rgb", puppet.array("aligned/mean").shape, np.uint8, ("frame", "y", "x", "channel"),
                          prov, pending=True)
     if texture is None:
@@ -135,14 +133,21 @@ def run_frame_textures(runner, drive: Collection, puppet: Collection, retargeted
             array[start:stop] = np.broadcast_to(mean, (stop - start, *mean.shape))
         drive.mark_done("texture/rgb", prov)
         return prov
-    cache, fiducials = load_cache(puppet)
-    with runner.progress_bar(f"{'drive':>13} texture   ", drive.n) as bar:
-        for start, stop in drive.shard_ranges():
-            array[start:stop] = np.stack([backend.blend(cache, fiducials, t).round().astype(np.uint8)
-                                          for t in targets[start:stop]])
-            bar.update(stop - start)
+    runner.map_shards(drive, "texture", frame_textures, prov.key, puppet.path, *runner.wf.stage("texture"))
     drive.mark_done("texture/rgb", prov)  # after the last frame: a killed run leaves no key to trust
     return prov
+
+
+def frame_textures(url: str, path: str, start: int, stop: int, key: str, puppet: str, name: str,
+                   params: dict) -> None:
+    """One shard's task of :func:`run_frame_textures`: B's texture for frames [start, stop) with the
+    texture backend ``name``; the ``puppet`` collection's video-mode cache is read once per worker."""
+    root = open_store(url)
+    drive = Collection(root, path)
+    backend = st.default_registry().get("texture", name)(params)
+    cache, fiducials = st.per_process(key, lambda: load_cache(Collection(root, puppet)))
+    drive.array("texture/rgb")[start:stop] = np.stack([backend.blend(cache, fiducials, t).round().astype(np.uint8)
+                                                       for t in drive.array("target")[start:stop]])
 
 
 def run_mouth(runner, coll: Collection) -> Provenance:

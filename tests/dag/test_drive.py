@@ -295,39 +295,28 @@ def test_a_run_killed_during_the_frame_textures_resumes_to_complete_textures(tmp
     wf = yaml.safe_load(path.read_text())
     wf["photos_per_shard"] = 4
     path.write_text(yaml.safe_dump(wf))
-    real = texture_module.texture_backend
-    calls = []
+    real = texture_module.frame_textures
+    shards = []
 
-    class Dying:
-        def __init__(self, backend):
-            self.backend = backend
+    def dying(*args):
+        shards.append(args[2])
+        if len(shards) == 2:  # the first shard of 4 frames written, the second not
+            raise KeyboardInterrupt
+        return real(*args)
 
-        def __getattr__(self, name):
-            return getattr(self.backend, name)
-
-        def blend(self, *args):
-            calls.append(1)
-            if len(calls) == 7:  # the neutral texture, the first shard of 4 frames, 2 of the next
-                raise KeyboardInterrupt
-            return self.backend.blend(*args)
-
-    def dying_backend(runner):
-        name, params, backend = real(runner)
-        return name, params, Dying(backend)
-
-    monkeypatch.setattr(texture_module, "texture_backend", dying_backend)
+    monkeypatch.setattr(texture_module, "frame_textures", dying)
     with pytest.raises(KeyboardInterrupt):
         run_workflow(load_workflow(path), scheduler="sync", progress=False)
     root = open_store(str(tmp_path / "run.zarr"), mode="r")
     assert Collection(root, "drive").provenance("texture/rgb") is None  # not to be trusted
-    monkeypatch.setattr(texture_module, "texture_backend", real)
+    monkeypatch.setattr(texture_module, "frame_textures", real)
     run_workflow(load_workflow(path), scheduler="sync", progress=False)
     root = open_store(str(tmp_path / "run.zarr"), mode="r")
     drive, puppet = Collection(root, "drive"), Collection(root, "puppet")
     textures = drive.array("texture/rgb")[:]
     assert textures.reshape(len(textures), -1).max(axis=1).min() > 0  # no black frame
     cache, fiducials = texture_module.load_cache(puppet)
-    backend = real(type("R", (), {"wf": load_workflow(path)})())[2]
+    backend = texture_module.texture_backend(type("R", (), {"wf": load_workflow(path)})())[2]
     for t in (1, 5, 7):
         expect = backend.blend(cache, fiducials, drive.array("target")[t]).round().astype(np.uint8)
         np.testing.assert_array_equal(textures[t], expect)
