@@ -62,8 +62,7 @@ def video_aligned(coll: Collection, ok: np.ndarray, backend, alignment: str | No
     if alignment == "own":
         target = coll.array("aligned/mean_fiducials")[...].astype(np.float64)
         return backend.params.aligned(texture_photos(coll, ok), target)
-    return Aligned(coll.array("collection/rgb").oindex[ok].astype(np.float32),
-                   coll.array("collection/mask").oindex[ok])
+    return Aligned(coll.rows("collection/rgb", ok).astype(np.float32), coll.rows("collection/mask", ok))
 
 
 def run_texture(runner, coll: Collection, aligned: Provenance) -> dict[str, str]:
@@ -107,8 +106,8 @@ def load_cache(coll: Collection) -> tuple[BlendCache, np.ndarray]:
     ok = np.flatnonzero(coll.state("align") == OK)
     levels = sum(1 for key in coll.group["texture"].array_keys() if key.startswith("weighted_"))
     params = coll.provenance("texture/neutral").params
-    weighted = [coll.array(f"texture/weighted_{k}").oindex[ok] for k in range(levels)]
-    detail = [coll.array(f"texture/detail_{k}").oindex[ok] for k in range(levels)]
+    weighted = [coll.rows(f"texture/weighted_{k}", ok) for k in range(levels)]
+    detail = [coll.rows(f"texture/detail_{k}", ok) for k in range(levels)]
     cache = BlendCache(weighted, detail, level_bias(levels, params["beta"], params["tau"]))
     return cache, coll.array("aligned/fiducials")[:][ok].astype(np.float64)
 

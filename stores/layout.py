@@ -162,6 +162,12 @@ class Collection:
                                  "run the workflow again: a run replaces arrays it cannot open") from exc
         return self._arrays[name]
 
+    def rows(self, name: str, rows: np.ndarray) -> np.ndarray:
+        """The photos ``rows`` of a per-photo array: read whole, then indexed. For most of a
+        collection this is far faster than zarr's orthogonal indexing (Bush's 530-photo texture
+        cache: 2.1 s against 8.1 s), which reads and decodes chunk by chunk."""
+        return self.array(name)[:][np.asarray(rows)]
+
     def has(self, name: str) -> bool:
         try:
             self.array(name)
