@@ -233,7 +233,11 @@ class _Lines:
     def __init__(self, what: str, total: int, unit: str, initial: int):
         self.what, self.total, self.unit, self.done = " ".join(what.split()), total, unit, initial
         self.start = time.monotonic()
-        self._say(f"started: {total} {unit}s" + (f", {initial} done before" if initial else ""))
+        self._say(f"started: {total} {self.units}" + (f", {initial} done before" if initial else ""))
+
+    @property
+    def units(self) -> str:
+        return self.unit if self.total == 1 else f"{self.unit}s"
 
     def _say(self, text: str) -> None:
         print(f"{time.strftime('%H:%M:%S')} {self.what}: {text}", file=sys.stderr, flush=True)
@@ -243,7 +247,7 @@ class _Lines:
 
     def close(self) -> None:
         if self.start is not None:
-            self._say(f"done: {self.done} of {self.total} {self.unit}s in {time.monotonic() - self.start:.1f} s")
+            self._say(f"done: {self.done} of {self.total} {self.units} in {time.monotonic() - self.start:.1f} s")
             self.start = None
 
     def __enter__(self):
@@ -410,11 +414,14 @@ class Runner:
     @contextmanager
     def step(self, stage: str, collection: str):
         """A collection-level step (shape, texture, motion, ...) as the lifecycle hooks and the
-        timing table see a stage: before, after (with its wall time) or error."""
+        timing table see a stage: before, after (with its wall time) or error; and as progress, one
+        step that starts and ends (a log gets a line each, with the time taken)."""
         self.pm.hook.persona_before_stage(stage=stage, collection=collection, info={})
         start = time.perf_counter()
         try:
-            yield
+            with self.progress_bar(f"{collection:>13} {stage:<10}", 1, unit="step") as bar:
+                yield
+                bar.update()
         except BaseException as exc:
             self.pm.hook.persona_stage_error(stage=stage, collection=collection, error=exc)
             raise

@@ -1,6 +1,9 @@
 """End to end on synthetic faces: a puppet video, its evaluation and its report."""
 
+import contextlib
+import io
 import json
+import re
 import shutil
 
 import numpy as np
@@ -25,8 +28,22 @@ def drive_run(tmp_path_factory):
     wf = yaml.safe_load(path.read_text())
     wf["photos_per_shard"] = 4
     path.write_text(yaml.safe_dump(wf))
-    report = run_workflow(load_workflow(path), scheduler="sync", progress=False)
+    with contextlib.redirect_stderr(io.StringIO()) as log:  # not a terminal: progress as lines, as in a log file
+        report = run_workflow(load_workflow(path), scheduler="sync", progress=True)
+    (folder / "run.log").write_text(log.getvalue())
     return folder, path, report
+
+
+def test_every_stage_says_when_it_starts_and_ends(drive_run):
+    """Nothing runs silent: each stage of the timing table, per-person and per-drive steps
+    included (shape, texture, motion, videos), has a line when it starts and one when it ends."""
+    folder, _, report = drive_run
+    log = (folder / "run.log").read_text()
+    assert {"shape", "texture", "motion", "render3d", "videos"} <= {r["stage"] for r in report["stages"]}
+    for record in report["stages"]:
+        what = f"{record['collection']} {record['stage']}:"
+        assert f"{what} started:" in log and f"{what} done:" in log, what
+    assert re.search(r"puppet shape: done: 1 of 1 step in \d+\.\d s", log)
 
 
 def test_outputs_keep_the_drivers_timing(drive_run):
