@@ -52,7 +52,8 @@ def run_motion(runner, drive: Collection, retargeted: Provenance) -> Provenance:
 
     # the workflow's denoiser when it names one, else the transfer's own default (huber_rof, off-mask excluded)
     denoise = runner.wf.stage("denoise") if "denoise" in runner.wf.stages else None
-    prov = Provenance.make(stage="motion", backend="-", backend_version="1",
+    # version 2: ``mesh`` marks the step complete (1: the correspondence, written after the meshes)
+    prov = Provenance.make(stage="motion", backend="-", backend_version="2",
                            params={"transfer": motion["transfer"], "dynamics": motion["dynamics"], "denoise": denoise,
                                    "correspondence": motion["correspondence"]},
                            inputs={"dynamics": dynamics.key, "puppet_shape": puppet.provenance("shape/depth").key,
