@@ -65,7 +65,7 @@ def run_motion(runner, drive: Collection, retargeted: Provenance) -> Provenance:
     shape = driver.array("shape/mask").shape
     drive.create("motion/driver_mesh", (*shape, 3), np.float32, ("frame", "y", "x", "xyz"), prov)
     sums = runner.map_shards(drive, "meshes", driver_meshes, dynamics.key)
-    mean = (sum(sums.values()) / drive.n).astype(np.float32)
+    mean = (sum(sums[start] for start in sorted(sums)) / drive.n).astype(np.float32)  # in frame order
     drive.create_single("motion/driver_mean", mean, ("y", "x", "xyz"), prov)
 
     puppet_mask = puppet.array("shape/mask")[...]

@@ -13,6 +13,7 @@ import logging
 import os
 import sys
 import time
+from collections.abc import Callable
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 
@@ -96,7 +97,12 @@ class Executor:
         """Run fn(*args) for each args; yield results as they complete."""
         if self.client is None:
             for args in argument_lists:
-                yield fn(*args)
+                restore = one_thread()
+                try:
+                    result = fn(*args)
+                finally:
+                    restore()
+                yield result
             return
         futures = [self.client.submit(fn, *args, pure=False) for args in argument_lists]
         try:
@@ -110,7 +116,11 @@ class Executor:
         import dask
 
         if self.client is None:
-            return dask.compute(*collections, scheduler="synchronous")
+            restore = one_thread()
+            try:
+                return dask.compute(*collections, scheduler="synchronous")
+            finally:
+                restore()
         futures = self.client.compute(list(collections))
         for _ in self._as_completed(futures):
             pass
@@ -161,14 +171,32 @@ class WorkerSetup(WorkerPlugin):
         self.options = options
 
     def setup(self, worker) -> None:
-        import cv2
-
-        cv2.setNumThreads(1)
+        one_thread()  # for the worker's life
         malloc_for_arrays()
         storage.configure(self.options)
 
     def __repr__(self) -> str:  # no secrets in logs
         return "WorkerSetup(...)"
+
+
+def one_thread() -> Callable[[], None]:
+    """OpenCV and the BLAS/OpenMP pools set to one thread, in a worker (for good) and around each
+    task in-process ("sync"); returns the function that puts the earlier counts back. Dask runs a
+    task per worker thread already; a pool of a thread per core on top of it oversubscribes the
+    cores. And a task must give the same bytes whatever runs it: a BLAS sum split over two threads
+    adds in another order, and the driver's dynamics (a least-squares fit, then a flow that
+    amplifies its last bits) differed by up to 0.1 px between a run on Dask workers (BLAS on one
+    thread, as Dask's nanny sets it) and one in-process (two threads)."""
+    import cv2
+    from threadpoolctl import threadpool_limits
+
+    before, limits = cv2.getNumThreads(), threadpool_limits(1)
+    cv2.setNumThreads(1)
+
+    def restore() -> None:
+        limits.restore_original_limits()
+        cv2.setNumThreads(before)
+    return restore
 
 
 def malloc_for_arrays() -> None:

@@ -429,3 +429,36 @@ def test_a_worker_killed_mid_stage_leaves_the_run_to_the_others(tmp_path, synthe
     assert proc.returncode == 0, err
     run_workflow(load_workflow(local / "wf.yaml"), scheduler="sync", progress=False)
     assert_same_store(remote / "run.zarr", local / "run.zarr")
+
+
+def test_a_worker_killed_in_the_drive_leaves_the_run_to_the_other(tmp_path, dask_cluster):
+    """A per-frame stage: one of two workers SIGKILLed while the driver's dynamics run. The run
+    exits 0, and the drive (dynamics, meshes, textures, frames) is the one a run without the kill makes."""
+    from distributed import Client
+
+    from persona.dag.demo import make_demo_data
+
+    remote, local = tmp_path / "remote", tmp_path / "local"
+    for folder in (remote, local):
+        path = make_demo_data(folder, n_photos=10, n_frames=48)  # 12 shards of 4 frames
+        path.write_text(path.read_text().replace("photos_per_shard: 8", "photos_per_shard: 4"))
+    with Client(dask_cluster, timeout="30s") as client:
+        victim = next(iter(client.run(os.getpid).values()))
+
+    def dynamics_states():
+        try:
+            drive = Collection(open_store(remote / "run.zarr", mode="r"), "drive")
+            return drive.state("dynamics") if drive.has("status/dynamics/state") else None
+        except Exception:
+            return None
+
+    proc = subprocess.Popen([PERSONA, "run", str(remote / "demo.yaml"), "--scheduler", dask_cluster, "--quiet"],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    assert _wait_for(lambda: (s := dynamics_states()) is not None and (s != PENDING).sum() >= 4, timeout=600), \
+        "the run never got into the dynamics"
+    assert (dynamics_states() == PENDING).any(), "the kill came after the stage"
+    os.kill(victim, signal.SIGKILL)
+    _, err = proc.communicate(timeout=900)
+    assert proc.returncode == 0, err
+    run_workflow(load_workflow(local / "demo.yaml"), scheduler="sync", progress=False)
+    assert_same_store(remote / "run.zarr", local / "run.zarr")
