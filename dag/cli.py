@@ -58,18 +58,31 @@ def _free_space(path) -> str:
 
 
 def _plan(wf) -> str:
+    """Every stage the workflow runs, in order, with its settings: each collection's per-photo
+    stages and the steps over it, then the drive's (:data:`persona.dag.stages.STEPS`)."""
+    from persona.plugins.manager import default_registry
+
     from .runner import ALL_STAGES, collection_specs
-    from .workflow import BACKENDLESS
+    from .stages import STEPS
+
+    uses_mesh = default_registry().get("render", wf.stage("render")[0]).uses_mesh
+
+    def steps(where: str) -> list[str]:
+        lines = []
+        for step in STEPS.values():
+            if where in step.where and step.mesh in (None, uses_mesh):
+                lines.append(f"    {step.name:<14} {step.makes} ({step.runs})")
+                lines += [f"      {_setting(wf, kind)}" for kind in step.settings]
+        return lines
 
     lines = [f"workflow {wf.name}: store {wf.store}, output {wf.output}"]
     for path, spec in collection_specs(wf):
         lines.append(f"  {path}: {spec}")
-        for stage in ALL_STAGES:
-            if stage in BACKENDLESS:
-                lines.append(f"    {stage:<10} {json.dumps(wf.backendless(stage))}")
-            else:
-                backend, params = wf.stage(stage)
-                lines.append(f"    {stage:<10} {backend} {json.dumps(params)}")
+        lines += [f"    {_setting(wf, stage)}" for stage in ALL_STAGES]
+        lines += steps(path) if path != "driver/frames" else []  # a video gives frames, not a 3D shape
+    if wf.driver is not None and wf.driver.video is not None:
+        lines.append("  drive: the puppet performing driver/frames, frame by frame")
+        lines += steps("drive")
     c = wf.cluster
     if c.kind == "local":
         lines.append(f"  cluster: {c.scheduler} (workers: {c.workers or 'one per core'})")
@@ -77,6 +90,18 @@ def _plan(wf) -> str:
         lines.append(f"  cluster: {c.kind}, {c.jobs} job(s) of {c.cores} core(s) and {c.memory}, "
                      f"queue {c.queue or '(default)'}, walltime {c.walltime}")
     return "\n".join(lines)
+
+
+def _setting(wf, kind: str) -> str:
+    """A stage kind's settings in the plan: its backend, if it has any, and its params."""
+    from .workflow import BACKENDLESS
+
+    if kind in BACKENDLESS:
+        return f"{kind:<10} {json.dumps(wf.backendless(kind))}"
+    if kind == "denoise" and kind not in wf.stages:
+        return f"{kind:<10} (none: stages.denoise not set)"
+    backend, params = wf.stage(kind)
+    return f"{kind:<10} {backend} {json.dumps(params)}"
 
 
 def _resolved_stages(wf) -> dict:

@@ -443,7 +443,10 @@ class Runner:
     def step(self, stage: str, collection: str):
         """A collection-level step (shape, texture, motion, ...) as the lifecycle hooks and the
         timing table see a stage: before, after (with its wall time) or error; and as progress, one
-        step that starts and ends (a log gets a line each, with the time taken)."""
+        step that starts and ends (a log gets a line each, with the time taken). ``stage`` is one
+        of :data:`persona.dag.stages.STEPS`."""
+        if stage not in st.STEPS:
+            raise KeyError(f"{stage!r} is not in persona.dag.stages.STEPS, which the plan shows")
         self.pm.hook.persona_before_stage(stage=stage, collection=collection, info={})
         start = time.perf_counter()
         try:

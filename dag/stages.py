@@ -68,6 +68,41 @@ class PhotoStage:
     context: Callable[..., dict] | None = field(default=None, repr=False)
 
 
+@dataclass(frozen=True)
+class Step:
+    """A step after a collection's per-photo stages, over the whole collection or the drive: where
+    it runs, the workflow's stage settings it reads (``stages.<kind>``), what it makes, and how it
+    runs (Dask tasks over shards, or one piece of work in the client). ``STEPS`` lists them in the
+    order a run takes them; the plan (``persona run --dry-run``, ``persona validate``) and the
+    progress lines (:meth:`persona.dag.runner.Runner.step`) read it."""
+
+    name: str
+    where: tuple[str, ...]
+    settings: tuple[str, ...]
+    makes: str
+    runs: str = "tasks over shards"
+    mesh: bool | None = None  # True: for renderers of the 3D puppet only; False: for the others only
+
+
+STEPS = {step.name: step for step in (
+    Step("align", ("puppet", "driver"), ("align", "flow"), "the appearance subspace, then each photo's flow to the "
+         "mean face", "the client (subspace), then tasks over shards"),
+    Step("shape", ("puppet", "driver"), ("shape", "integrate"), "depth, albedo and meshes by photometric stereo",
+         "the client"),
+    Step("texture", ("puppet",), ("texture",), "the expression-dependent texture's cache of aligned photos",
+         "the client"),
+    Step("retarget", ("drive",), ("motion",), "the driver's smoothed poses and B's target fiducials", "the client"),
+    Step("frame textures", ("drive",), ("texture",), "B's face for each frame's expression"),
+    Step("dynamics", ("drive",), ("flow", "motion"), "the driver's per-frame 3D flow", mesh=True),
+    Step("motion", ("drive",), ("motion", "denoise"), "A's meshes, then B's by deformation transfer", mesh=True),
+    Step("mouth", ("puppet",), ("render",), "the inside of B's mouth from its widest-open photos", "the client",
+         mesh=True),
+    Step("render", ("drive",), ("render",), "the puppet's frames"),
+    Step("videos", ("drive",), (), "puppet.mp4, side_by_side.mp4, composite.mp4", "the client"),
+    Step("evaluate", ("drive",), ("identity",), "metrics.json and report.html", "tasks over shards, then the client"),
+)}
+
+
 def _photo(inputs: dict) -> np.ndarray:
     h, w = inputs["photos/size"]
     return inputs["photos/rgb"][:h, :w]

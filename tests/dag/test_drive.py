@@ -46,6 +46,23 @@ def test_every_stage_says_when_it_starts_and_ends(drive_run):
     assert re.search(r"puppet shape: done: 1 of 1 step in \d+\.\d s", log)
 
 
+def test_the_plan_shows_every_stage_the_run_runs(drive_run, capsys):
+    """`persona run --dry-run` lists, under each collection and the drive, every stage that the
+    run's timing table shows there, the steps over a whole collection included."""
+    folder, path, report = drive_run
+    assert cli(["run", str(path), "--dry-run"]) == 0
+    plan, where = {}, None
+    for line in capsys.readouterr().out.splitlines():
+        if re.match(r"  \S", line):  # a collection's or the drive's heading
+            where = line.split(":")[0].strip()
+        elif re.match(r"    \S", line):  # a stage under it (its settings are indented further)
+            plan.setdefault(where, []).append(re.match(r"(frame textures|\S+)", line[4:]).group(1))
+    for record in report["stages"]:
+        assert record["stage"].replace("render3d", "render") in plan[record["collection"]], record
+    assert plan["drive"] == ["retarget", "frame textures", "dynamics", "motion", "render", "videos", "evaluate"]
+    assert plan["puppet"][-4:] == ["align", "shape", "texture", "mouth"]
+
+
 def test_outputs_keep_the_drivers_timing(drive_run):
     folder, _, report = drive_run
     out = folder / "output"
