@@ -589,6 +589,7 @@ class Runner:
                         with self.step("texture", path):
                             pictures.update(run_texture(self, coll, aligned))
                 except Rejected as exc:  # e.g. too few photos for photometric stereo: the run goes on
+                    coll.remove("shape", "texture")  # an earlier run's: nothing later may take them for this one's
                     self.shape_problems[path] = exc.reason
                     log.warning("%s: no 3D shape: %s", path, exc.reason)
                     report.setdefault("warnings", []).append(f"{path}: no 3D shape: {exc.reason}")

@@ -81,8 +81,7 @@ def run_texture(runner, coll: Collection, aligned: Provenance) -> dict[str, str]
         cache = backend.cache(video_aligned(coll, ok, backend, params.get("video_alignment")))
     except NotImplementedError:
         log.warning("texture backend %s has no video mode: the drive shows the static average", name)
-        if coll.has("texture/neutral"):  # another backend's, from an earlier run
-            del coll.group["texture/neutral"]
+        coll.remove("texture/neutral")  # another backend's, from an earlier run
         return {}
     row = np.full(coll.n, -1)
     row[ok] = np.arange(len(ok))
@@ -170,8 +169,7 @@ def run_mouth(runner, coll: Collection) -> Provenance:
         h, w = sizes[i]
         photos.append((coll.array("photos/rgb")[int(ok[i])][:h, :w], points[i]))
     interior = mouth.interior(photos)
-    if coll.has("texture/mouth"):  # an earlier run's
-        del coll.group["texture/mouth"]
+    coll.remove("texture/mouth")  # an earlier run's
     if interior is None:
         log.warning("%s: no photo with the lips %.2f inter-ocular distances apart; the puppet's mouth shows "
                     "no interior when it opens", coll.path, settings["min_gap"])

@@ -168,6 +168,13 @@ class Collection:
         cache: 2.1 s against 8.1 s), which reads and decodes chunk by chunk."""
         return self.array(name)[:][np.asarray(rows)]
 
+    def remove(self, *names: str) -> None:
+        """Delete the arrays or groups ``names`` that exist: an earlier run's outputs that this run
+        does not make again, so that nothing later reads them as its own."""
+        for name in names:
+            if name in self.group:
+                del self.group[name]
+
     def has(self, name: str) -> bool:
         try:
             self.array(name)

@@ -126,6 +126,24 @@ def test_changed_params_rerun_only_what_depends_on_them(tmp_path, synthetic_phot
     assert first["stages"][0]["n_done"] == 6
 
 
+def test_a_shape_that_cannot_be_built_again_leaves_none_behind(tmp_path, synthetic_photos):
+    """A re-run with too few photos for a shape says so and clears the earlier run's shape and
+    texture: nothing downstream (a drive, `persona evaluate`) can take them for this run's."""
+    photos = write_photos(tmp_path / "photos", synthetic_photos[:9])
+    path = write_workflow(tmp_path, "photos", stages={"landmarks": {"backend": "sidecar"}})
+    run_workflow(load_workflow(path), scheduler="sync", progress=False)
+    puppet = Collection(open_store(tmp_path / "run.zarr", mode="r"), "puppet")
+    assert puppet.has("shape/depth") and puppet.has("texture/neutral")
+    for stem in sorted({f.stem for f in photos.iterdir()})[:3]:
+        for f in photos.glob(stem + ".*"):
+            f.unlink()
+    again = run_workflow(load_workflow(path), scheduler="sync", progress=False)
+    assert "puppet: no 3D shape: shape: 6 images, need at least 8" in again["warnings"][0]
+    puppet = Collection(open_store(tmp_path / "run.zarr", mode="r"), "puppet")
+    assert not puppet.has("shape/depth") and not puppet.has("texture/neutral")
+    assert "mesh_ply" not in again["collections"]["puppet"]["pictures"]
+
+
 def test_unknown_backend_fails_before_any_compute(tmp_path, capsys):
     (tmp_path / "photos").mkdir()
     path = write_workflow(tmp_path, "photos", stages={"landmarks": {"backend": "dlibb"}})
