@@ -8,7 +8,9 @@ Figures (paper §6, with dlib's descriptor and landmarks only; nothing downloade
   width between A's video and the output (landmarks found anew in the output frames);
 - amplitude: for the same signals, the gain (slope of the output's signal on the driver's:
   1 = the same amplitude, which a correlation cannot see), the correlation and both ranges;
-- stability: landmark jitter and face-colour flicker, output over driver; and the texture's own
+- stability: landmark jitter and face-colour flicker, output over driver; the jitter also on
+  composite.mp4's frames (the output as a viewer sees it: B's face in A's frame, with A's jaw line,
+  where on the face alone dlib guesses a jaw below a puppet whose mask ends above the chin); the texture's own
   change from frame to frame (B's synthesized texture against A's frontalized frames, both in
   the canonical frame, median mean absolute change inside the face: details that come and go);
 - composite: the seam of composite.mp4 along the rendered face's edge (colour step across it beyond
@@ -69,6 +71,7 @@ def analyse_frames(url: str, start: int, stop: int, identity: tuple[str, dict], 
     detector, backend = DlibLandmarks(), _identity(identity)
     n = stop - start
     landmarks = np.full((n, 68, 2), np.nan)
+    composite_landmarks = np.full((n, 68, 2), np.nan)  # on composite.mp4's frames
     descriptors = np.full((n, 128), np.nan)
     psnr, ssim = np.full(n, np.nan), np.full(n, np.nan)
     seams = {"multiband": [], "paste": []}
@@ -76,6 +79,11 @@ def analyse_frames(url: str, start: int, stop: int, identity: tuple[str, dict], 
         try:
             landmarks[j] = detector.detect(rendered[j]).points
             descriptors[j] = backend.describe(rendered[j], landmarks[j])
+        except Rejected:
+            pass
+        try:
+            blended = composite.multiband(rendered[j], original[j], alphas[j].astype(np.float32) / 255)
+            composite_landmarks[j] = detector.detect(blended).points
         except Rejected:
             pass
         if compare and masks[j].any():
@@ -88,7 +96,8 @@ def analyse_frames(url: str, start: int, stop: int, identity: tuple[str, dict], 
     face = generic_template().mask  # B's synthesized textures and A's frontalized frames, canonical
     texture_change = ev.frame_changes(drive.array("texture/rgb")[start:stop], face)
     driver_change = ev.frame_changes(frames.array("aligned/rgb")[start:stop], face)
-    return {"start": start, "landmarks": landmarks, "descriptors": descriptors, "psnr": psnr, "ssim": ssim,
+    return {"start": start, "landmarks": landmarks, "composite_landmarks": composite_landmarks,
+            "descriptors": descriptors, "psnr": psnr, "ssim": ssim,
             "texture_change": texture_change, "driver_change": driver_change,
             **{f"seam_{k}": np.array(v).reshape(-1, 2) for k, v in seams.items()},
             "colour_output": ev.masked_mean_colours(rendered, masks),
@@ -123,6 +132,8 @@ def evaluate(store: str, executor, *, identity: tuple[str, dict], threshold: flo
     identity_figures = ev.identity_figures(joined["descriptors"], centroids["puppet"], centroids["driver"], threshold)
     video = ev.compare_videos(driver_landmarks, joined["landmarks"])
     stability = video["stability"]
+    stability["jitter_composite"] = ev.jitter(joined["composite_landmarks"])
+    stability["jitter_ratio_composite"] = _ratio(stability["jitter_composite"], stability["jitter_driver"])
     stability["colour_change_driver"] = ev.flicker(joined["colour_driver"])
     stability["colour_change_output"] = ev.flicker(joined["colour_output"])
     stability["colour_change_ratio"] = _ratio(stability["colour_change_output"], stability["colour_change_driver"])

@@ -84,6 +84,7 @@ def _table(rows: list[tuple]) -> str:
 
 #: what is good for each stability figure, and its target where there is one
 _STABILITY = {"jitter_ratio": "lower is better; target ≤ 1 (the output as steady as the driver)",
+              "jitter_ratio_composite": "the same on composite.mp4 (B's face in A's frame, A's jaw line)",
               "colour_change_ratio": "lower is better; target ≤ 1",
               "texture_change_ratio": "lower is better; ≤ 1: B's texture changes no more than A's face does"}
 

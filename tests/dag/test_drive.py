@@ -95,7 +95,7 @@ def test_metrics_json_has_counts_times_and_figures(drive_run):
     ev = metrics["evaluation"]
     assert set(ev["expression"]) == set(ev["amplitude"]) == {"mouth_open", "eye_open", "brow_height", "mouth_width"}
     assert 0 <= ev["identity"]["fraction_b_not_a"] <= 1
-    assert ev["stability"]["jitter_ratio"] > 0
+    assert ev["stability"]["jitter_ratio"] > 0 and ev["stability"]["jitter_ratio_composite"] > 0
 
 
 def test_shape_stage_writes_meshes_and_previews(drive_run):
