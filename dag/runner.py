@@ -36,7 +36,7 @@ from .shape import run_alignment, run_shape
 from .texture import run_texture
 from .evaluate import evaluate
 from .report import write_run_report
-from .workflow import Cluster, VideoRange, Workflow
+from .workflow import TLS, Cluster, VideoRange, Workflow
 
 log = logging.getLogger(__name__)
 
@@ -64,7 +64,8 @@ class Executor:
     :class:`Cluster` of a batch kind, see :mod:`persona.dag.batch`) or, for "sync", in-process."""
 
     def __init__(self, scheduler: str, workers: int | None, threads_per_worker: int = 1,
-                 memory_limit: str = "auto", batch: Cluster | None = None, storage_options: dict | None = None):
+                 memory_limit: str = "auto", batch: Cluster | None = None, storage_options: dict | None = None,
+                 tls: TLS | None = None):
         self.scheduler = scheduler
         self.client = None
         self._cluster = None
@@ -85,11 +86,22 @@ class Executor:
                 silence_logs=logging.ERROR)
             self.client = Client(self._cluster)
         else:
+            security = None
+            if tls is None and scheduler.startswith("tls://"):  # --scheduler tls://... on a workflow without
+                raise RunError(f'"{scheduler}" speaks TLS: give this machine\'s certificate as cluster.tls '
+                               "{ca_file, cert, key} in the workflow (docs/cluster.md, Security)")
+            if tls is not None:  # mutual TLS: the scheduler checks this certificate, this side the scheduler's
+                from distributed.security import Security
+
+                security = Security(tls_ca_file=tls.ca_file, tls_client_cert=tls.cert, tls_client_key=tls.key,
+                                    require_encryption=True)
             try:
-                self.client = Client(scheduler, timeout="20s")
+                self.client = Client(scheduler, timeout="20s", security=security)
             except OSError as exc:
                 raise RunError(f"cannot reach the Dask scheduler at {scheduler}: {exc}. Start one with "
-                               "`dask scheduler` and `dask worker ADDRESS`, or use --scheduler local") from None
+                               "`dask scheduler` and `dask worker ADDRESS`, or use --scheduler local"
+                               + (" (a tls:// scheduler takes only a certificate its CA signed: cluster.tls)"
+                                  if scheduler.startswith("tls://") else "")) from None
         # every worker, on any machine: object storage reached as this process does, one OpenCV thread
         self.client.register_plugin(WorkerSetup(storage_options), name="persona-worker")
 
@@ -663,7 +675,7 @@ def executor_for(wf: Workflow, scheduler: str | None = None, workers: int | None
         logs = c.log_directory or str(storage.join(wf.output, "worker-logs"))
         batch = c.model_copy(update={"log_directory": logs})
     ex = Executor(scheduler or c.scheduler, workers or c.workers, c.threads_per_worker, c.memory_limit, batch,
-                  wf.storage_options.fsspec())
+                  wf.storage_options.fsspec(), c.tls)
     try:
         yield ex
     finally:

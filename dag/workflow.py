@@ -59,6 +59,18 @@ class StageConfig(Strict):
     params: dict[str, Any] = Field(default_factory=dict, description="the backend's parameters")
 
 
+class TLS(Strict):
+    """This machine's certificate for a scheduler that speaks TLS (``tls://`` addresses): the
+    scheduler and every worker then check each other's certificates against ``ca_file`` and talk
+    encrypted, so only holders of a certificate the CA signed can send the scheduler code to run
+    (docs/cluster.md, Security)."""
+
+    ca_file: str = Field(description="the certificate authority's certificate (PEM) that signed the scheduler's, "
+                         "the workers' and this one")
+    cert: str = Field(description="this machine's certificate (PEM)")
+    key: str = Field(description="its private key (PEM)")
+
+
 class Cluster(Strict):
     """Where the Dask workers run: a local cluster (default), an existing scheduler, or worker jobs
     submitted to a batch scheduler (SLURM, PBS, SGE, LSF) through dask-jobqueue (docs/cluster.md)."""
@@ -94,6 +106,8 @@ class Cluster(Strict):
                                       "(batch kinds); default: OUTPUT/worker-logs")
     start_timeout: float = Field(600, gt=0, description="seconds to wait for the first worker of the batch jobs "
                                  "to join before the run stops with the job ids (they may still be queued)")
+    tls: TLS | None = Field(None, description="certificates for a scheduler address of tls://: encrypted, and "
+                            "only machines with a certificate of the same CA get in (docs/cluster.md)")
 
     @field_validator("scheduler")
     @classmethod
@@ -118,6 +132,11 @@ class Cluster(Strict):
         if self.kind != "local" and self.scheduler != "local":
             raise ValueError(f'kind "{self.kind}" starts its own scheduler; scheduler "{self.scheduler}" connects '
                              "to an existing one: give one of the two")
+        if self.tls is not None and not self.scheduler.startswith("tls://"):
+            raise ValueError(f'tls is for a scheduler address of tls://HOST:PORT, not "{self.scheduler}"')
+        if self.scheduler.startswith("tls://") and self.tls is None:
+            raise ValueError(f'"{self.scheduler}" speaks TLS: give this machine\'s certificate as cluster.tls '
+                             "{ca_file, cert, key}")
         return self
 
 
@@ -349,6 +368,9 @@ def _resolve_paths(wf: Workflow, base: Path) -> None:
     wf.output = _resolve(wf.output, base)
     if wf.cluster.log_directory is not None:
         wf.cluster.log_directory = _resolve(wf.cluster.log_directory, base)
+    if wf.cluster.tls is not None:
+        for name in ("ca_file", "cert", "key"):
+            setattr(wf.cluster.tls, name, _resolve(getattr(wf.cluster.tls, name), base))
     for actor in (wf.puppet, wf.driver):
         if actor is None:
             continue
@@ -400,6 +422,11 @@ def parse_workflow(data: Any, *, source: str = "<workflow>", base_dir: str | Pat
     if errors:
         raise WorkflowError(source, errors)
     _resolve_paths(wf, Path(base_dir))
+    if wf.cluster.tls is not None:
+        missing = [(f"cluster.tls.{name}", f"{path} is not a file: give the PEM file's path (relative to the "
+                    "workflow's folder)") for name, path in wf.cluster.tls.model_dump().items() if not Path(path).is_file()]
+        if missing:
+            raise WorkflowError(source, missing)
     storage.configure(wf.storage_options.fsspec())  # this process's; the runner's Dask workers get them too
     return wf
 

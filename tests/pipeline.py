@@ -1,5 +1,6 @@
 """Helpers for pipeline tests: synthetic collections on disk, workflows, store comparison."""
 
+import subprocess
 from pathlib import Path
 
 import numpy as np
@@ -48,3 +49,20 @@ def assert_same_store(a, b):
             np.testing.assert_allclose(x, y, rtol=1e-6, atol=1e-6, equal_nan=True, err_msg=name)
         else:
             np.testing.assert_array_equal(x, y, err_msg=name)
+
+
+def make_certificates(folder: Path) -> dict[str, str]:
+    """A CA made with openssl, and one certificate it signs: {ca_file, cert, key} (PEM files)."""
+    folder.mkdir(parents=True)
+    files = {"ca_file": folder / "ca.pem", "cert": folder / "cert.pem", "key": folder / "key.pem"}
+
+    def openssl(*args):
+        subprocess.run(["openssl", *map(str, args)], check=True, capture_output=True)
+
+    openssl("req", "-x509", "-newkey", "rsa:2048", "-nodes", "-days", "1", "-subj", "/CN=persona test CA",
+            "-keyout", folder / "ca-key.pem", "-out", files["ca_file"])
+    openssl("req", "-newkey", "rsa:2048", "-nodes", "-subj", "/CN=127.0.0.1", "-keyout", files["key"],
+            "-out", folder / "cert.csr")
+    openssl("x509", "-req", "-in", folder / "cert.csr", "-CA", files["ca_file"], "-CAkey", folder / "ca-key.pem",
+            "-CAcreateserial", "-days", "1", "-out", files["cert"])
+    return {k: str(v) for k, v in files.items()}
