@@ -317,7 +317,7 @@ def _cmd_inspect(args) -> int:
         return 0
     print(f"store {summary['store']}")
     for path, c in summary["collections"].items():
-        print(f"\n{path}: {c['n_photos']} photos — {c['accepted']} accepted, {c['rejected']} rejected"
+        print(f"\n{path}: {c['n_photos']} {item(path)}s — {c['accepted']} accepted, {c['rejected']} rejected"
               + (f", {c['pending']} pending" if c["pending"] else ""))
         for reason, count in c["rejected_by_reason"].items():
             print(f"  {count:5d} × {reason}")
