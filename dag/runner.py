@@ -102,6 +102,8 @@ class Executor:
                                "`dask scheduler` and `dask worker ADDRESS`, or use --scheduler local"
                                + (" (a tls:// scheduler takes only a certificate its CA signed: cluster.tls)"
                                   if scheduler.startswith("tls://") else "")) from None
+        # a lost scheduler: the client logs each reconnection attempt's traceback; the run says it once (_lost)
+        logging.getLogger("distributed.client").setLevel(logging.CRITICAL)
         # every worker, on any machine: object storage reached as this process does, one OpenCV thread
         self.client.register_plugin(WorkerSetup(storage_options), name="persona-worker")
 
@@ -143,15 +145,22 @@ class Executor:
 
     def _as_completed(self, futures):
         """The futures as they finish. When every worker is gone (killed, out of walltime) and none
-        comes back within ``workerless_seconds``, a RunError rather than a wait without end."""
+        comes back within ``workerless_seconds``, or the scheduler itself is lost, a RunError rather
+        than a wait without end or a traceback."""
+        from concurrent.futures import CancelledError
+
         from distributed import wait
 
         remaining, gone_since = set(futures), None
         while remaining:
             try:
                 done, remaining = wait(remaining, timeout=2, return_when="FIRST_COMPLETED")
+            except CancelledError:  # Persona cancels none while it waits: the scheduler did, or is gone
+                raise self._lost() from None
             except TimeoutError:  # nothing finished in 2 s: is anyone still working?
-                if self.client.scheduler_info(n_workers=1)["workers"]:
+                if self.client.status != "running":
+                    raise self._lost() from None
+                if self.client.scheduler_info(n_workers=1).get("workers"):
                     gone_since = None
                 elif gone_since is None:
                     gone_since = time.monotonic()
@@ -164,6 +173,11 @@ class Executor:
                                    "workflow to resume") from None
                 continue
             yield from done
+
+    def _lost(self) -> RunError:
+        return RunError(f"the run lost the connection to its Dask scheduler ({self.scheduler}): it stopped, or "
+                        "the network between them did. Finished shards are kept: start the scheduler and its "
+                        "workers again (or run locally) and re-run the workflow to resume")
 
     def close(self):
         if self.client is not None:

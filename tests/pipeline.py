@@ -1,6 +1,9 @@
 """Helpers for pipeline tests: synthetic collections on disk, workflows, store comparison."""
 
+import os
+import socket
 import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -66,3 +69,38 @@ def make_certificates(folder: Path) -> dict[str, str]:
     openssl("x509", "-req", "-in", folder / "cert.csr", "-CA", files["ca_file"], "-CAkey", folder / "ca-key.pem",
             "-CAcreateserial", "-days", "1", "-out", files["cert"])
     return {k: str(v) for k, v in files.items()}
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def local_cluster(folder: Path, protocol: str = "tcp", tls: list[str] = (), security=None):
+    """A real dask scheduler and two workers on 127.0.0.1, as separate processes; yields the address."""
+    port = free_port()
+    address = f"{protocol}://127.0.0.1:{port}"
+    dask = str(Path(sys.executable).with_name("dask"))
+    env = {**os.environ, "PERSONA_PLUGINS": ""}
+    procs = [subprocess.Popen([dask, "scheduler", "--protocol", protocol, "--host", "127.0.0.1", "--port", str(port),
+                               "--no-dashboard", *tls], env=env, cwd=folder,
+                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)]
+    for _ in range(2):
+        procs.append(subprocess.Popen([dask, "worker", address, "--nthreads", "1", "--no-dashboard",
+                                       "--host", "127.0.0.1", *tls], env=env, cwd=folder,
+                                      stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+    try:
+        from distributed import Client
+
+        with Client(address, timeout="60s", security=security) as client:
+            client.wait_for_workers(2, timeout=60)
+        yield address
+    finally:
+        for p in reversed(procs):
+            p.terminate()
+        for p in procs:
+            try:
+                p.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                p.kill()

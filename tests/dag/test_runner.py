@@ -15,7 +15,7 @@ from persona.dag.runner import run_workflow
 from persona.dag.workflow import load_workflow
 from persona.stores.layout import PENDING, Collection, open_store, summarize
 
-from pipeline import assert_same_store, write_photos, write_workflow
+from pipeline import assert_same_store, local_cluster, write_photos, write_workflow
 
 PERSONA = str(Path(sys.executable).with_name("persona"))
 
@@ -478,5 +478,46 @@ def test_a_worker_killed_in_the_drive_leaves_the_run_to_the_other(tmp_path, dask
     os.kill(victim, signal.SIGKILL)
     _, err = proc.communicate(timeout=900)
     assert proc.returncode == 0, err
+    run_workflow(load_workflow(local / "demo.yaml"), scheduler="sync", progress=False)
+    assert_same_store(remote / "run.zarr", local / "run.zarr")
+
+
+def test_a_lost_scheduler_stops_the_run_clearly_and_a_new_one_resumes_it(tmp_path):
+    """The scheduler SIGKILLed mid-run: the run exits 2 within seconds, saying it lost the scheduler
+    and how to resume; with a new scheduler and workers the re-run gives the uninterrupted store."""
+    from distributed import Client
+
+    from persona.dag.demo import make_demo_data
+
+    remote, local = tmp_path / "remote", tmp_path / "local"
+    for folder in (remote, local):
+        make_demo_data(folder, n_photos=10, n_frames=16)
+    first = local_cluster(tmp_path)
+    address = next(first)
+    with Client(address, timeout="30s") as client:
+        scheduler = client.run_on_scheduler(os.getpid)
+
+    def aligned():
+        try:
+            return (Collection(open_store(remote / "run.zarr", mode="r"), "puppet").state("frontalize") != PENDING).sum()
+        except Exception:
+            return 0
+
+    proc = subprocess.Popen([PERSONA, "run", str(remote / "demo.yaml"), "--scheduler", address, "--quiet"],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    try:
+        assert _wait_for(lambda: aligned() >= 1, timeout=300), "the run never got going"
+        os.kill(scheduler, signal.SIGKILL)
+        _, err = proc.communicate(timeout=120)
+    finally:
+        first.close()
+    assert proc.returncode == 2, err
+    assert "the run lost the connection to its Dask scheduler" in err and "re-run the workflow to resume" in err
+    assert "Traceback" not in err, err
+    second = local_cluster(tmp_path)
+    try:
+        assert cli(["run", str(remote / "demo.yaml"), "--scheduler", next(second), "--quiet"]) == 0
+    finally:
+        second.close()
     run_workflow(load_workflow(local / "demo.yaml"), scheduler="sync", progress=False)
     assert_same_store(remote / "run.zarr", local / "run.zarr")
