@@ -300,8 +300,11 @@ class _Lines:
         self.done += n
 
     def close(self) -> None:
+        """The step's last line: "done" when every item is counted, "stopped" when the run stopped
+        before (an error, a kill of the scheduler, Ctrl-C)."""
         if self.start is not None:
-            self._say(f"done: {self.done} of {self.total} {self.units} in {time.monotonic() - self.start:.1f} s")
+            word = "done" if self.done >= self.total else "stopped"
+            self._say(f"{word}: {self.done} of {self.total} {self.units} in {time.monotonic() - self.start:.1f} s")
             self.start = None
 
     def __enter__(self):

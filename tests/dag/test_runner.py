@@ -296,6 +296,10 @@ def test_progress_in_a_log_file_is_one_timestamped_line_per_start_and_end(capsys
     assert re.fullmatch(r"\d\d:\d\d:\d\d drive render3d: done: 12 of 12 frames in \d+\.\d s", lines[1]), lines[1]
     assert lines[2].endswith("puppet landmarks: started: 5 photos, 2 done before")
     assert "done: 5 of 5 photos" in lines[3]
+    with pytest.raises(KeyboardInterrupt), progress("driver align", 10, "photo") as bar:
+        bar.update(2)
+        raise KeyboardInterrupt  # the run stops mid-step: its line says so, not "done"
+    assert "driver align: stopped: 2 of 10 photos in" in capsys.readouterr().err
 
 
 def test_the_local_cluster_listens_on_loopback_only():
