@@ -37,14 +37,15 @@ def run_drive(runner) -> Collection:
     found = st.accepted(frames)
     inputs = {"frames": frames.provenance("status/screen/state").key,
               "puppet": puppet.provenance("aligned/mean").key}
-    sigma = runner.motion_params()["pose_sigma"]
-    prov = Provenance.make(stage="retarget", backend="-", backend_version="2", params={"pose_sigma": sigma},
+    sigma, lips = runner.motion_params()["pose_sigma"], runner.motion_params()["lips"]
+    prov = Provenance.make(stage="retarget", backend="-", backend_version="2",
+                           params={"pose_sigma": sigma, **({"lips": lips} if lips != "mean" else {})},
                            inputs=inputs, persona_version=runner.version)
     drive = Collection(runner.root, "drive")
     current = drive.provenance("status/retarget/state") if drive.exists() else None
     # the status is created before the targets and written after them: done only when no frame is pending
     if current is None or current.key != prov.key or (drive.state("retarget") == PENDING).any():
-        _retarget(runner, drive, frames, puppet, found, prov, sigma)
+        _retarget(runner, drive, frames, puppet, found, prov, sigma, lips)
     with runner.step("frame textures", "drive"):
         textures = run_frame_textures(runner, drive, puppet, prov)
     inputs = {"retarget": prov.key, "texture": textures.key}
@@ -64,7 +65,7 @@ def run_drive(runner) -> Collection:
     return drive
 
 
-def _retarget(runner, drive, frames, puppet, found, prov, sigma: float) -> None:
+def _retarget(runner, drive, frames, puppet, found, prov, sigma: float, lips: str) -> None:
     n = frames.n
     group = runner.root.require_group("drive")
     group.attrs.update({"n_photos": n, "photos_per_shard": runner.wf.photos_per_shard,
@@ -74,7 +75,7 @@ def _retarget(runner, drive, frames, puppet, found, prov, sigma: float) -> None:
     pose[:, :6] = smooth_in_time(pose[:, :6], sigma)  # rvec, tvec
     driver_fiducials = bridge(fiducials, found)
     target = retarget(driver_fiducials, mean_shape(fiducials[found]),
-                      puppet.array("aligned/mean_fiducials")[...].astype(np.float64))
+                      puppet.array("aligned/mean_fiducials")[...].astype(np.float64), lips=lips)
     for name, value, tail, dims in (
             ("target", target, (49, 2), ("frame", "fiducial", "xy")),
             ("pose", pose, (10,), ("frame", "field")),

@@ -256,6 +256,11 @@ class CorrespondenceParams(FlowChoice):
 class MotionParams(Strict):
     pose_sigma: float = Field(1.5, ge=0, le=10, description="σ (frames) of the Gaussian smoothing of the "
                               "driver's head pose over time (ALGORITHMS §9.2.1: 1-2); 0 = none")
+    lips: Literal["mean", "closed"] = Field("mean", description="how the driver's lips move the puppet's "
+                                            "(retargeting): 'mean', the paper's, by the driver's offsets about the "
+                                            "puppet's mean mouth; 'closed', the driver's own gap between the inner "
+                                            "lips, scaled, so that its closed lips close the puppet's "
+                                            "(docs/expression.md)")
     dynamics: DynamicsParams = Field(default_factory=DynamicsParams, description="the driver's per-frame "
                                      "3D flow (ALGORITHMS §9), used by 3D renderers")
     flow: FlowChoice = Field(default_factory=FlowChoice, description="the 2D flow of the per-frame 3D flow "

@@ -18,6 +18,11 @@ Scaling = Literal["objective", "diagonal", "wahba"]
 FACING = tuple((IDX49.index(a), IDX49.index(b))
                for a, b in ((37, 41), (38, 40), (43, 47), (44, 46), (61, 67), (62, 66), (63, 65)))
 
+#: the upper lip's outer and inner points, and the lower lip's, among the 49 fiducials (the corners,
+#: iBUG 48/54/60/64, belong to neither)
+UPPER_LIP = tuple(IDX49.index(i) for i in (49, 50, 51, 52, 53, 61, 62, 63))
+LOWER_LIP = tuple(IDX49.index(i) for i in (55, 56, 57, 58, 59, 65, 66, 67))
+
 
 def tps_smoothing(lam: float, n_points: int, scaling: Scaling = "objective") -> float:
     """The diagonal term s of the TPS system (K + sI) for the paper's λ (ALGORITHMS §5.2).
@@ -137,21 +142,40 @@ def eye_opening(fiducials: np.ndarray) -> float:
 
 
 def retarget(driver: np.ndarray, driver_neutral: np.ndarray, puppet_neutral: np.ndarray,
-             max_eye_ratio: float = 2.0) -> np.ndarray:
+             max_eye_ratio: float = 2.0, lips: str = "mean") -> np.ndarray:
     """Target fiducials for the puppet: its neutral plus the driver's offsets from the driver's
     neutral, scaled per axis by the two faces' proportions (ALGORITHMS §16.7); the eyes' vertical
     offsets by the two faces' eye openings instead (clipped to [1/max_eye_ratio, max_eye_ratio]),
     so that the driver's blink closes the puppet's eyes, however their sizes differ. Lids and lips
     never pass each other (:func:`close_no_further`).
 
+    lips : "mean" (the paper): the lips move by the driver's offsets from its neutral, about the
+        puppet's, so the puppet's mean mouth (open, for a collection of people talking) is its mouth
+        at rest. "closed": the gap between the inner lips is the driver's own, scaled by the faces'
+        proportions, so the driver's closed lips close the puppet's; the upper and the lower lip
+        each move by half the difference (their thickness kept), the corners as in "mean".
+
     driver : (n, 49, 2); driver_neutral, puppet_neutral : (49, 2) -> (n, 49, 2)
     """
-    scale = np.broadcast_to(eye_mouth_scale(puppet_neutral) / eye_mouth_scale(driver_neutral), (49, 2)).copy()
+    sizes = eye_mouth_scale(puppet_neutral) / eye_mouth_scale(driver_neutral)
+    scale = np.broadcast_to(sizes, (49, 2)).copy()
     eyes = [IDX49.index(i) for i in range(36, 48)]
     ratio = eye_opening(puppet_neutral) / eye_opening(driver_neutral)
     if np.isfinite(ratio) and ratio > 0:
         scale[eyes, 1] = np.clip(ratio, 1 / max_eye_ratio, max_eye_ratio)
-    return close_no_further(puppet_neutral + (driver - driver_neutral) * scale)
+    target = puppet_neutral + (driver - driver_neutral) * scale
+    if lips == "closed":
+        shift = lip_gap(target) - sizes[1] * lip_gap(driver)  # how much more open than the driver's, scaled
+        target[..., UPPER_LIP, 1] += shift[..., None] / 2
+        target[..., LOWER_LIP, 1] -= shift[..., None] / 2
+    elif lips != "mean":
+        raise ValueError(f'lips: "mean" or "closed", not "{lips}"')
+    return close_no_further(target)
+
+
+def lip_gap(fiducials: np.ndarray) -> np.ndarray:
+    """(...) mean height (px) between the inner lips of (..., 49, 2) fiducials (0 = closed)."""
+    return np.mean([fiducials[..., lower, 1] - fiducials[..., upper, 1] for upper, lower in FACING[4:]], axis=0)
 
 
 def close_no_further(fiducials: np.ndarray) -> np.ndarray:

@@ -8,8 +8,8 @@ from persona.plugins.builtin.frontalize import project, template_points
 from persona.plugins.builtin.render import Tps2dRender, canonical_coordinates
 from persona.plugins.face.template import IDX49, generic_template
 from persona.plugins.face.tracks import bridge
-from persona.plugins.face.warp import (FACING, TpsWarp, close_no_further, eye_mouth_scale, eye_opening, pin, retarget,
-                                       tps_map, tps_smoothing)
+from persona.plugins.face.warp import (FACING, LOWER_LIP, UPPER_LIP, TpsWarp, close_no_further, eye_mouth_scale,
+                                       eye_opening, lip_gap, pin, retarget, tps_map, tps_smoothing)
 from persona.plugins.kinds import Pose, Puppet
 
 
@@ -175,3 +175,31 @@ def test_retarget_closes_the_puppets_own_eyes_and_never_crosses_the_lids():
         assert target[1, lower, 1] - target[1, upper, 1] == pytest.approx(0.0, abs=1e-9)  # closed
         assert target[2, lower, 1] - target[2, upper, 1] == pytest.approx(0.0, abs=1e-9)  # not crossed
     np.testing.assert_allclose(close_no_further(puppet_neutral), puppet_neutral)
+
+
+def test_retarget_lips_closed_closes_a_puppet_whose_mean_mouth_is_open():
+    """A puppet whose mean mouth is 6 px open (a collection of people talking), a driver whose rest is
+    closed: with the paper's offsets ("mean") the puppet's lips stay 6 px apart when the driver's
+    close; with lips "closed" they close, and the driver's 5 px opening gives the puppet its own
+    proportion of 5 px; each lip keeps its thickness."""
+    driver_neutral = generic_template().landmarks3d[list(IDX49), :2].copy()
+    for upper, lower in FACING[4:]:
+        driver_neutral[lower, 1] = driver_neutral[upper, 1]  # the driver's lips at rest: closed
+    puppet_neutral = driver_neutral * [1.0, 1.1] + [3.0, -2.0]  # a face 10 % longer, elsewhere
+    puppet_neutral[list(UPPER_LIP), 1] -= 3.0
+    puppet_neutral[list(LOWER_LIP), 1] += 3.0
+    assert lip_gap(puppet_neutral) == pytest.approx(6.0)
+    opened = driver_neutral.copy()
+    opened[list(LOWER_LIP), 1] += 5.0  # the driver's jaw drops 5 px
+    sy = eye_mouth_scale(puppet_neutral)[1] / eye_mouth_scale(driver_neutral)[1]
+    frames = np.stack([driver_neutral, opened])
+    paper = retarget(frames, driver_neutral, puppet_neutral)
+    np.testing.assert_allclose(lip_gap(paper), [6.0, 6.0 + 5.0 * sy], atol=1e-9)
+    closed = retarget(frames, driver_neutral, puppet_neutral, lips="closed")
+    np.testing.assert_allclose(lip_gap(closed), [0.0, 5.0 * sy], atol=1e-9)
+    thickness = (lambda f: f[..., UPPER_LIP[5:], 1] - f[..., UPPER_LIP[1:4], 1])  # inner 61-63 below outer 50-52
+    np.testing.assert_allclose(thickness(closed), thickness(paper), atol=1e-9)
+    np.testing.assert_allclose(np.delete(closed, UPPER_LIP + LOWER_LIP, axis=1),
+                               np.delete(paper, UPPER_LIP + LOWER_LIP, axis=1))  # nothing else moves
+    with pytest.raises(ValueError, match="lips"):
+        retarget(frames, driver_neutral, puppet_neutral, lips="open")
