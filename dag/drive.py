@@ -38,6 +38,7 @@ def run_drive(runner) -> Collection:
     inputs = {"frames": frames.provenance("status/screen/state").key,
               "puppet": puppet.provenance("aligned/mean").key}
     sigma, lips = runner.motion_params()["pose_sigma"], runner.motion_params()["lips"]
+    # lips at the paper's default is left out of the key: stores made before it existed stay valid
     prov = Provenance.make(stage="retarget", backend="-", backend_version="2",
                            params={"pose_sigma": sigma, **({"lips": lips} if lips != "mean" else {})},
                            inputs=inputs, persona_version=runner.version)
