@@ -104,7 +104,7 @@ class Executor:
                                   if scheduler.startswith("tls://") else "")) from None
         # a lost scheduler: the client logs each reconnection attempt's traceback; the run says it once (_lost)
         logging.getLogger("distributed.client").setLevel(logging.CRITICAL)
-        # every worker, on any machine: object storage reached as this process does, one OpenCV thread
+        # every worker, on any machine: object storage reached as this process does, one thread (one_thread)
         self.client.register_plugin(WorkerSetup(storage_options), name="persona-worker")
 
     def run(self, fn, argument_lists):
