@@ -70,7 +70,7 @@ def _plan(wf) -> str:
     def steps(where: str) -> list[str]:
         lines = []
         for step in STEPS.values():
-            if where in step.where and step.mesh in (None, uses_mesh):
+            if where in step.where and (uses_mesh or not step.mesh):
                 lines.append(f"    {step.name:<14} {step.makes} ({step.runs})")
                 lines += [f"      {_setting(wf, kind)}" for kind in step.settings]
         return lines

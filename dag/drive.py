@@ -37,7 +37,8 @@ def run_drive(runner) -> Collection:
     found = st.accepted(frames)
     inputs = {"frames": frames.provenance("status/screen/state").key,
               "puppet": puppet.provenance("aligned/mean").key}
-    sigma, lips = runner.motion_params()["pose_sigma"], runner.motion_params()["lips"]
+    motion = runner.motion_params()
+    sigma, lips = motion["pose_sigma"], motion["lips"]
     # lips at the paper's default is left out of the key: stores made before it existed stay valid
     prov = Provenance.make(stage="retarget", backend="-", backend_version="2",
                            params={"pose_sigma": sigma, **({"lips": lips} if lips != "mean" else {})},

@@ -81,8 +81,9 @@ def analyse_frames(url: str, start: int, stop: int, identity: tuple[str, dict], 
             descriptors[j] = backend.describe(rendered[j], landmarks[j])
         except Rejected:
             pass
+        alpha = alphas[j].astype(np.float32) / 255
+        blended = composite.multiband(rendered[j], original[j], alpha)
         try:
-            blended = composite.multiband(rendered[j], original[j], alphas[j].astype(np.float32) / 255)
             composite_landmarks[j] = detector.detect(blended).points
         except Rejected:
             pass
@@ -90,7 +91,7 @@ def analyse_frames(url: str, start: int, stop: int, identity: tuple[str, dict], 
             psnr[j] = ev.masked_psnr(rendered[j], original[j], masks[j])
             ssim[j] = ev.masked_ssim(rendered[j], original[j], masks[j])
         if (start + j) % 4 == 0:
-            for name, found in composite.seams(rendered[j], original[j], alphas[j].astype(np.float32) / 255).items():
+            for name, found in composite.seams(rendered[j], original[j], alpha, blended).items():
                 if found is not None:
                     seams[name].append([found["colour_step"], found["gradient_ratio"]])
     face = generic_template().mask  # B's synthesized textures and A's frontalized frames, canonical

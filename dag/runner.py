@@ -36,7 +36,7 @@ from .shape import run_alignment, run_shape
 from .texture import run_texture
 from .evaluate import evaluate
 from .report import write_run_report
-from .workflow import TLS, Cluster, VideoRange, Workflow
+from .workflow import TLS, Cluster, VideoRange, Workflow, tls_problem
 
 log = logging.getLogger(__name__)
 
@@ -86,10 +86,9 @@ class Executor:
                 silence_logs=logging.ERROR)
             self.client = Client(self._cluster)
         else:
+            if problem := tls_problem(scheduler, tls):  # --scheduler on a workflow with other settings
+                raise RunError(f"{problem} (docs/cluster.md, Security)")
             security = None
-            if tls is None and scheduler.startswith("tls://"):  # --scheduler tls://... on a workflow without
-                raise RunError(f'"{scheduler}" speaks TLS: give this machine\'s certificate as cluster.tls '
-                               "{ca_file, cert, key} in the workflow (docs/cluster.md, Security)")
             if tls is not None:  # mutual TLS: the scheduler checks this certificate, this side the scheduler's
                 from distributed.security import Security
 
@@ -111,12 +110,7 @@ class Executor:
         """Run fn(*args) for each args; yield results as they complete."""
         if self.client is None:
             for args in argument_lists:
-                restore = one_thread()
-                try:
-                    result = fn(*args)
-                finally:
-                    restore()
-                yield result
+                yield _in_one_thread(fn, *args)
             return
         futures = [self.client.submit(fn, *args, pure=False) for args in argument_lists]
         try:
@@ -130,11 +124,7 @@ class Executor:
         import dask
 
         if self.client is None:
-            restore = one_thread()
-            try:
-                return dask.compute(*collections, scheduler="synchronous")
-            finally:
-                restore()
+            return _in_one_thread(dask.compute, *collections, scheduler="synchronous")
         futures = self.client.compute(list(collections))
         for _ in self._as_completed(futures):
             pass
@@ -223,6 +213,15 @@ def one_thread() -> Callable[[], None]:
         limits.restore_original_limits()
         cv2.setNumThreads(before)
     return restore
+
+
+def _in_one_thread(fn, *args, **kwargs):
+    """fn(*args, **kwargs) in this process under :func:`one_thread`, the thread counts put back after."""
+    restore = one_thread()
+    try:
+        return fn(*args, **kwargs)
+    finally:
+        restore()
 
 
 def malloc_for_arrays() -> None:

@@ -81,7 +81,7 @@ class Step:
     settings: tuple[str, ...]
     makes: str
     runs: str = "tasks over shards"
-    mesh: bool | None = None  # True: for renderers of the 3D puppet only; False: for the others only
+    mesh: bool = False  # for renderers of the 3D puppet only
 
 
 STEPS = {step.name: step for step in (

@@ -132,12 +132,19 @@ class Cluster(Strict):
         if self.kind != "local" and self.scheduler != "local":
             raise ValueError(f'kind "{self.kind}" starts its own scheduler; scheduler "{self.scheduler}" connects '
                              "to an existing one: give one of the two")
-        if self.tls is not None and not self.scheduler.startswith("tls://"):
-            raise ValueError(f'tls is for a scheduler address of tls://HOST:PORT, not "{self.scheduler}"')
-        if self.scheduler.startswith("tls://") and self.tls is None:
-            raise ValueError(f'"{self.scheduler}" speaks TLS: give this machine\'s certificate as cluster.tls '
-                             "{ca_file, cert, key}")
+        if problem := tls_problem(self.scheduler, self.tls):
+            raise ValueError(problem)
         return self
+
+
+def tls_problem(scheduler: str, tls: TLS | None) -> str | None:
+    """What is wrong with a scheduler address and the certificates given for it, or None: a tls://
+    address needs them, and they serve no other."""
+    if tls is not None and not scheduler.startswith("tls://"):
+        return f'tls is for a scheduler address of tls://HOST:PORT, not "{scheduler}"'
+    if scheduler.startswith("tls://") and tls is None:
+        return f'"{scheduler}" speaks TLS: give this machine\'s certificate as cluster.tls {{ca_file, cert, key}}'
+    return None
 
 
 class StorageOptions(Strict):

@@ -106,7 +106,10 @@ def paste(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray) -> np.ndarray:
     return np.round(np.asarray(face, np.float32) * a + np.asarray(frame, np.float32) * (1 - a)).astype(np.uint8)
 
 
-def seams(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray) -> dict[str, dict | None]:
-    """:func:`seam` of the :func:`multiband` composite and of the :func:`paste`, keyed by those names."""
-    return {"multiband": seam(multiband(face, frame, alpha), frame, alpha),
+def seams(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray,
+          blended: np.ndarray | None = None) -> dict[str, dict | None]:
+    """:func:`seam` of the :func:`multiband` composite (``blended``, when made already) and of the
+    :func:`paste`, keyed by those names."""
+    blended = multiband(face, frame, alpha) if blended is None else blended
+    return {"multiband": seam(blended, frame, alpha),
             "paste": seam(paste(face, frame, alpha), frame, alpha)}

@@ -138,7 +138,17 @@ def eye_mouth_scale(fiducials: np.ndarray) -> np.ndarray:
 
 def eye_opening(fiducials: np.ndarray) -> float:
     """Mean height (px) between the upper and lower lids of a face's 49 fiducials."""
-    return float(np.nanmean([fiducials[lower, 1] - fiducials[upper, 1] for upper, lower in FACING[:4]]))
+    return float(_gap(fiducials, FACING[:4]))
+
+
+def lip_gap(fiducials: np.ndarray) -> np.ndarray:
+    """(...) mean height (px) between the inner lips of (..., 49, 2) fiducials (0 = closed)."""
+    return _gap(fiducials, FACING[4:])
+
+
+def _gap(fiducials: np.ndarray, pairs) -> np.ndarray:
+    """Mean height of the :data:`FACING` ``pairs`` (lower minus upper) of (..., 49, 2) fiducials."""
+    return np.nanmean([fiducials[..., lower, 1] - fiducials[..., upper, 1] for upper, lower in pairs], axis=0)
 
 
 def retarget(driver: np.ndarray, driver_neutral: np.ndarray, puppet_neutral: np.ndarray,
@@ -171,11 +181,6 @@ def retarget(driver: np.ndarray, driver_neutral: np.ndarray, puppet_neutral: np.
     elif lips != "mean":
         raise ValueError(f'lips: "mean" or "closed", not "{lips}"')
     return close_no_further(target)
-
-
-def lip_gap(fiducials: np.ndarray) -> np.ndarray:
-    """(...) mean height (px) between the inner lips of (..., 49, 2) fiducials (0 = closed)."""
-    return np.mean([fiducials[..., lower, 1] - fiducials[..., upper, 1] for upper, lower in FACING[4:]], axis=0)
 
 
 def close_no_further(fiducials: np.ndarray) -> np.ndarray:
