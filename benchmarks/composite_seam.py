@@ -1,7 +1,8 @@
-"""The seam of the composite on a finished run: multi-band blending against a plain paste.
+"""The seam of the composite on a finished run: a plain paste, multi-band blending alone, and
+multi-band blending after B's face is matched to A's light at its edge (``lighting`` 1, the default).
 
 For every ``--every``-th output frame of a run's store, the render is composited into the
-driver's frame both ways and the seam along the face's edge measured
+driver's frame each way and the seam along the face's edge measured
 (:func:`persona.plugins.face.composite.seam`: colour step beyond the frame's own, grey levels;
 gradient energy over the frame's). Prints the medians, and the milliseconds per frame of each
 composite at the video's size. The same figures as ``persona evaluate``'s ``composite`` for the
@@ -30,18 +31,20 @@ def main() -> None:
     wf = load_workflow(args.workflow)
     root = open_store(wf.store, mode="r")
     drive, frames = Collection(root, "drive"), Collection(root, "driver/frames")
-    found = {"multiband": [], "paste": []}
-    seconds = {"multiband": [], "paste": []}
+    ways = {"paste": composite.paste, "multiband": composite.multiband,
+            "blend (lighting 1)": lambda *a: composite.blend(*a, lighting=1.0)}
+    found = {name: [] for name in ways}
+    seconds = {name: [] for name in ways}
     for t in range(0, drive.n, args.every):
         face, alpha = drive.array("render/rgb")[t], drive.array("render/mask")[t].astype(np.float32) / 255
         frame = frames.array("photos/rgb")[t][:face.shape[0], :face.shape[1]]
-        for name, f in composite.seams(face, frame, alpha).items():
+        for name, way in ways.items():
+            start = time.perf_counter()
+            image = way(face, frame, alpha)
+            seconds[name].append(time.perf_counter() - start)
+            f = composite.seam(image, frame, alpha)
             if f is not None:
                 found[name].append((f["colour_step"], f["gradient_ratio"]))
-        for name, fn in (("multiband", composite.multiband), ("paste", composite.paste)):
-            start = time.perf_counter()
-            fn(face, frame, alpha)
-            seconds[name].append(time.perf_counter() - start)
     print(f"{wf.name}: {len(found['paste'])} frames (every {args.every}th), {face.shape[1]}x{face.shape[0]}")
     print("| composite | colour step (grey levels) | gradient ratio | ms / frame |")
     print("|---|---|---|---|")

@@ -14,7 +14,7 @@ import logging
 
 import numpy as np
 
-from persona.plugins.face.composite import multiband
+from persona.plugins.face.composite import blend
 from persona.plugins.face.dynamics import smooth_in_time
 from persona.plugins.face.fiducials import mean_shape
 from persona.plugins.face.tracks import bridge
@@ -99,11 +99,11 @@ def driver_sound(frames: Collection, fps: float) -> media.Audio | None:
     return media.read_audio(sources.pop(), index[0] / fps, (index[-1] + 1) / fps)
 
 
-def write_videos(drive: Collection, frames: Collection, output) -> dict[str, str]:
+def write_videos(drive: Collection, frames: Collection, output, blending: dict) -> dict[str, str]:
     """puppet.mp4 (the puppet as rendered), side_by_side.mp4 (driver | puppet) and composite.mp4
-    (the puppet's face blended into the driver's frames through the render's soft mask, band by
-    band: :func:`persona.plugins.face.composite.multiband`), at the video's fps, with the driver
-    video's sound (:func:`driver_sound`)."""
+    (the puppet's face matched to the driver's light at its edge and blended into the driver's frames
+    through the render's soft mask, band by band: :func:`persona.plugins.face.composite.blend` with
+    ``blending``), at the video's fps, with the driver video's sound (:func:`driver_sound`)."""
     fps = float(drive.attrs["fps"])
 
     def shards(*arrays, composite=False):
@@ -111,7 +111,7 @@ def write_videos(drive: Collection, frames: Collection, output) -> dict[str, str
             parts = [a[start:stop] for a in arrays]
             if composite:
                 rendered, original, mask = parts
-                parts = [np.stack([multiband(r, o, m.astype(np.float32) / 255) for r, o, m in zip(*parts)])]
+                parts = [np.stack([blend(r, o, m.astype(np.float32) / 255, **blending) for r, o, m in zip(*parts)])]
             yield from (np.concatenate(row, axis=1) for row in zip(*parts))
 
     rendered, original, mask = drive.array("render/rgb"), frames.array("photos/rgb"), drive.array("render/mask")

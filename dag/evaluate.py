@@ -17,7 +17,7 @@ Figures (paper §6, with dlib's descriptor and landmarks only; nothing downloade
   the driver frame's own, gradient energy on it over the frame's), medians over every 4th frame,
   beside the same for a plain paste through the mask;
 - self-reenactment (when asked): PSNR and SSIM of the output against A's real frames
-  inside the rendered face;
+  inside the rendered face, of the render and of composite.mp4's frame;
 - motion (3D runs): the same expression signals computed from the fiducials moved by A's
   per-frame meshes M_D^t and by B's meshes M_P^t after the transfer, against A's landmarks
   (gain, correlation, ranges): how much of A's expression each step of the 3D method carries,
@@ -59,9 +59,11 @@ def describe_photos(url: str, path: str, indices: list[int], identity: tuple[str
     return np.array(out).reshape(len(out), -1)
 
 
-def analyse_frames(url: str, start: int, stop: int, identity: tuple[str, dict], compare: bool) -> dict:
+def analyse_frames(url: str, start: int, stop: int, identity: tuple[str, dict], compare: bool,
+                   blending: dict) -> dict:
     """For output frames [start, stop): landmarks found anew, descriptors, the mean face colour of
-    output and driver inside the rendered face, and (``compare``) PSNR and SSIM against the driver."""
+    output and driver inside the rendered face, and (``compare``) PSNR and SSIM against the driver,
+    of the render and of the composite (made as composite.mp4's, with ``blending``)."""
     root = open_store(url, mode="r")
     drive, frames = Collection(root, "drive"), Collection(root, "driver/frames")
     rendered = drive.array("render/rgb")[start:stop]
@@ -73,8 +75,8 @@ def analyse_frames(url: str, start: int, stop: int, identity: tuple[str, dict], 
     landmarks = np.full((n, 68, 2), np.nan)
     composite_landmarks = np.full((n, 68, 2), np.nan)  # on composite.mp4's frames
     descriptors = np.full((n, 128), np.nan)
-    psnr, ssim = np.full(n, np.nan), np.full(n, np.nan)
-    seams = {"multiband": [], "paste": []}
+    psnr, ssim = np.full((n, 2), np.nan), np.full((n, 2), np.nan)  # the render's, the composite's
+    seams = {"blend": [], "paste": []}
     for j in range(n):
         try:
             landmarks[j] = detector.detect(rendered[j]).points
@@ -82,14 +84,15 @@ def analyse_frames(url: str, start: int, stop: int, identity: tuple[str, dict], 
         except Rejected:
             pass
         alpha = alphas[j].astype(np.float32) / 255
-        blended = composite.multiband(rendered[j], original[j], alpha)
+        blended = composite.blend(rendered[j], original[j], alpha, **blending)
         try:
             composite_landmarks[j] = detector.detect(blended).points
         except Rejected:
             pass
         if compare and masks[j].any():
-            psnr[j] = ev.masked_psnr(rendered[j], original[j], masks[j])
-            ssim[j] = ev.masked_ssim(rendered[j], original[j], masks[j])
+            for k, image in enumerate((rendered[j], blended)):
+                psnr[j, k] = ev.masked_psnr(image, original[j], masks[j])
+                ssim[j, k] = ev.masked_ssim(image, original[j], masks[j])
         if (start + j) % 4 == 0:
             for name, found in composite.seams(rendered[j], original[j], alpha, blended).items():
                 if found is not None:
@@ -110,9 +113,10 @@ def _sample(ok: np.ndarray, k: int) -> list[int]:
     return [int(i) for i in idx[np.linspace(0, len(idx) - 1, min(k, len(idx))).round().astype(int)]] if len(idx) else []
 
 
-def evaluate(store: str, executor, *, identity: tuple[str, dict], threshold: float = 0.6,
+def evaluate(store: str, executor, *, identity: tuple[str, dict], blending: dict, threshold: float = 0.6,
              collection_sample: int = 100, self_reenactment: bool = False) -> dict:
-    """Every figure of a finished run, as a JSON-ready dict (plus per-frame series under "series")."""
+    """Every figure of a finished run, as a JSON-ready dict (plus per-frame series under "series").
+    blending: the composite's settings (``stages.composite.params``)."""
     root = open_store(store, mode="r")
     centroids = {}
     for actor in ("puppet", "driver"):
@@ -125,7 +129,7 @@ def evaluate(store: str, executor, *, identity: tuple[str, dict], threshold: flo
         parts = list(executor.run(describe_photos, [(store, actor, chosen[i::2], identity) for i in range(2)]))
         centroids[actor] = ev.centroid(np.concatenate(parts))
     drive = Collection(root, "drive")
-    tasks = [(store, s, e, identity, self_reenactment) for s, e in drive.shard_ranges()]
+    tasks = [(store, s, e, identity, self_reenactment, blending) for s, e in drive.shard_ranges()]
     parts = sorted(executor.run(analyse_frames, tasks), key=lambda p: p["start"])
     joined = {k: np.concatenate([p[k] for p in parts]) for k in parts[0] if k != "start"}
 
@@ -148,7 +152,7 @@ def evaluate(store: str, executor, *, identity: tuple[str, dict], threshold: flo
         "amplitude": video["amplitude"],
         "stability": stability,
         "composite": {k: {"colour_step": _median(joined[f"seam_{k}"][:, 0]),
-                          "gradient_ratio": _median(joined[f"seam_{k}"][:, 1])} for k in ("multiband", "paste")},
+                          "gradient_ratio": _median(joined[f"seam_{k}"][:, 1])} for k in ("blend", "paste")},
         "frames": drive.n,
         "bridged_frames": int(drive.array("bridged")[:].sum()),
         "series": {
@@ -163,7 +167,9 @@ def evaluate(store: str, executor, *, identity: tuple[str, dict], threshold: flo
             "driver_meshes": mesh_expression(root, "drive/motion/driver_mesh", "driver", driver_landmarks),
             "puppet_meshes": mesh_expression(root, "drive/mesh", "puppet", driver_landmarks)}
     if self_reenactment:
-        result["self_reenactment"] = {"psnr_db": _nanmean(joined["psnr"]), "ssim": _nanmean(joined["ssim"])}
+        result["self_reenactment"] = {"psnr_db": _nanmean(joined["psnr"][:, 0]), "ssim": _nanmean(joined["ssim"][:, 0]),
+                                      "psnr_db_composite": _nanmean(joined["psnr"][:, 1]),
+                                      "ssim_composite": _nanmean(joined["ssim"][:, 1])}
     return result
 
 

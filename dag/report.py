@@ -105,16 +105,17 @@ def figure_rows(ev: dict) -> list[tuple]:
     rows += [(k.replace("_", " "), v, _STABILITY.get(k, "lower is better")) for k, v in ev["stability"].items()]
     for how, f in ev.get("composite", {}).items():
         rows += [(f"composite seam ({how}): colour step beyond the driver's own (grey levels)", f["colour_step"],
-                  "lower is better; 0 = no step beyond the frame's"),
+                  "lower is better; 0 = no step beyond the frame's; target ≤ 7.7 (3 % of 255)"),
                  (f"composite seam ({how}): gradient energy over the driver's", f["gradient_ratio"],
-                  "lower is better; 1 = as smooth as the frame")]
+                  "lower is better; 1 = as smooth as the frame; target ≤ 1.2")]
     texture = ev.get("texture", {})
     rows += [(f"texture tears: {k.replace('_', ' ')}", v, "lower is better; the ratio (frames over B's photos) "
               "target ≤ 1" if k == "ratio" else "lower is better") for k, v in texture.get("tears", {}).items()]
     rows += [(f"texture detail: {k.replace('_', ' ')}", v, "the ratio (frames over B's photos) target ≥ 0.6"
               if k == "ratio" else "band-pass energy; higher is sharper") for k, v in texture.get("detail", {}).items()]
     guide = {"psnr_db": "higher is better; target ≥ 28 dB", "ssim": "higher is better; target ≥ 0.88"}
-    rows += [(f"self-reenactment {k}", v, guide.get(k, "")) for k, v in ev.get("self_reenactment", {}).items()]
+    rows += [(f"self-reenactment {k}", v, guide.get(k.removesuffix("_composite"), ""))
+             for k, v in ev.get("self_reenactment", {}).items()]
     rows += [(f"{who.replace('_', ' ')} follow A's landmarks: {k.replace('_', ' ')} (gain, r)",
               f"{a['gain']:.2f}, {a['r']:.2f}", "gain 1 = the driver's amplitude") for who, figures in
              ev.get("motion", {}).items() for k, a in figures.items()]

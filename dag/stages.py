@@ -98,8 +98,8 @@ STEPS = {step.name: step for step in (
     Step("mouth", ("puppet",), ("render",), "the inside of B's mouth from its widest-open photos", "the client",
          mesh=True),
     Step("render", ("drive",), ("render",), "the puppet's frames"),
-    Step("videos", ("drive",), (), "puppet.mp4, side_by_side.mp4, composite.mp4", "the client"),
-    Step("evaluate", ("drive",), ("identity",), "metrics.json and report.html", "tasks over shards, then the client"),
+    Step("videos", ("drive",), ("composite",), "puppet.mp4, side_by_side.mp4, composite.mp4", "the client"),
+    Step("evaluate", ("drive",), ("identity", "composite"), "metrics.json and report.html", "tasks over shards, then the client"),
 )}
 
 

@@ -284,7 +284,15 @@ class MotionParams(Strict):
                               "n-th driver frame (PLY and OBJ + texture) into <output>/meshes/; 0 = none")
 
 
-BACKENDLESS = {"ingest": IngestParams, "screen": ScreenParams, "align": AlignParams, "motion": MotionParams}
+class CompositeParams(Strict):
+    lighting: float = Field(1.0, ge=0, le=1, description="how far B's face takes A's colour and light at its "
+                            "edge before the multi-band blend into A's frame (composite.mp4; not in the paper, "
+                            "which shows the puppet alone): 1 = matched at the edge and carried smoothly inward, "
+                            "0 = B's render as it is (docs/composite.md)")
+
+
+BACKENDLESS = {"ingest": IngestParams, "screen": ScreenParams, "align": AlignParams, "motion": MotionParams,
+               "composite": CompositeParams}
 
 
 def _resolve(path: str, base: Path) -> str:

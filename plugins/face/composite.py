@@ -10,6 +10,15 @@ feather. Each level's weights come from the mask eroded by half that level's pix
 coarse transitions lie inside B's face: without that, B's tone spilled as a light halo into A's
 hair. Inside the face B's own detail and, away from the edge, B's own tone remain.
 
+Multi-band blending spreads a difference of tone over the face's edge; it does not remove it, and
+B's skin under A's lighting is rarely A's colour. ``match_lighting`` removes it first: on a band
+just inside the face's edge it compares the local mean colour of B's render with that of A's frame
+under it (A's skin, lit by A's scene), and carries the ratio (a per-channel gain, clipped) into the
+whole face by a smooth membrane fill (push-pull over a Gaussian pyramid). At the edge B's face then
+has A's colour and light, so no step is left to blend; inside it, B's shading, detail and the
+differences of tone between B's regions remain, scaled by a gain that varies slowly. ``strength``
+blends between the render as it is (0) and the match (1).
+
 The seam is measured on a ring along the mask's edge (``seam``): the colour step across it (the
 mean colour a few pixels inside minus that a few pixels outside, against the same step in A's own
 frame) and the gradient energy on it over that of A's frame there (1 = as smooth as the frame).
@@ -73,6 +82,84 @@ def multiband(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, levels: in
     return np.clip(out, 0, 255).round().astype(np.uint8)
 
 
+def _fill(values: np.ndarray, weight: np.ndarray) -> np.ndarray:
+    """A smooth field (h, w, c) that takes ``values`` where ``weight`` (h, w) is 1 and interpolates
+    them elsewhere (push-pull: weighted means down a Gaussian pyramid, then each level keeps its own
+    mean where its weight is large and the coarser level's elsewhere)."""
+    pyramid = [(values * weight[..., None], weight)]
+    while min(pyramid[-1][1].shape) > 2:
+        vw, w = pyramid[-1]
+        pyramid.append((cv2.pyrDown(vw), cv2.pyrDown(w)))
+    vw, w = pyramid[-1]
+    total = w.sum()
+    field = np.broadcast_to(vw.sum(axis=(0, 1)) / max(total, 1e-12), vw.shape).astype(np.float32)
+    for vw, w in reversed(pyramid):
+        field = cv2.resize(field, (w.shape[1], w.shape[0]), interpolation=cv2.INTER_LINEAR).reshape(vw.shape)
+        keep = np.clip(w * 4, 0, 1)[..., None]  # a level's own mean where a quarter of its support is known
+        field = keep * vw / np.maximum(w, 1e-12)[..., None] + (1 - keep) * field
+    return field
+
+
+def match_lighting(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, strength: float = 1.0,
+                   band: float = 0.06, max_gain: float = 2.0, tint: float = 0.1, shade: float = 0.5) -> np.ndarray:
+    """``face`` (h, w, 3) uint8 with its colour and light matched to ``frame`` at the edge of the mask
+    ``alpha`` (h, w) in [0, 1], the match carried smoothly inward (see the module's docstring).
+
+    band: width of the edge band where the two are compared, as a fraction of the face's smaller
+    side (at least 2 px); max_gain: the largest factor (and 1/factor the smallest) by which a
+    channel may be scaled. Only where A's frame under B's edge looks like A's skin (the frame under
+    B's middle) does it count, so that A's hair, collar or background there cannot darken or tint
+    B's edge: tint is the tolerance (σ) of its chromaticity (log colour minus its channels' mean),
+    shade that of its brightness (the mean log colour), loose so that a shadowed cheek still counts.
+    Outside the mask the face is returned unchanged (the composite takes the frame there)."""
+    inside = (np.asarray(alpha) > 0.5).astype(np.uint8)
+    if strength <= 0 or not inside.any():
+        return face
+    ys, xs = np.nonzero(inside)
+    side = min(ys.max() - ys.min() + 1, xs.max() - xs.min() + 1)
+    width = max(2.0, band * side)
+    pad = int(4 * width) + 2  # work in the face's box: HD frames stay cheap
+    y0, y1 = max(ys.min() - pad, 0), min(ys.max() + pad + 1, inside.shape[0])
+    x0, x1 = max(xs.min() - pad, 0), min(xs.max() + pad + 1, inside.shape[1])
+    box = np.s_[y0:y1, x0:x1]
+    f = np.asarray(face, np.float32)[box]
+    # the gain is a low frequency: found at a scale where the band is about 2 px wide, then enlarged
+    q = max(1.0, width / 2)
+    small = (max(1, round((x1 - x0) / q)), max(1, round((y1 - y0) / q)))
+    shrink = lambda img: cv2.resize(img, small, interpolation=cv2.INTER_AREA)  # noqa: E731
+    depth = cv2.distanceTransform((shrink(inside[box].astype(np.float32)) > 0.5).astype(np.uint8), cv2.DIST_L2, 5)
+    ring = (depth > 0.5) & (depth <= 0.5 + width / q)
+    if not ring.any():
+        return face
+    # only where A's frame under B's edge is A's skin: its colour near that of A's face under B's
+    # middle (A's hair, a collar or the wall behind would darken or tint B's edge)
+    a = np.log1p(shrink(np.asarray(frame, np.float32)[box]))
+    middle = depth > 2 * width / q
+    skin = np.median(a[middle if middle.any() else ring], axis=0)
+    brightness, skin_brightness = a.mean(axis=2, keepdims=True), skin.mean()
+    off = (np.sum((a - brightness - (skin - skin_brightness)) ** 2, axis=2) / tint ** 2
+           + (brightness[..., 0] - skin_brightness) ** 2 / shade ** 2)
+    like = np.exp(-off / 2)
+    weight = (ring * like).astype(np.float32)
+    blur = lambda img: cv2.GaussianBlur(img, (0, 0), width / q)  # noqa: E731
+    support = np.maximum(blur(weight), 1e-6)[..., None]
+    local_face = blur(np.log1p(shrink(f)) * weight[..., None]) / support
+    local_frame = blur(a * weight[..., None]) / support
+    limit = np.log(max_gain)
+    log_gain = np.clip(local_frame - local_face, -limit, limit)
+    gain = cv2.resize(np.exp(strength * _fill(log_gain, weight)), (x1 - x0, y1 - y0), interpolation=cv2.INTER_LINEAR)
+    matched = np.clip((f + 1) * gain - 1, 0, 255).round().astype(np.uint8)
+    out = np.array(face, copy=True)
+    out[box] = np.where((np.asarray(alpha)[box] > 0)[..., None], matched, out[box])
+    return out
+
+
+def blend(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, lighting: float = 1.0) -> np.ndarray:
+    """The composite as ``composite.mp4`` shows it: B's face matched to A's lighting at its edge
+    (:func:`match_lighting`, by ``lighting`` in [0, 1]), then blended band by band (:func:`multiband`)."""
+    return multiband(match_lighting(face, frame, alpha, strength=lighting), frame, alpha)
+
+
 def seam(image: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, reach: int = 4) -> dict | None:
     """The seam of a composite ``image`` over ``frame`` along the edge of the mask ``alpha`` (all
     (h, w[, 3])): ``colour_step`` — |mean colour on a ring ``reach`` px inside the edge minus that
@@ -106,10 +193,7 @@ def paste(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray) -> np.ndarray:
     return np.round(np.asarray(face, np.float32) * a + np.asarray(frame, np.float32) * (1 - a)).astype(np.uint8)
 
 
-def seams(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray,
-          blended: np.ndarray | None = None) -> dict[str, dict | None]:
-    """:func:`seam` of the :func:`multiband` composite (``blended``, when made already) and of the
-    :func:`paste`, keyed by those names."""
-    blended = multiband(face, frame, alpha) if blended is None else blended
-    return {"multiband": seam(blended, frame, alpha),
-            "paste": seam(paste(face, frame, alpha), frame, alpha)}
+def seams(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, blended: np.ndarray) -> dict[str, dict | None]:
+    """:func:`seam` of the composite as written (``blended``, :func:`blend`'s) and of the plain
+    :func:`paste`, keyed "blend" and "paste"."""
+    return {"blend": seam(blended, frame, alpha), "paste": seam(paste(face, frame, alpha), frame, alpha)}

@@ -153,7 +153,7 @@ def test_report_is_one_self_contained_page(drive_run):
     assert page.count("data:image/png;base64,") >= 5  # means, sheets, strip, plots
     assert page.count("data:video/mp4;base64,") == 3  # composite, puppet, side by side
     assert page.index("<h2>composite</h2>") < page.index("<h2>puppet</h2>") < page.index("<h2>Figures</h2>")
-    assert "B and not A" in page and "composite seam (multiband)" in page
+    assert "B and not A" in page and "composite seam (blend)" in page
     assert 'src="http' not in page  # nothing fetched from elsewhere
 
 

@@ -12,7 +12,7 @@ def evaluation(to_b: float, to_a: float) -> dict:
             "expression": {k: 0.9 for k in signals},
             "amplitude": {k: {"gain": 0.8, "r": 0.9} for k in signals},
             "stability": {"jitter_ratio": 0.9, "colour_change_ratio": 0.5, "texture_change_ratio": 0.2},
-            "composite": {"multiband": {"colour_step": 20.0, "gradient_ratio": 1.2}},
+            "composite": {"blend": {"colour_step": 20.0, "gradient_ratio": 1.2}},
             "self_reenactment": {"psnr_db": 26.0, "ssim": 0.76}}
 
 

@@ -50,3 +50,45 @@ def test_seam_of_the_frame_itself_and_edge_cases():
     assert composite.seam(frame, frame, np.zeros_like(alpha)) is None
     assert np.array_equal(composite.multiband(face, frame, np.zeros_like(alpha)), frame)
     assert composite.levels_for(alpha) == 4  # a 120-px face: down to about 30 px
+
+
+def lit_scene(size=200, radius=60):
+    """A's frame: A's skin lit from the right (0.7 to 1.3 across the frame); B's face: a lighter skin
+    with a checker detail, evenly lit; a disk mask feathered over 3 px."""
+    rng = np.random.default_rng(1)
+    ys, xs = np.mgrid[0:size, 0:size]
+    light = 0.7 + 0.6 * xs / size
+    frame = np.clip(np.array([110, 90, 80]) * light[..., None] + rng.normal(0, 3, (size, size, 3)), 0, 255)
+    checker = ((ys // 2 + xs // 2) % 2) * 30 - 15
+    face = np.clip(np.array([170, 140, 120]) + checker[..., None], 0, 255)
+    disk = ((ys - size / 2) ** 2 + (xs - size / 2) ** 2 <= radius ** 2).astype(np.float32)
+    return face.astype(np.uint8), frame.astype(np.uint8), cv2.GaussianBlur(disk, (0, 0), 3.0) * disk
+
+
+def test_matching_the_light_removes_the_step_and_keeps_the_detail():
+    face, frame, alpha = lit_scene()
+    assert np.array_equal(composite.blend(face, frame, alpha, lighting=0), composite.multiband(face, frame, alpha))
+    before = composite.seam(composite.multiband(face, frame, alpha), frame, alpha)
+    blended = composite.blend(face, frame, alpha, lighting=1)
+    after = composite.seam(blended, frame, alpha)
+    print(f"\nmultiband {before}, matched {after}")
+    assert before["colour_step"] > 30 and abs(after["colour_step"]) < 2  # measured 45.2 -> 0.0
+    # A's light comes with it: the face's left and right edges take the frame's colour there (±4 levels)
+    for x in (45, 145):
+        assert np.abs(blended[95:105, x:x + 10].mean(axis=(0, 1)) - frame[95:105, x:x + 10].mean(axis=(0, 1))).max() < 4
+    # B's detail stays, in proportion to the tone (the checker's contrast over its mean, within 5 %)
+    centre, own = blended[80:120, 80:120].astype(float), face[80:120, 80:120].astype(float)
+    assert abs(centre.std() / centre.mean() - own.std() / own.mean()) < 0.05 * own.std() / own.mean()
+
+
+def test_hair_under_the_edge_does_not_darken_the_face():
+    face, frame, alpha = lit_scene()
+    clear = composite.match_lighting(face, frame, alpha)
+    frame[:80] = (40, 28, 20)  # A's dark brown hair under the top of B's edge
+    haired = composite.match_lighting(face, frame, alpha)
+    top = np.s_[45:60, 85:115]  # B's forehead, just inside the edge
+    change = haired[top].astype(float).mean() / clear[top].astype(float).mean()
+    print(f"\nforehead with hair under it / without: {change:.3f}")
+    assert change > 0.9  # the hair's colour would scale it by about 0.3
+    far = alpha == 0
+    assert np.array_equal(haired[far], face[far])  # outside the face nothing changes
