@@ -68,8 +68,8 @@ class MultiscaleTexture(TextureBackend):
                    "Laplacian pyramid with expression and detail weights (paper §5, Eq. 3)")
     default = True
     #: 2: the alignment confidence (stretch_scale, residual_scale); 3: its own flow (varref); 4: video mode
-    #: aligns the collection with that flow too (video_alignment)
-    version = "4"
+    #: aligns the collection with that flow too (video_alignment); 5: restore_detail
+    version = "5"
 
     class Params(_Alignment):
         levels: int = Field(5, ge=2, le=8, description="pyramid levels p (the paper does not say; 5 gives a "
@@ -91,6 +91,11 @@ class MultiscaleTexture(TextureBackend):
             "faster, but it tears tight low-resolution crops; docs/texture.md)")
         skip: float = Field(1e-6, ge=0, lt=1, description="photos with e_i below skip · max(e) are left out of "
                             "the fine levels' sums (their share there is below this); 0 keeps every photo")
+        restore_detail: float = Field(2.0, ge=1, le=4, description="the largest factor by which each fine "
+                                      "band of the blend is scaled back towards the band energy of one photo there "
+                                      "(a weighted mean of photos loses the fine detail that does not coincide in "
+                                      "them: skin, pores, creases); 1 = none, the paper's blend. Not in the paper: "
+                                      "detail 0.40 -> 0.62 of B's photos on Powell (docs/texture.md)")
         stretch_scale: float = Field(0.3, ge=0, description="s of the alignment confidence's flow term "
                                      "exp(-|∇w_i|² / 2s²), |∇w_i|² the local (σ 3 px) squared Jacobian norm of "
                                      "the photo's dense flow: tears, where the flow jumps, lose their weight. "
@@ -124,7 +129,7 @@ class MultiscaleTexture(TextureBackend):
         (n, 49, 2) give the expression weights."""
         # without a uniform term only the ratios of the e_i matter: relative ones cannot all underflow
         e = expression_weights(fiducials, target, self.params.sigma, relative=self.params.tau == 0)
-        return np.clip(cache.blend(e, skip=self.params.skip), 0, 255)
+        return np.clip(cache.blend(e, skip=self.params.skip, restore=self.params.restore_detail), 0, 255)
 
     def synthesize(self, photos, target, flow=None, reference=None):
         aligned = self.params.aligned(photos, target, flow, reference)

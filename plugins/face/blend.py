@@ -130,6 +130,23 @@ class BlendCache:
         # the uniform term's sums over all photos, shared by every target
         self._weighted_sum = [p.sum(axis=0) for p in self.weighted]
         self._detail_sum = [q.sum(axis=0) for q in self.detail]
+        self._energy = None
+
+    def photo_energy(self, k: int) -> np.ndarray:
+        """(h_k, w_k) the band energy a photo has at level k about each pixel: the detail-weighted
+        mean over the photos of their band's squared value (mean over channels), i.e.
+        Σ_i P_i² / Q_i / Σ_i Q_i, smoothed over 2 px. Computed on first use."""
+        if self._energy is None:
+            self._energy = {}
+        if k not in self._energy:
+            total = np.zeros(self.detail[k].shape[1:3], np.float64)
+            for p, q in zip(self.weighted[k], self.detail[k]):
+                total += np.divide(np.mean(p ** 2, axis=-1), q[..., 0], out=np.zeros(q.shape[:2], np.float32),
+                                   where=q[..., 0] > 0)
+            den = self._detail_sum[k][..., 0]
+            energy = np.divide(total, den, out=np.zeros_like(total), where=den > 0).astype(np.float32)
+            self._energy[k] = cv2.GaussianBlur(energy, (0, 0), 2.0)
+        return self._energy[k]
 
     @classmethod
     def build(cls, images: np.ndarray, valid: np.ndarray, *, levels: int, alpha: float, beta: float,
@@ -166,12 +183,18 @@ class BlendCache:
     def levels(self) -> int:
         return len(self.weighted)
 
-    def blend(self, e: np.ndarray, *, skip: float = 1e-6) -> np.ndarray:
+    def blend(self, e: np.ndarray, *, skip: float = 1e-6, restore: float = 1.0) -> np.ndarray:
         """The blended image (H, W, C) for expression weights e (n,).
 
         Each level is one matrix-vector product over the photos, compiled so that photos whose
         e is below ``skip`` × max(e) are skipped without copying the others: whatever their
-        detail, their share of every level but the two coarsest is below that."""
+        detail, their share of every level but the two coarsest is below that.
+
+        ``restore`` > 1 (not in the paper): a weighted mean of photos whose fine detail does not
+        coincide (skin, pores, hair) has less of it than any one photo; each band but the two
+        coarsest is scaled back, pixel by pixel, towards the energy a photo has there
+        (:meth:`photo_energy`; the blend's own smoothed over 2 px likewise), by a factor between 1 and
+        ``restore``."""
         e = np.asarray(e, np.float64)
         rows = np.flatnonzero(e >= skip * e.max()) if e.max() > 0 else np.zeros(0, np.int64)
         ek = e[rows].astype(np.float32)
@@ -183,7 +206,12 @@ class BlendCache:
             else:
                 num = _product(self.weighted[k], rows, ek) + np.float32(c) * self._weighted_sum[k]
                 den = _product(self.detail[k], rows, ek) + np.float32(c) * self._detail_sum[k]
-            pyramid.append(num / np.where(den > 0, den, np.inf))  # 0 where no photo sees the pixel
+            band = num / np.where(den > 0, den, np.inf)  # 0 where no photo sees the pixel
+            if restore > 1 and k < self.levels - 2:
+                have = cv2.GaussianBlur(np.mean(band ** 2, axis=-1), (0, 0), 2.0)
+                gain = np.sqrt(np.divide(self.photo_energy(k), have, out=np.ones_like(have), where=have > 0))
+                band = band * np.clip(gain, 1.0, restore)[..., None]
+            pyramid.append(band)
         return collapse(pyramid)
 
     def weights(self, e: np.ndarray) -> list[np.ndarray]:

@@ -116,3 +116,34 @@ def test_confidence_takes_a_photo_out_where_it_failed_to_register():
     for w in trusted:
         np.testing.assert_allclose(w.sum(axis=0), 1.0, atol=1e-5)
     np.testing.assert_allclose(trusted[0][0, 200:, :], plain[0][0, 200:, :], atol=1e-5)  # untouched elsewhere
+
+
+def test_restore_gives_back_the_detail_the_mean_of_photos_loses():
+    """Eight photos: one shared face (a smooth ramp and a sharp dark bar, in every photo) plus each
+    its own fine grain (skin that does not coincide). Their blend has about an eighth of a photo's
+    grain; restoring scales the fine bands back towards a photo's, and leaves the coarse bands and
+    the shared bar as they were."""
+    rng = np.random.default_rng(3)
+    h, w, n = 96, 80, 8
+    ys, xs = np.mgrid[0:h, 0:w]
+    shared = 100 + 0.5 * xs + 60.0 * ((xs > 38) & (xs < 42))
+    grain = [cv2.GaussianBlur(rng.normal(0, 12, (h, w)).astype(np.float32), (0, 0), 0.7) for _ in range(n)]
+    images = np.stack([np.repeat((shared + g)[..., None], 3, axis=2) for g in grain]).astype(np.float32)
+    cache = BlendCache.build(images, np.ones((n, h, w), bool), levels=4, alpha=0.0, beta=20, tau=1)
+    e = np.ones(n)
+
+    def fine(image):  # the finest band's energy away from the bar and the border
+        band = laplacian_pyramid(image, 4)[0][8:-8, 8:30]
+        return float(np.mean(band ** 2))
+
+    one = np.mean([fine(image) for image in images])
+    plain, restored = cache.blend(e), cache.blend(e, restore=4.0)
+    print(f"\nfine energy: a photo {one:.2f}, the blend {fine(plain):.2f}, restored {fine(restored):.2f}")
+    assert fine(plain) < 0.25 * one  # the mean of eight loses most of it
+    assert 0.6 * one < fine(restored) < 1.4 * one  # restored to about a photo's
+    assert np.array_equal(cache.blend(e, restore=1.0), plain)
+    smooth = lambda image: cv2.GaussianBlur(image, (0, 0), 4.0)[8:-8, 8:-8]  # noqa: E731
+    assert np.abs(smooth(restored) - smooth(plain)).mean() < 1.0  # the low frequencies stay (grey levels)
+    bar = np.s_[10:-10, 39:42]  # the shared bar: as deep as in the photos (±10 %)
+    depth = lambda image: float(np.mean(image[10:-10, 30:36]) - np.mean(image[bar]))  # noqa: E731
+    assert abs(depth(restored) - depth(plain)) < 0.1 * abs(depth(plain))
