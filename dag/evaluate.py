@@ -3,7 +3,8 @@
 Figures (paper §6, with dlib's descriptor and landmarks only; nothing downloaded):
 
 - identity: descriptor distance of every output frame to the centroid of B's photos and
-  to that of A's; the fraction of frames that are "B and not A";
+  to that of A's; the fraction of frames that are "B and not A", of the render and of
+  composite.mp4's frames (B's face in A's frame, matched to A's light);
 - expression: Pearson correlation of mouth opening, eye openness, brow height and mouth
   width between A's video and the output (landmarks found anew in the output frames);
 - amplitude: for the same signals, the gain (slope of the output's signal on the driver's:
@@ -74,19 +75,20 @@ def analyse_frames(url: str, start: int, stop: int, identity: tuple[str, dict], 
     n = stop - start
     landmarks = np.full((n, 68, 2), np.nan)
     composite_landmarks = np.full((n, 68, 2), np.nan)  # on composite.mp4's frames
-    descriptors = np.full((n, 128), np.nan)
+    descriptors = np.full((n, 2, 128), np.nan)  # of the render, of the composite
     psnr, ssim = np.full((n, 2), np.nan), np.full((n, 2), np.nan)  # the render's, the composite's
     seams = {"blend": [], "paste": []}
     for j in range(n):
         try:
             landmarks[j] = detector.detect(rendered[j]).points
-            descriptors[j] = backend.describe(rendered[j], landmarks[j])
+            descriptors[j, 0] = backend.describe(rendered[j], landmarks[j])
         except Rejected:
             pass
         alpha = alphas[j].astype(np.float32) / 255
         blended = composite.blend(rendered[j], original[j], alpha, **blending)
         try:
             composite_landmarks[j] = detector.detect(blended).points
+            descriptors[j, 1] = backend.describe(blended, composite_landmarks[j])
         except Rejected:
             pass
         if compare and masks[j].any():
@@ -134,7 +136,9 @@ def evaluate(store: str, executor, *, identity: tuple[str, dict], blending: dict
     joined = {k: np.concatenate([p[k] for p in parts]) for k in parts[0] if k != "start"}
 
     driver_landmarks = driver_frame_landmarks(root)
-    identity_figures = ev.identity_figures(joined["descriptors"], centroids["puppet"], centroids["driver"], threshold)
+    identity_figures = ev.identity_figures(joined["descriptors"][:, 0], centroids["puppet"], centroids["driver"],
+                                           threshold)
+    on_composite = ev.identity_figures(joined["descriptors"][:, 1], centroids["puppet"], centroids["driver"], threshold)
     video = ev.compare_videos(driver_landmarks, joined["landmarks"])
     stability = video["stability"]
     stability["jitter_composite"] = ev.jitter(joined["composite_landmarks"])
@@ -146,7 +150,8 @@ def evaluate(store: str, executor, *, identity: tuple[str, dict], blending: dict
     stability["texture_change_driver"] = _median(joined["driver_change"])
     stability["texture_change_ratio"] = _ratio(stability["texture_change_output"], stability["texture_change_driver"])
     result = {
-        "identity": {k: v for k, v in identity_figures.items() if not isinstance(v, np.ndarray)},
+        "identity": {**{k: v for k, v in identity_figures.items() if not isinstance(v, np.ndarray)},
+                     "fraction_b_not_a_composite": on_composite["fraction_b_not_a"]},
         "texture": texture_figures(root, collection_sample),
         "expression": video["expression"],
         "amplitude": video["amplitude"],

@@ -95,6 +95,8 @@ def figure_rows(ev: dict) -> list[tuple]:
     rows = [("frames", ev["frames"], ""),
             ("frames bridged (no face in the driver)", ev["bridged_frames"], "lower is better"),
             ("frames that are B and not A", identity["fraction_b_not_a"], "higher is better; target ≥ 0.95"),
+            ("composite.mp4 frames that are B and not A", identity.get("fraction_b_not_a_composite"),
+             "higher is better; target ≥ 0.95"),
             ("mean distance to B", identity["mean_distance_to_b"], "lower is better; < 0.6 = the same person"),
             ("mean distance to A", identity["mean_distance_to_a"], "higher is better; > 0.6 = another person"),
             ("output frames without a face", identity["frames_without_face"], "lower is better; target 0")]

@@ -289,6 +289,9 @@ class CompositeParams(Strict):
                             "edge before the multi-band blend into A's frame (composite.mp4; not in the paper, "
                             "which shows the puppet alone): 1 = matched at the edge and carried smoothly inward, "
                             "0 = B's render as it is (docs/composite.md)")
+    tone: float = Field(1.0, ge=0, le=1, description="how much of A's mean skin tone B's face takes with the light: "
+                        "1 = all (no colour step at the edge), 0 = B's own mean tone kept, only the way A's light "
+                        "varies along the edge matched (the blend spreads the rest; docs/composite.md)")
 
 
 BACKENDLESS = {"ingest": IngestParams, "screen": ScreenParams, "align": AlignParams, "motion": MotionParams,

@@ -101,10 +101,13 @@ def _fill(values: np.ndarray, weight: np.ndarray) -> np.ndarray:
 
 
 def match_lighting(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, strength: float = 1.0,
-                   band: float = 0.06, max_gain: float = 2.0, tint: float = 0.1, shade: float = 0.5) -> np.ndarray:
+                   tone: float = 1.0, band: float = 0.06, max_gain: float = 2.0, tint: float = 0.1, shade: float = 0.5) -> np.ndarray:
     """``face`` (h, w, 3) uint8 with its colour and light matched to ``frame`` at the edge of the mask
     ``alpha`` (h, w) in [0, 1], the match carried smoothly inward (see the module's docstring).
 
+    tone: how much of the difference of mean colour between A's skin and B's is taken (1: all, so
+    no step is left at the edge; 0: B's mean skin tone kept, only A's light, i.e. how the gain varies
+    along the edge, is matched, and the multi-band blend spreads the rest).
     band: width of the edge band where the two are compared, as a fraction of the face's smaller
     side (at least 2 px); max_gain: the largest factor (and 1/factor the smallest) by which a
     channel may be scaled. Only where A's frame under B's edge looks like A's skin (the frame under
@@ -147,17 +150,22 @@ def match_lighting(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, st
     local_frame = blur(a * weight[..., None]) / support
     limit = np.log(max_gain)
     log_gain = np.clip(local_frame - local_face, -limit, limit)
-    gain = cv2.resize(np.exp(strength * _fill(log_gain, weight)), (x1 - x0, y1 - y0), interpolation=cv2.INTER_LINEAR)
+    field = _fill(log_gain, weight)
+    if tone < 1:  # B's own mean tone: leave out that part of the mean gain along the edge
+        field -= (1 - tone) * (log_gain * weight[..., None]).sum(axis=(0, 1)) / max(weight.sum(), 1e-6)
+    gain = cv2.resize(np.exp(strength * field), (x1 - x0, y1 - y0), interpolation=cv2.INTER_LINEAR)
     matched = np.clip((f + 1) * gain - 1, 0, 255).round().astype(np.uint8)
     out = np.array(face, copy=True)
     out[box] = np.where((np.asarray(alpha)[box] > 0)[..., None], matched, out[box])
     return out
 
 
-def blend(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, lighting: float = 1.0) -> np.ndarray:
-    """The composite as ``composite.mp4`` shows it: B's face matched to A's lighting at its edge
-    (:func:`match_lighting`, by ``lighting`` in [0, 1]), then blended band by band (:func:`multiband`)."""
-    return multiband(match_lighting(face, frame, alpha, strength=lighting), frame, alpha)
+def blend(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, lighting: float = 1.0,
+          tone: float = 1.0) -> np.ndarray:
+    """The composite as ``composite.mp4`` shows it: B's face matched to A's light and tone at its edge
+    (:func:`match_lighting`, by ``lighting`` and ``tone`` in [0, 1]), then blended band by band
+    (:func:`multiband`)."""
+    return multiband(match_lighting(face, frame, alpha, strength=lighting, tone=tone), frame, alpha)
 
 
 def seam(image: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, reach: int = 4) -> dict | None:

@@ -7,7 +7,7 @@ from persona.dag.report import figure_rows, identity_caveat
 def evaluation(to_b: float, to_a: float) -> dict:
     signals = ("mouth_open", "eye_open")
     return {"frames": 10, "bridged_frames": 0,
-            "identity": {"fraction_b_not_a": 0.0, "mean_distance_to_b": to_b, "mean_distance_to_a": to_a,
+            "identity": {"fraction_b_not_a": 0.0, "fraction_b_not_a_composite": 0.0, "mean_distance_to_b": to_b, "mean_distance_to_a": to_a,
                          "frames_without_face": 0},
             "expression": {k: 0.9 for k in signals},
             "amplitude": {k: {"gain": 0.8, "r": 0.9} for k in signals},
@@ -18,7 +18,7 @@ def evaluation(to_b: float, to_a: float) -> dict:
 
 def test_every_figure_says_what_is_good():
     rows = figure_rows(evaluation(0.3, 0.9))
-    assert len(rows) == 17  # 6 identity, 2 + 2 expression, 3 stability, 2 composite, 2 self-reenactment
+    assert len(rows) == 18  # 7 identity, 2 + 2 expression, 3 stability, 2 composite, 2 self-reenactment
     for label, _, guide in rows[1:]:  # all but the frame count
         assert "better" in guide or "target" in guide or "= " in guide, label
     assert dict((r[0], r[2]) for r in rows)["self-reenactment psnr_db"] == "higher is better; target ≥ 28 dB"

@@ -92,3 +92,14 @@ def test_hair_under_the_edge_does_not_darken_the_face():
     assert change > 0.9  # the hair's colour would scale it by about 0.3
     far = alpha == 0
     assert np.array_equal(haired[far], face[far])  # outside the face nothing changes
+
+
+def test_tone_zero_keeps_b_mean_tone_and_takes_a_light():
+    face, frame, alpha = lit_scene()
+    kept = composite.match_lighting(face, frame, alpha, tone=0)
+    inside = alpha > 0.5
+    print(f"\nB's mean tone {face[inside].mean(axis=0)}, kept {kept[inside].mean(axis=0)}")
+    assert np.abs(kept[inside].mean(axis=0) - face[inside].mean(axis=0)).max() < 0.05 * face[inside].mean()
+    # A's light from the right: B's right edge lighter than its left, as the frame's (ratio 1.22 at x 150/50)
+    ratio = kept[95:105, 145:155].mean() / kept[95:105, 45:55].mean()
+    assert abs(ratio - frame[95:105, 145:155].mean() / frame[95:105, 45:55].mean()) < 0.1
