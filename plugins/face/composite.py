@@ -12,12 +12,11 @@ hair. Inside the face B's own detail and, away from the edge, B's own tone remai
 
 Multi-band blending spreads a difference of tone over the face's edge; it does not remove it, and
 B's skin under A's lighting is rarely A's colour. ``match_lighting`` removes it first: on a band
-just inside the face's edge it compares the local mean colour of B's render with that of A's frame
-under it (A's skin, lit by A's scene), and carries the ratio (a per-channel gain, clipped) into the
-whole face by a smooth membrane fill (push-pull over a Gaussian pyramid). At the edge B's face then
-has A's colour and light, so no step is left to blend; inside it, B's shading, detail and the
-differences of tone between B's regions remain, scaled by a gain that varies slowly. ``strength``
-blends between the render as it is (0) and the match (1).
+just inside the face's edge it compares B's render with A's frame under it (A's skin, lit by A's
+scene), and fits to their ratio a per-channel gain that is a plane in log colour (A's mean tone and
+A's gradient of light across the face), robustly, where the frame looks like A's skin. B's face
+times that gain has A's colour and light at its edge, so little step is left to blend; B's shading,
+detail and the differences of tone between B's regions remain.
 
 The seam is measured on a ring along the mask's edge (``seam``): the colour step across it (the
 mean colour a few pixels inside minus that a few pixels outside, against the same step in A's own
@@ -82,38 +81,43 @@ def multiband(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, levels: in
     return np.clip(out, 0, 255).round().astype(np.uint8)
 
 
-def _fill(values: np.ndarray, weight: np.ndarray) -> np.ndarray:
-    """A smooth field (h, w, c) that takes ``values`` where ``weight`` (h, w) is 1 and interpolates
-    them elsewhere (push-pull: weighted means down a Gaussian pyramid, then each level keeps its own
-    mean where its weight is large and the coarser level's elsewhere)."""
-    pyramid = [(values * weight[..., None], weight)]
-    while min(pyramid[-1][1].shape) > 2:
-        vw, w = pyramid[-1]
-        pyramid.append((cv2.pyrDown(vw), cv2.pyrDown(w)))
-    vw, w = pyramid[-1]
-    total = w.sum()
-    field = np.broadcast_to(vw.sum(axis=(0, 1)) / max(total, 1e-12), vw.shape).astype(np.float32)
-    for vw, w in reversed(pyramid):
-        field = cv2.resize(field, (w.shape[1], w.shape[0]), interpolation=cv2.INTER_LINEAR).reshape(vw.shape)
-        keep = np.clip(w * 4, 0, 1)[..., None]  # a level's own mean where a quarter of its support is known
-        field = keep * vw / np.maximum(w, 1e-12)[..., None] + (1 - keep) * field
-    return field
+def _robust_plane(xy: np.ndarray, values: np.ndarray, weight: np.ndarray, *, delta: float = 0.1,
+                  rounds: int = 4) -> np.ndarray:
+    """Coefficients (3, c) of the plane ``[1, x, y] @ coef`` that fits ``values`` (m, c) at points
+    ``xy`` (m, 2) with prior weights ``weight`` (m,), by iteratively reweighted least squares with
+    Huber's weights (``delta`` in the values' units): a few outliers (hair, a collar) do not tilt it."""
+    design = np.column_stack([np.ones(len(xy)), xy])
+    robust = np.ones_like(values)
+    coef = np.zeros((3, values.shape[1]))
+    for _ in range(rounds):
+        for c in range(values.shape[1]):
+            w = weight * robust[:, c]
+            lhs = design.T @ (design * w[:, None]) + 1e-9 * np.eye(3)
+            coef[:, c] = np.linalg.solve(lhs, design.T @ (w * values[:, c]))
+        residual = np.abs(values - design @ coef)
+        robust = np.minimum(1.0, delta / np.maximum(residual, 1e-12))
+    return coef
 
 
 def match_lighting(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, strength: float = 1.0,
-                   tone: float = 1.0, band: float = 0.06, max_gain: float = 2.0, tint: float = 0.1, shade: float = 0.5) -> np.ndarray:
+                   tone: float = 1.0, band: float = 0.06, max_gain: float = 2.0, tint: float = 0.1,
+                   shade: float = 0.5) -> np.ndarray:
     """``face`` (h, w, 3) uint8 with its colour and light matched to ``frame`` at the edge of the mask
-    ``alpha`` (h, w) in [0, 1], the match carried smoothly inward (see the module's docstring).
+    ``alpha`` (h, w) in [0, 1] (see the module's docstring).
 
-    tone: how much of the difference of mean colour between A's skin and B's is taken (1: all, so
-    no step is left at the edge; 0: B's mean skin tone kept, only A's light, i.e. how the gain varies
-    along the edge, is matched, and the multi-band blend spreads the rest).
-    band: width of the edge band where the two are compared, as a fraction of the face's smaller
-    side (at least 2 px); max_gain: the largest factor (and 1/factor the smallest) by which a
-    channel may be scaled. Only where A's frame under B's edge looks like A's skin (the frame under
-    B's middle) does it count, so that A's hair, collar or background there cannot darken or tint
-    B's edge: tint is the tolerance (σ) of its chromaticity (log colour minus its channels' mean),
-    shade that of its brightness (the mean log colour), loose so that a shadowed cheek still counts.
+    The gain is a plane in log colour per channel (a mean and a gradient of light across the face),
+    fitted robustly to the ratio of A's frame to B's render on a band just inside the edge, so it
+    varies slowly and leaves B's detail and shading alone. Only where A's frame under B's edge looks
+    like A's skin (the frame under B's middle) does the band count, so that A's hair, collar or
+    background there cannot darken or tint B's edge: tint is the tolerance (σ) of its chromaticity
+    (log colour minus its channels' mean), shade that of its brightness (the mean log colour), loose
+    so that a shadowed cheek still counts.
+
+    strength: how much of the gain is applied (0: none); tone: how much of the difference of mean
+    colour between A's skin and B's is taken (1: all, so no step is left at the edge; 0: B's mean
+    skin tone kept and only A's gradient of light matched, the multi-band blend spreads the rest);
+    band: width of the band, as a fraction of the face's smaller side (at least 2 px); max_gain:
+    the largest factor (and 1/factor the smallest) by which a channel may be scaled anywhere.
     Outside the mask the face is returned unchanged (the composite takes the frame there)."""
     inside = (np.asarray(alpha) > 0.5).astype(np.uint8)
     if strength <= 0 or not inside.any():
@@ -121,12 +125,10 @@ def match_lighting(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, st
     ys, xs = np.nonzero(inside)
     side = min(ys.max() - ys.min() + 1, xs.max() - xs.min() + 1)
     width = max(2.0, band * side)
-    pad = int(4 * width) + 2  # work in the face's box: HD frames stay cheap
-    y0, y1 = max(ys.min() - pad, 0), min(ys.max() + pad + 1, inside.shape[0])
-    x0, x1 = max(xs.min() - pad, 0), min(xs.max() + pad + 1, inside.shape[1])
+    y0, y1, x0, x1 = ys.min(), ys.max() + 1, xs.min(), xs.max() + 1
     box = np.s_[y0:y1, x0:x1]
     f = np.asarray(face, np.float32)[box]
-    # the gain is a low frequency: found at a scale where the band is about 2 px wide, then enlarged
+    # the fit needs no more than a few thousand samples: at a scale where the band is about 2 px wide
     q = max(1.0, width / 2)
     small = (max(1, round((x1 - x0) / q)), max(1, round((y1 - y0) / q)))
     shrink = lambda img: cv2.resize(img, small, interpolation=cv2.INTER_AREA)  # noqa: E731
@@ -134,26 +136,25 @@ def match_lighting(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, st
     ring = (depth > 0.5) & (depth <= 0.5 + width / q)
     if not ring.any():
         return face
-    # only where A's frame under B's edge is A's skin: its colour near that of A's face under B's
-    # middle (A's hair, a collar or the wall behind would darken or tint B's edge)
     a = np.log1p(shrink(np.asarray(frame, np.float32)[box]))
     middle = depth > 2 * width / q
     skin = np.median(a[middle if middle.any() else ring], axis=0)
     brightness, skin_brightness = a.mean(axis=2, keepdims=True), skin.mean()
     off = (np.sum((a - brightness - (skin - skin_brightness)) ** 2, axis=2) / tint ** 2
            + (brightness[..., 0] - skin_brightness) ** 2 / shade ** 2)
-    like = np.exp(-off / 2)
-    weight = (ring * like).astype(np.float32)
-    blur = lambda img: cv2.GaussianBlur(img, (0, 0), width / q)  # noqa: E731
-    support = np.maximum(blur(weight), 1e-6)[..., None]
-    local_face = blur(np.log1p(shrink(f)) * weight[..., None]) / support
-    local_frame = blur(a * weight[..., None]) / support
-    limit = np.log(max_gain)
-    log_gain = np.clip(local_frame - local_face, -limit, limit)
-    field = _fill(log_gain, weight)
+    weight = np.exp(-off / 2)[ring]
+    if weight.sum() < 1e-3:  # nothing like skin under B's edge: nothing to match
+        return face
+    rows, cols = np.nonzero(ring)
+    scale = np.array([small[0], small[1]], np.float64)
+    coef = _robust_plane(np.column_stack([cols, rows]) / scale, (a - np.log1p(shrink(f)))[ring], weight)
     if tone < 1:  # B's own mean tone: leave out that part of the mean gain along the edge
-        field -= (1 - tone) * (log_gain * weight[..., None]).sum(axis=(0, 1)) / max(weight.sum(), 1e-6)
-    gain = cv2.resize(np.exp(strength * field), (x1 - x0, y1 - y0), interpolation=cv2.INTER_LINEAR)
+        mean_xy = np.average(np.column_stack([cols, rows]) / scale, axis=0, weights=weight)
+        coef[0] -= (1 - tone) * (coef[0] + mean_xy @ coef[1:])
+    gy, gx = np.mgrid[0:y1 - y0, 0:x1 - x0].astype(np.float32)
+    field = coef[0] + (gx[..., None] / (q * scale[0])) * coef[1] + (gy[..., None] / (q * scale[1])) * coef[2]
+    limit = np.log(max_gain)
+    gain = np.exp(strength * np.clip(field, -limit, limit)).astype(np.float32)
     matched = np.clip((f + 1) * gain - 1, 0, 255).round().astype(np.uint8)
     out = np.array(face, copy=True)
     out[box] = np.where((np.asarray(alpha)[box] > 0)[..., None], matched, out[box])
