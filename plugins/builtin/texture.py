@@ -18,7 +18,7 @@ import numpy as np
 from pydantic import Field
 
 from ..base import Params
-from ..face import texture as align
+from ..face import eyes, texture as align
 from ..face.blend import BlendCache, expression_weights
 from ..face.fiducials import mean_shape
 from ..face.template import CANONICAL_HEIGHT as H, CANONICAL_WIDTH as W
@@ -68,7 +68,7 @@ class MultiscaleTexture(TextureBackend):
                    "Laplacian pyramid with expression and detail weights (paper §5, Eq. 3)")
     default = True
     #: 2: the alignment confidence (stretch_scale, residual_scale); 3: its own flow (varref); 4: video mode
-    #: aligns the collection with that flow too (video_alignment); 5: restore_detail
+    #: aligns the collection with that flow too (video_alignment); 5: restore_detail, close_eyes
     version = "5"
 
     class Params(_Alignment):
@@ -96,6 +96,11 @@ class MultiscaleTexture(TextureBackend):
                                       "(a weighted mean of photos loses the fine detail that does not coincide in "
                                       "them: skin, pores, creases); 1 = none, the paper's blend. Not in the paper: "
                                       "detail 0.40 -> 0.62 of B's photos on Powell (docs/texture.md)")
+        close_eyes: bool = Field(True, description="when the target shuts an eye (its lids less than 65 % as far "
+                                 "apart as at B's neutral), draw that eye's opening over with the skin around it, "
+                                 "fully at 45 % (dlib's lids of a shut eye): B's photos rarely show shut eyes, and "
+                                 "a mesh squeezes an open eye rather than covers it (persona.plugins.face.eyes). "
+                                 "Not in the paper")
         stretch_scale: float = Field(0.3, ge=0, description="s of the alignment confidence's flow term "
                                      "exp(-|∇w_i|² / 2s²), |∇w_i|² the local (σ 3 px) squared Jacobian norm of "
                                      "the photo's dense flow: tears, where the flow jumps, lose their weight. "
@@ -129,7 +134,11 @@ class MultiscaleTexture(TextureBackend):
         (n, 49, 2) give the expression weights."""
         # without a uniform term only the ratios of the e_i matter: relative ones cannot all underflow
         e = expression_weights(fiducials, target, self.params.sigma, relative=self.params.tau == 0)
-        return np.clip(cache.blend(e, skip=self.params.skip, restore=self.params.restore_detail), 0, 255)
+        texture = cache.blend(e, skip=self.params.skip, restore=self.params.restore_detail)
+        if self.params.close_eyes:  # the texture's geometry is B's neutral: the photos' mean fiducials
+            neutral = mean_shape(fiducials)
+            texture = eyes.close(texture, neutral, eyes.closure(target, neutral))
+        return np.clip(texture, 0, 255)
 
     def synthesize(self, photos, target, flow=None, reference=None):
         aligned = self.params.aligned(photos, target, flow, reference)

@@ -138,15 +138,15 @@ def eye_mouth_scale(fiducials: np.ndarray) -> np.ndarray:
 
 def eye_opening(fiducials: np.ndarray) -> float:
     """Mean height (px) between the upper and lower lids of a face's 49 fiducials."""
-    return float(_gap(fiducials, FACING[:4]))
+    return float(gap(fiducials, FACING[:4]))
 
 
 def lip_gap(fiducials: np.ndarray) -> np.ndarray:
     """(...) mean height (px) between the inner lips of (..., 49, 2) fiducials (0 = closed)."""
-    return _gap(fiducials, FACING[4:])
+    return gap(fiducials, FACING[4:])
 
 
-def _gap(fiducials: np.ndarray, pairs) -> np.ndarray:
+def gap(fiducials: np.ndarray, pairs) -> np.ndarray:
     """Mean height of the :data:`FACING` ``pairs`` (lower minus upper) of (..., 49, 2) fiducials."""
     return np.nanmean([fiducials[..., lower, 1] - fiducials[..., upper, 1] for upper, lower in pairs], axis=0)
 
