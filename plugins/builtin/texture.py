@@ -15,7 +15,7 @@ from typing import Literal
 
 import cv2
 import numpy as np
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from ..base import Params
 from ..face import eyes, texture as align
@@ -91,16 +91,27 @@ class MultiscaleTexture(TextureBackend):
             "faster, but it tears tight low-resolution crops; docs/texture.md)")
         skip: float = Field(1e-6, ge=0, lt=1, description="photos with e_i below skip · max(e) are left out of "
                             "the fine levels' sums (their share there is below this); 0 keeps every photo")
-        restore_detail: float = Field(2.0, ge=1, le=4, description="the largest factor by which each fine "
+        restore_detail: float = Field(1.0, ge=1, le=4, description="the largest factor by which each fine "
                                       "band of the blend is scaled back towards the band energy of one photo there "
                                       "(a weighted mean of photos loses the fine detail that does not coincide in "
                                       "them: skin, pores, creases); 1 = none, the paper's blend. Not in the paper: "
-                                      "detail 0.40 -> 0.62 of B's photos on Powell (docs/texture.md)")
-        close_eyes: bool = Field(True, description="when the target shuts an eye (its lids less than 65 % as far "
-                                 "apart as at B's neutral), draw that eye's opening over with the skin around it, "
-                                 "fully at 45 % (dlib's lids of a shut eye): B's photos rarely show shut eyes, and "
-                                 "a mesh squeezes an open eye rather than covers it (persona.plugins.face.eyes). "
-                                 "Not in the paper")
+                                      "at 2, detail 0.40 -> 0.61 of B's photos on Powell, but brows and jitter lose "
+                                      "on several drives, so it is off by default (docs/texture.md)")
+        close_eyes: bool = Field(True, description="when the target shuts an eye (its lids less than "
+                                 "`shut_from` as far apart as at B's neutral), draw that eye's opening over with the "
+                                 "skin around it, fully at `shut_at`: B's photos rarely show shut eyes, and a mesh "
+                                 "squeezes an open eye rather than covers it (persona.plugins.face.eyes). Not in the "
+                                 "paper")
+        shut_from: float = Field(0.65, gt=0, le=1, description="close_eyes: the lids' distance, over B's neutral one, "
+                                 "below which the eye starts to be drawn shut")
+        shut_at: float = Field(0.45, ge=0, lt=1, description="close_eyes: the distance at which it is fully shut "
+                               "(dlib's lid points of a shut eye stay 40-50 % of their open distance apart)")
+
+        @model_validator(mode="after")
+        def _shut(self):
+            if self.shut_at >= self.shut_from:
+                raise ValueError(f"shut_at ({self.shut_at}) must be below shut_from ({self.shut_from})")
+            return self
         stretch_scale: float = Field(0.3, ge=0, description="s of the alignment confidence's flow term "
                                      "exp(-|∇w_i|² / 2s²), |∇w_i|² the local (σ 3 px) squared Jacobian norm of "
                                      "the photo's dense flow: tears, where the flow jumps, lose their weight. "
@@ -130,19 +141,26 @@ class MultiscaleTexture(TextureBackend):
                                 confidence=self.confidence(aligned))
 
     def blend(self, cache: BlendCache, fiducials: np.ndarray, target: np.ndarray) -> np.ndarray:
-        """The texture (H, W, 3) float32 for a target (49, 2), from a cache of photos whose fiducials
-        (n, 49, 2) give the expression weights."""
-        # without a uniform term only the ratios of the e_i matter: relative ones cannot all underflow
-        e = expression_weights(fiducials, target, self.params.sigma, relative=self.params.tau == 0)
-        texture = cache.blend(e, skip=self.params.skip, restore=self.params.restore_detail)
+        """Video mode: the texture (H, W, 3) float32 for a target (49, 2), from a cache of photos
+        aligned to their mean fiducials, whose own fiducials (n, 49, 2) give the expression weights;
+        with ``close_eyes``, the eyes the target shuts drawn shut."""
+        texture = self._blend(cache, fiducials, target)
         if self.params.close_eyes:  # the texture's geometry is B's neutral: the photos' mean fiducials
             neutral = mean_shape(fiducials)
-            texture = eyes.close(texture, neutral, eyes.closure(target, neutral))
-        return np.clip(texture, 0, 255)
+            shut = eyes.closure(target, neutral, start=self.params.shut_from, end=self.params.shut_at)
+            texture = np.clip(eyes.close(texture, neutral, shut), 0, 255)
+        return texture
+
+    def _blend(self, cache: BlendCache, fiducials: np.ndarray, target: np.ndarray) -> np.ndarray:
+        """Eq. 3's blend of a cache for a target's expression weights, clipped to 0-255."""
+        # without a uniform term only the ratios of the e_i matter: relative ones cannot all underflow
+        e = expression_weights(fiducials, target, self.params.sigma, relative=self.params.tau == 0)
+        return np.clip(cache.blend(e, skip=self.params.skip, restore=self.params.restore_detail), 0, 255)
 
     def synthesize(self, photos, target, flow=None, reference=None):
         aligned = self.params.aligned(photos, target, flow, reference)
-        return Texture(self.blend(self.cache(aligned), photos.fiducials, target), aligned.valid.any(axis=0))
+        # the photos are aligned to the target itself: its eyes are already as open as the target's
+        return Texture(self._blend(self.cache(aligned), photos.fiducials, target), aligned.valid.any(axis=0))
 
 
 class StaticTexture(TextureBackend):
