@@ -6,7 +6,9 @@ so the texture's eyes stay open. The 3D mesh then brings B's lids together, but 
 open eye between them rather than covering it: a bright sliver of eye white and iris stays, and the
 eye still reads as open (dlib, and a viewer, see it so). Here each eye's opening in the canonical
 texture — the polygon of its six fiducials at B's neutral, grown by a pixel — is replaced by the
-skin around it (inpainted from the lids), with a weight that grows as the target's lids come
+skin around it (inpainted from the lids) with the line of lashes where the lids meet (a soft dark
+line, the colour of the eye's darkest tenth, from corner to corner through the middles of the
+facing lid points), with a weight that grows as the target's lids come
 together: 0 while that eye is open by at least ``start`` (65 %) of its neutral opening, 1 once it is
 open by at most ``end`` (45 %), smooth in between. An open eye is left exactly as it was. The
 thresholds are dlib's: on a shut eye its lid points stay 40-50 % of their open distance apart (the
@@ -39,6 +41,12 @@ def closure(target: np.ndarray, neutral: np.ndarray, *, start: float = 0.65, end
     return out
 
 
+def _lash_line(polygon: np.ndarray) -> np.ndarray:
+    """(4, 2) where a shut eye's lids meet, from its six points (iBUG order: outer corner, two upper
+    lid points, inner corner, two lower): the corners and the middles of the facing pairs."""
+    return np.array([polygon[0], (polygon[1] + polygon[5]) / 2, (polygon[2] + polygon[4]) / 2, polygon[3]])
+
+
 def close(texture: np.ndarray, neutral: np.ndarray, shut: np.ndarray, *, grow: int = 1,
           margin: int = 6) -> np.ndarray:
     """``texture`` (H, W, 3) at the geometry of the fiducials ``neutral`` (49, 2), each eye k blended
@@ -62,6 +70,12 @@ def close(texture: np.ndarray, neutral: np.ndarray, shut: np.ndarray, *, grow: i
             hole = cv2.dilate(hole, np.ones((2 * grow + 1, 2 * grow + 1), np.uint8))
         patch = np.clip(out[y0:y1, x0:x1], 0, 255).round().astype(np.uint8)
         skin = cv2.inpaint(patch, hole, 3, cv2.INPAINT_TELEA).astype(np.float32)
+        inner = patch[hole > 0].astype(np.float32)
+        lash = inner[np.argsort(inner.sum(axis=1))[: max(1, len(inner) // 10)]].mean(axis=0)
+        line = np.zeros(hole.shape, np.float32)
+        cv2.polylines(line, [np.round(_lash_line(polygon) - (x0, y0)).astype(np.int32)], False, 1.0, 1, cv2.LINE_AA)
+        line = np.clip(cv2.GaussianBlur(line, (0, 0), 0.5) * 1.5, 0, 1)[..., None]
+        skin = skin * (1 - line) + lash * line
         weight = s * cv2.GaussianBlur(hole.astype(np.float32), (0, 0), 0.8)[..., None]
         out[y0:y1, x0:x1] = out[y0:y1, x0:x1] * (1 - weight) + skin * weight
     return out
