@@ -115,7 +115,7 @@ class Executor:
         futures = [self.client.submit(fn, *args, pure=False) for args in argument_lists]
         try:
             for future in self._as_completed(futures):
-                yield future.result()
+                yield self._result(future.result)
         except BaseException:
             self.client.cancel(futures)  # the tasks not started yet; a run that goes on must not race them
             raise
@@ -128,7 +128,19 @@ class Executor:
         futures = self.client.compute(list(collections))
         for _ in self._as_completed(futures):
             pass
-        return self.client.gather(futures)
+        return self._result(self.client.gather, futures)
+
+    def _result(self, fetch, *args):
+        """fetch(*args), a finished task's result; a RunError (:meth:`_lost`) when the scheduler went
+        away while it came back (a closed connection), not a traceback. A task's own error passes."""
+        from distributed.comm.core import CommClosedError
+
+        try:
+            return fetch(*args)
+        except OSError as exc:
+            if isinstance(exc, CommClosedError) or self.client.status != "running":
+                raise self._lost() from None
+            raise
 
     #: seconds the cluster may have no worker at all, with tasks waiting, before the run stops
     workerless_seconds = 120.0

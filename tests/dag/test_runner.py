@@ -319,6 +319,30 @@ def test_the_local_cluster_listens_on_loopback_only():
         ex.close()
 
 
+def test_a_connection_closed_while_a_result_comes_back_is_a_lost_scheduler():
+    """The scheduler SIGKILLed just as a finished task's result is fetched: distributed raises
+    CommClosedError there (seen once in CI under load, a raw traceback and exit 1); the run says it
+    lost its scheduler. A task's own OSError still passes as it is."""
+    from distributed.comm.core import CommClosedError
+
+    from persona.dag.runner import Executor, RunError
+
+    def closed():
+        raise CommClosedError("in <TCP (closed) ConnectionPool.gather>: ConnectionResetError")
+
+    def missing():
+        raise FileNotFoundError("a task's own error")
+
+    ex = Executor("local", 1)
+    try:
+        with pytest.raises(RunError, match="lost the connection to its Dask scheduler"):
+            ex._result(closed)
+        with pytest.raises(FileNotFoundError, match="a task's own error"):
+            ex._result(missing)
+    finally:
+        ex.close()
+
+
 def test_a_run_whose_workers_are_all_gone_stops_with_a_clear_error():
     """With every worker gone the run stops, naming the scheduler and how to resume, instead of
     waiting forever."""
