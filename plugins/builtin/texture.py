@@ -106,12 +106,6 @@ class MultiscaleTexture(TextureBackend):
                                  "below which the eye starts to be drawn shut")
         shut_at: float = Field(0.45, ge=0, lt=1, description="close_eyes: the distance at which it is fully shut "
                                "(dlib's lid points of a shut eye stay 40-50 % of their open distance apart)")
-
-        @model_validator(mode="after")
-        def _shut(self):
-            if self.shut_at >= self.shut_from:
-                raise ValueError(f"shut_at ({self.shut_at}) must be below shut_from ({self.shut_from})")
-            return self
         stretch_scale: float = Field(0.3, ge=0, description="s of the alignment confidence's flow term "
                                      "exp(-|∇w_i|² / 2s²), |∇w_i|² the local (σ 3 px) squared Jacobian norm of "
                                      "the photo's dense flow: tears, where the flow jumps, lose their weight. "
@@ -121,6 +115,12 @@ class MultiscaleTexture(TextureBackend):
                                       "grey (0-1) aligned photo and its rank-k projection: where the flow left a "
                                       "feature off the target's place. Not in the paper (0 turns it off); 0.02 "
                                       "chosen with stretch_scale")
+
+        @model_validator(mode="after")
+        def _shut(self):
+            if self.shut_at >= self.shut_from:
+                raise ValueError(f"shut_at ({self.shut_at}) must be below shut_from ({self.shut_from})")
+            return self
 
     def confidence(self, aligned: align.Aligned) -> np.ndarray | None:
         """Each photo's local alignment confidence (n, H, W) in [0, 1], the product of the terms

@@ -130,14 +130,12 @@ class BlendCache:
         # the uniform term's sums over all photos, shared by every target
         self._weighted_sum = [p.sum(axis=0) for p in self.weighted]
         self._detail_sum = [q.sum(axis=0) for q in self.detail]
-        self._energy = None
+        self._energy = {}  # photo_energy's, per level
 
     def photo_energy(self, k: int) -> np.ndarray:
         """(h_k, w_k) the band energy a photo has at level k about each pixel: the detail-weighted
         mean over the photos of their band's squared value (mean over channels), i.e.
         Σ_i P_i² / Q_i / Σ_i Q_i, smoothed over 2 px. Computed on first use."""
-        if self._energy is None:
-            self._energy = {}
         if k not in self._energy:
             total = np.zeros(self.detail[k].shape[1:3], np.float64)
             for p, q in zip(self.weighted[k], self.detail[k]):

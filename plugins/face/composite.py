@@ -147,10 +147,10 @@ def match_lighting(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, st
         return face
     rows, cols = np.nonzero(ring)
     scale = np.array([small[0], small[1]], np.float64)
-    coef = _robust_plane(np.column_stack([cols, rows]) / scale, (a - np.log1p(shrink(f)))[ring], weight)
+    xy = np.column_stack([cols, rows]) / scale  # the band's points, the box's width and height 1
+    coef = _robust_plane(xy, (a - np.log1p(shrink(f)))[ring], weight)
     if tone < 1:  # B's own mean tone: leave out that part of the mean gain along the edge
-        mean_xy = np.average(np.column_stack([cols, rows]) / scale, axis=0, weights=weight)
-        coef[0] -= (1 - tone) * (coef[0] + mean_xy @ coef[1:])
+        coef[0] -= (1 - tone) * (coef[0] + np.average(xy, axis=0, weights=weight) @ coef[1:])
     gy, gx = np.mgrid[0:y1 - y0, 0:x1 - x0].astype(np.float32)
     field = coef[0] + (gx[..., None] / (q * scale[0])) * coef[1] + (gy[..., None] / (q * scale[1])) * coef[2]
     limit = np.log(max_gain)
