@@ -31,8 +31,7 @@ def main() -> None:
     wf = load_workflow(args.workflow)
     root = open_store(wf.store, mode="r")
     drive, frames = Collection(root, "drive"), Collection(root, "driver/frames")
-    ways = {"paste": composite.paste, "multiband": composite.multiband,
-            "blend (lighting 1)": lambda *a: composite.blend(*a, lighting=1.0)}
+    ways = {"paste": composite.paste, "multiband": composite.multiband, "blend (lighting 1)": composite.blend}
     found = {name: [] for name in ways}
     seconds = {name: [] for name in ways}
     for t in range(0, drive.n, args.every):

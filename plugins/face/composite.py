@@ -99,7 +99,7 @@ def _robust_plane(xy: np.ndarray, values: np.ndarray, weight: np.ndarray, *, del
     return coef
 
 
-def match_lighting(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, strength: float = 1.0,
+def match_lighting(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, lighting: float = 1.0,
                    tone: float = 1.0, band: float = 0.06, max_gain: float = 2.0, tint: float = 0.1,
                    shade: float = 0.5) -> np.ndarray:
     """``face`` (h, w, 3) uint8 with its colour and light matched to ``frame`` at the edge of the mask
@@ -113,14 +113,14 @@ def match_lighting(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, st
     (log colour minus its channels' mean), shade that of its brightness (the mean log colour), loose
     so that a shadowed cheek still counts.
 
-    strength: how much of the gain is applied (0: none); tone: how much of the difference of mean
+    lighting: how much of the gain is applied (0: none); tone: how much of the difference of mean
     colour between A's skin and B's is taken (1: all, so no step is left at the edge; 0: B's mean
     skin tone kept and only A's gradient of light matched, the multi-band blend spreads the rest);
     band: width of the band, as a fraction of the face's smaller side (at least 2 px); max_gain:
     the largest factor (and 1/factor the smallest) by which a channel may be scaled anywhere.
     Outside the mask the face is returned unchanged (the composite takes the frame there)."""
     inside = (np.asarray(alpha) > 0.5).astype(np.uint8)
-    if strength <= 0 or not inside.any():
+    if lighting <= 0 or not inside.any():
         return face
     ys, xs = np.nonzero(inside)
     side = min(ys.max() - ys.min() + 1, xs.max() - xs.min() + 1)
@@ -154,7 +154,7 @@ def match_lighting(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, st
     gy, gx = np.mgrid[0:y1 - y0, 0:x1 - x0].astype(np.float32)
     field = coef[0] + (gx[..., None] / (q * scale[0])) * coef[1] + (gy[..., None] / (q * scale[1])) * coef[2]
     limit = np.log(max_gain)
-    gain = np.exp(strength * np.clip(field, -limit, limit)).astype(np.float32)
+    gain = np.exp(lighting * np.clip(field, -limit, limit)).astype(np.float32)
     matched = np.clip((f + 1) * gain - 1, 0, 255).round().astype(np.uint8)
     out = np.array(face, copy=True)
     out[box] = np.where((np.asarray(alpha)[box] > 0)[..., None], matched, out[box])
@@ -166,7 +166,7 @@ def blend(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, lighting: f
     """The composite as ``composite.mp4`` shows it: B's face matched to A's light and tone at its edge
     (:func:`match_lighting`, by ``lighting`` and ``tone`` in [0, 1]), then blended band by band
     (:func:`multiband`)."""
-    return multiband(match_lighting(face, frame, alpha, strength=lighting, tone=tone), frame, alpha)
+    return multiband(match_lighting(face, frame, alpha, lighting=lighting, tone=tone), frame, alpha)
 
 
 def seam(image: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, reach: int = 4) -> dict | None:

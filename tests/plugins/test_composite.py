@@ -15,11 +15,22 @@ def scene(size=200, radius=60):
     rng = np.random.default_rng(0)
     frame = np.clip(60 + rng.normal(0, 4, (size, size, 3)), 0, 255).astype(np.uint8)
     ys, xs = np.mgrid[0:size, 0:size]
-    checker = ((ys // 2 + xs // 2) % 2) * 30 - 15
-    face = np.clip(200 + checker[..., None] + np.zeros(3), 0, 255).astype(np.uint8)
+    face = np.clip(200 + checker(size)[..., None] + np.zeros(3), 0, 255).astype(np.uint8)
+    alpha, disk = feathered_disk(size, radius)
+    return face, frame, alpha, disk
+
+
+def checker(size):
+    """A 2-px checker of ±15 grey levels: B's fine detail."""
+    ys, xs = np.mgrid[0:size, 0:size]
+    return ((ys // 2 + xs // 2) % 2) * 30 - 15
+
+
+def feathered_disk(size, radius):
+    """(alpha, disk): a centred disk mask, feathered inwards over 3 px as the renderer's, and the disk."""
+    ys, xs = np.mgrid[0:size, 0:size]
     disk = ((ys - size / 2) ** 2 + (xs - size / 2) ** 2 <= radius ** 2).astype(np.float32)
-    alpha = cv2.GaussianBlur(disk, (0, 0), 3.0) * disk
-    return face, frame, alpha, disk.astype(bool)
+    return cv2.GaussianBlur(disk, (0, 0), 3.0) * disk, disk.astype(bool)
 
 
 def test_multiband_spreads_the_colour_step_and_keeps_the_detail():
@@ -56,13 +67,10 @@ def lit_scene(size=200, radius=60):
     """A's frame: A's skin lit from the right (0.7 to 1.3 across the frame); B's face: a lighter skin
     with a checker detail, evenly lit; a disk mask feathered over 3 px."""
     rng = np.random.default_rng(1)
-    ys, xs = np.mgrid[0:size, 0:size]
-    light = 0.7 + 0.6 * xs / size
-    frame = np.clip(np.array([110, 90, 80]) * light[..., None] + rng.normal(0, 3, (size, size, 3)), 0, 255)
-    checker = ((ys // 2 + xs // 2) % 2) * 30 - 15
-    face = np.clip(np.array([170, 140, 120]) + checker[..., None], 0, 255)
-    disk = ((ys - size / 2) ** 2 + (xs - size / 2) ** 2 <= radius ** 2).astype(np.float32)
-    return face.astype(np.uint8), frame.astype(np.uint8), cv2.GaussianBlur(disk, (0, 0), 3.0) * disk
+    light = 0.7 + 0.6 * np.arange(size) / size  # along x
+    frame = np.clip(np.array([110, 90, 80]) * light[None, :, None] + rng.normal(0, 3, (size, size, 3)), 0, 255)
+    face = np.clip(np.array([170, 140, 120]) + checker(size)[..., None], 0, 255)
+    return face.astype(np.uint8), frame.astype(np.uint8), feathered_disk(size, radius)[0]
 
 
 def test_matching_the_light_removes_the_step_and_keeps_the_detail():

@@ -2,20 +2,26 @@
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 
 from persona.plugins.face import eyes
 from persona.plugins.face.template import generic_template
 
 
+def eye_mask(neutral, points):
+    """(244, 194) bool: inside the polygon of an eye's six ``points`` of the fiducials ``neutral``."""
+    mask = np.zeros((244, 194), np.uint8)
+    cv2.fillPoly(mask, [np.round(neutral[list(points)]).astype(np.int32)], 1)
+    return mask > 0
+
+
 def texture_with_dark_eyes():
     """Skin (180, 140, 120) with the two eye polygons of the template's fiducials painted dark."""
-    import cv2
-
     neutral = generic_template().fiducials3d[:, :2].astype(np.float64)
     texture = np.zeros((244, 194, 3), np.float32) + (180, 140, 120)
     for points, _ in eyes.EYES:
-        cv2.fillPoly(texture, [np.round(neutral[list(points)]).astype(np.int32)], (30, 20, 20))
+        texture[eye_mask(neutral, points)] = (30, 20, 20)
     return texture, neutral
 
 
@@ -37,12 +43,8 @@ def test_a_shut_eye_is_drawn_over_with_skin_and_lashes_and_an_open_one_is_left_a
     assert np.all((half > 0.2) & (half < 0.8))  # half way between 65 % and 45 %
     assert np.array_equal(eyes.close(texture, neutral, eyes.closure(neutral, neutral)), texture)
     closed = eyes.close(texture, neutral, eyes.closure(shut(neutral, 0.3), neutral))
-    import cv2
-
     for points, _ in eyes.EYES:
-        inside = np.zeros(texture.shape[:2], np.uint8)
-        cv2.fillPoly(inside, [np.round(neutral[list(points)]).astype(np.int32)], 1)
-        pixels = closed[inside > 0]
+        pixels = closed[eye_mask(neutral, points)]
         skin = np.abs(pixels - (180, 140, 120)).max(axis=1) < 12
         print(f"\nshut eye: {skin.mean():.0%} of it skin (within 12 levels), mean {pixels.mean(axis=0)}, "
               f"darkest {pixels.min(axis=0)}")
