@@ -14,7 +14,7 @@ import logging
 
 import numpy as np
 
-from persona.plugins.face.composite import blend
+from persona.plugins.face.composite import alone, blend
 from persona.plugins.face.dynamics import smooth_in_time
 from persona.plugins.face.fiducials import mean_shape
 from persona.plugins.face.tracks import bridge
@@ -100,24 +100,29 @@ def driver_sound(frames: Collection, fps: float) -> media.Audio | None:
 
 
 def write_videos(drive: Collection, frames: Collection, output, blending: dict) -> dict[str, str]:
-    """puppet.mp4 (the puppet as rendered), side_by_side.mp4 (driver | puppet) and composite.mp4
+    """puppet.mp4 (the puppet's face alone, on grey), side_by_side.mp4 (driver | puppet) and composite.mp4
     (the puppet's face matched to the driver's light at its edge and blended into the driver's frames
     through the render's soft mask, band by band: :func:`persona.plugins.face.composite.blend` with
     ``blending``), at the video's fps, with the driver video's sound (:func:`driver_sound`)."""
     fps = float(drive.attrs["fps"])
-
-    def shards(*arrays, composite=False):
-        for start, stop in drive.shard_ranges():
-            parts = [a[start:stop] for a in arrays]
-            if composite:
-                rendered, original, mask = parts
-                parts = [np.stack([blend(r, o, m.astype(np.float32) / 255, **blending) for r, o, m in zip(*parts)])]
-            yield from (np.concatenate(row, axis=1) for row in zip(*parts))
-
     rendered, original, mask = drive.array("render/rgb"), frames.array("photos/rgb"), drive.array("render/mask")
+
+    def shards(*views):
+        """Each view (a function of one shard's rendered faces, their masks and the driver's frames
+        giving one image per frame) side by side, frame by frame."""
+        for start, stop in drive.shard_ranges():
+            r, m, o = rendered[start:stop], mask[start:stop].astype(np.float32) / 255, original[start:stop]
+            yield from (np.concatenate(row, axis=1) for row in zip(*(view(r, m, o) for view in views)))
+
+    def puppet(r, m, o):
+        return [alone(*x) for x in zip(r, m)]
+
+    def composite(r, m, o):
+        return [blend(*x, **blending) for x in zip(r, o, m)]
+
     sound = driver_sound(frames, fps)
     files = {name: storage.join(output, f"{name}.mp4") for name in ("puppet", "side_by_side", "composite")}
-    media.write_video_mp4(files["puppet"], shards(rendered), fps, sound)
-    media.write_video_mp4(files["side_by_side"], shards(original, rendered), fps, sound)
-    media.write_video_mp4(files["composite"], shards(rendered, original, mask, composite=True), fps, sound)
+    media.write_video_mp4(files["puppet"], shards(puppet), fps, sound)
+    media.write_video_mp4(files["side_by_side"], shards(lambda r, m, o: o, puppet), fps, sound)
+    media.write_video_mp4(files["composite"], shards(composite), fps, sound)
     return {name: str(file) for name, file in files.items()}

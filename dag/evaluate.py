@@ -79,12 +79,13 @@ def analyse_frames(url: str, start: int, stop: int, identity: tuple[str, dict], 
     psnr, ssim = np.full((n, 2), np.nan), np.full((n, 2), np.nan)  # the render's, the composite's
     seams = {"blend": [], "paste": []}
     for j in range(n):
+        alpha = alphas[j].astype(np.float32) / 255
+        face = composite.alone(rendered[j], alpha)  # as puppet.mp4 shows it
         try:
-            landmarks[j] = detector.detect(rendered[j]).points
-            descriptors[j, 0] = backend.describe(rendered[j], landmarks[j])
+            landmarks[j] = detector.detect(face).points
+            descriptors[j, 0] = backend.describe(face, landmarks[j])
         except Rejected:
             pass
-        alpha = alphas[j].astype(np.float32) / 255
         blended = composite.blend(rendered[j], original[j], alpha, **blending)
         try:
             composite_landmarks[j] = detector.detect(blended).points
@@ -92,7 +93,7 @@ def analyse_frames(url: str, start: int, stop: int, identity: tuple[str, dict], 
         except Rejected:
             pass
         if compare and masks[j].any():
-            for k, image in enumerate((rendered[j], blended)):
+            for k, image in enumerate((face, blended)):
                 psnr[j, k] = ev.masked_psnr(image, original[j], masks[j])
                 ssim[j, k] = ev.masked_ssim(image, original[j], masks[j])
         if (start + j) % 4 == 0:

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from persona.plugins.face import composite
 from persona.stores import media, storage
 from persona.stores.layout import Collection, item
 
@@ -176,9 +177,14 @@ def write_run_report(wf, root, metrics: dict, series: dict | None) -> Path | str
     if root.get("drive") is not None:
         drive, frames = Collection(root, "drive"), Collection(root, "driver/frames")
         chosen = np.linspace(0, drive.n - 1, min(6, drive.n)).round().astype(int)
-        top = np.concatenate([frames.array("photos/rgb")[i] for i in chosen], axis=1)
-        bottom = np.concatenate([drive.array("render/rgb")[i] for i in chosen], axis=1)
-        strip = np.concatenate([top, bottom], axis=0)
+        rows = [[], [], []]  # the driver's frames, composite.mp4's, puppet.mp4's
+        for i in chosen:
+            frame, face = frames.array("photos/rgb")[i], drive.array("render/rgb")[i]
+            alpha = drive.array("render/mask")[i].astype(np.float32) / 255
+            rows[0].append(frame)
+            rows[1].append(composite.blend(face, frame, alpha, **wf.backendless("composite")))
+            rows[2].append(composite.alone(face, alpha))
+        strip = np.concatenate([np.concatenate(row, axis=1) for row in rows], axis=0)
     fps = float(root["driver/frames"].attrs["fps"]) if strip is not None else 25.0
     texture = []
     for file in storage.glob(storage.join(out, "*_texture_evaluation*.json")):
@@ -217,7 +223,7 @@ def write_report(path, *, metrics: dict, pictures: dict[str, np.ndarray], strip:
     for result, grid in texture:
         parts += texture_section(result, grid)
     if strip is not None:
-        parts += ["<h2>Driver frames (top) and output frames (bottom)</h2>", _img(_png(strip), "frames", 960)]
+        parts += ["<h2>Driver frames (top), the composite (middle), the puppet alone (bottom)</h2>", _img(_png(strip), "frames", 960)]
     if series:
         for name, src in plots(series, threshold, fps).items():
             parts.append(_img(src, name))

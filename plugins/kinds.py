@@ -128,7 +128,11 @@ class Puppet:
 
 @dataclass(frozen=True)
 class Rendered:
-    """One output frame: rgb (h, w, 3) uint8, and mask (h, w) float32 in [0, 1] where the face is."""
+    """One output frame: rgb (h, w, 3) uint8, and mask (h, w) float32 in [0, 1], how much of each
+    pixel is the face. rgb is the face's own colour wherever mask > 0, its soft edge included, not
+    blended with anything (grey, 128, where mask is 0): the composite blends it into the driver's
+    frame and ``puppet.mp4`` over grey (``persona.plugins.face.composite.alone``). Blended already,
+    the soft edge would carry grey into the composite as a pale ring."""
 
     rgb: np.ndarray
     mask: np.ndarray

@@ -10,6 +10,7 @@ import numpy as np
 from pydantic import Field
 
 from ..base import Params
+from ..face.composite import GREY
 from ..face.mesh import cast
 from ..face.warp import tps_map
 from ..hookspecs import hookimpl
@@ -62,6 +63,7 @@ class Tps2dRender(RenderBackend):
     name = "tps2d"
     description = "the paper's 2D baseline: the puppet's average face TPS-warped to the target fiducials, at the driver's pose"
     default = False
+    version = "2"  # 2: rgb is the face's own colour across its soft edge (Rendered); no background param
 
     class Params(Params):
         tps_lambda: float = Field(10.0, ge=0, description="λ of the smoothing TPS (Eq. 1; paper: 10)")
@@ -73,8 +75,6 @@ class Tps2dRender(RenderBackend):
         min_coverage: float = Field(0.3, ge=0, le=1, description="canonical pixels seen in fewer "
                                     "than this fraction of the puppet's photos are left out")
         feather: float = Field(3.0, ge=0, description="Gaussian σ (frame px) of the soft face edge")
-        background: Literal["driver", "grey"] = Field(
-            "driver", description="what surrounds the face: the driver's frame or plain grey")
 
     def render(self, puppet, target, pose, frame):
         h, w = frame.shape[:2]
@@ -88,9 +88,8 @@ class Tps2dRender(RenderBackend):
         mask = cv2.remap(seen, where[..., 0], where[..., 1], cv2.INTER_LINEAR) * hit
         if self.params.feather > 0:
             mask = cv2.GaussianBlur(mask, (0, 0), self.params.feather) * (mask > 0.5)
-        back = frame.astype(np.float32) if self.params.background == "driver" else np.full_like(rgb, 128.0)
-        out = rgb * mask[..., None] + back * (1 - mask[..., None])
-        return Rendered(rgb=np.clip(out, 0, 255).round().astype(np.uint8), mask=mask.astype(np.float32))
+        out = np.where((mask > 0)[..., None], np.clip(rgb, 0, 255).round(), GREY).astype(np.uint8)
+        return Rendered(rgb=out, mask=mask.astype(np.float32))
 
 
 @hookimpl

@@ -20,8 +20,6 @@ mask are sampled bilinearly there.
 
 from __future__ import annotations
 
-from typing import Literal
-
 import cv2
 import numba
 import numpy as np
@@ -29,6 +27,7 @@ from pydantic import Field
 
 from ..base import Params
 from ..face import mouth
+from ..face.composite import GREY
 from ..face.mesh import grid_triangles
 from ..face.warp import compose
 from ..hookspecs import hookimpl
@@ -129,11 +128,10 @@ def surface_map(mesh: np.ndarray, pose: Pose, frame_size: tuple[int, int], pad: 
 class RaycastRender(RenderBackend):
     """The puppet's 3D face at the driver's pose (paper §6 and Fig. 1; ALGORITHMS §13).
 
-    background: "grey" by default, unlike ``tps2d``. The 3D puppet has B's own face shape, so its
-    outline differs from the driver's: over the driver's frame, strips of A's face would show
-    around B's, and B's face would float over A's head without B's hair or ears (a face swap
-    without blending, which the paper does not attempt: it shows the rendered puppet alone). The
-    returned mask lets a caller composite anyway; "driver" does it here.
+    The face alone: ``rgb`` holds its own colour where the mask is above 0 and grey elsewhere (see
+    ``Rendered``). B's face has B's own shape, so its outline differs from the driver's; the paper
+    shows the puppet alone, and ``composite.mp4`` blends it into the driver's frame
+    (``persona.plugins.face.composite``).
     """
 
     name = "mesh3d"
@@ -141,15 +139,13 @@ class RaycastRender(RenderBackend):
                    "texture, at the driver's head pose (z-buffered, equal to ray casting pixel centres)")
     default = True
     uses_mesh = True
+    version = "2"  # 2: rgb is the face's own colour across its soft edge; no background param
 
     class Params(Params):
         min_coverage: float = Field(0.3, ge=0, le=1, description="canonical pixels seen in fewer "
                                     "than this fraction of the puppet's photos are left out")
         feather: float = Field(3.0, ge=0, description="Gaussian σ (frame px) of the soft face edge "
                                "(inwards, as tps2d); 0 = hard edge")
-        background: Literal["grey", "driver"] = Field(
-            "grey", description="what surrounds the face: plain grey (the puppet alone, as the "
-            "paper shows it) or the driver's frame")
         mouth: bool = Field(True, description="draw the inside of B's mouth (from B's widest-open "
                             "photos) between B's inner lips where the mesh parts them, instead of the "
                             "stretched skin of a surface that cannot open (not in the paper; "
@@ -170,7 +166,7 @@ class RaycastRender(RenderBackend):
                              f"{puppet.appearance.shape}, coverage {puppet.coverage.shape}")
         h, w = frame.shape[:2]
         feather = self.params.feather
-        out = frame[..., :3].copy() if self.params.background == "driver" else np.full((h, w, 3), 128, np.uint8)
+        out = np.full((h, w, 3), GREY, np.uint8)
         mask = np.zeros((h, w), np.float32)
         box, hit_uv, depth = surface_map(puppet.mesh, pose, (h, w), pad=int(np.ceil(3 * feather)) + 1)
         if box is None:
@@ -186,9 +182,8 @@ class RaycastRender(RenderBackend):
         if feather > 0:
             part = cv2.GaussianBlur(part, (0, 0), feather) * (part > 0.5)
         mask[y0:y1, x0:x1] = part
-        back = out[y0:y1, x0:x1].astype(np.float32)
-        blend = rgb * part[..., None] + back * (1 - part[..., None])
-        out[y0:y1, x0:x1] = np.clip(blend, 0, 255).round().astype(np.uint8)
+        face = np.clip(rgb, 0, 255).round().astype(np.uint8)
+        out[y0:y1, x0:x1] = np.where((part > 0)[..., None], face, out[y0:y1, x0:x1])
         if self.params.mouth and puppet.mouth is not None and puppet.lips is not None:
             lips = np.asarray(puppet.lips, np.float32).reshape(1, -1, 2)
             xy, z = project(compose(np.asarray(puppet.mesh, np.float32), lips)[0], pose)  # the mesh at the lips

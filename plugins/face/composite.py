@@ -99,6 +99,17 @@ def _robust_plane(xy: np.ndarray, values: np.ndarray, weight: np.ndarray, *, del
     return coef
 
 
+def _skin_likeness(logc: np.ndarray, centre: np.ndarray, tint: float, shade: float) -> np.ndarray:
+    """How much each pixel of ``logc`` (h, w, 3), log colour, looks like the skin at ``centre`` (a
+    mask of the face's middle): a Gaussian in chromaticity (σ ``tint``) and in brightness (σ ``shade``)
+    about their medians there."""
+    skin = np.median(logc[centre], axis=0)
+    brightness = logc.mean(axis=2, keepdims=True)
+    off = (np.sum((logc - brightness - (skin - skin.mean())) ** 2, axis=2) / tint ** 2
+           + (brightness[..., 0] - skin.mean()) ** 2 / shade ** 2)
+    return np.exp(-off / 2)
+
+
 def match_lighting(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, lighting: float = 1.0,
                    tone: float = 1.0, band: float = 0.06, max_gain: float = 2.0, tint: float = 0.1,
                    shade: float = 0.5) -> np.ndarray:
@@ -137,18 +148,16 @@ def match_lighting(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, li
     if not ring.any():
         return face
     a = np.log1p(shrink(np.asarray(frame, np.float32)[box]))
+    b = np.log1p(shrink(f))
     middle = depth > 2 * width / q
-    skin = np.median(a[middle if middle.any() else ring], axis=0)
-    brightness, skin_brightness = a.mean(axis=2, keepdims=True), skin.mean()
-    off = (np.sum((a - brightness - (skin - skin_brightness)) ** 2, axis=2) / tint ** 2
-           + (brightness[..., 0] - skin_brightness) ** 2 / shade ** 2)
-    weight = np.exp(-off / 2)[ring]
+    centre = middle if middle.any() else ring
+    weight = (_skin_likeness(a, centre, tint, shade) * _skin_likeness(b, centre, tint, shade))[ring]
     if weight.sum() < 1e-3:  # nothing like skin under B's edge: nothing to match
         return face
     rows, cols = np.nonzero(ring)
     scale = np.array([small[0], small[1]], np.float64)
     xy = np.column_stack([cols, rows]) / scale  # the band's points, the box's width and height 1
-    coef = _robust_plane(xy, (a - np.log1p(shrink(f)))[ring], weight)
+    coef = _robust_plane(xy, (a - b)[ring], weight)
     if tone < 1:  # B's own mean tone: leave out that part of the mean gain along the edge
         coef[0] -= (1 - tone) * (coef[0] + np.average(xy, axis=0, weights=weight) @ coef[1:])
     gy, gx = np.mgrid[0:y1 - y0, 0:x1 - x0].astype(np.float32)
@@ -194,6 +203,17 @@ def seam(image: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, reach: int 
         return float(np.mean((gx ** 2 + gy ** 2)[ring]))
 
     return {"colour_step": step(image) - step(frame), "gradient_ratio": energy(image) / max(energy(frame), 1e-9)}
+
+
+#: the grey around the puppet's face shown alone (``puppet.mp4``), and in a render outside its mask
+GREY = 128
+
+
+def alone(face: np.ndarray, alpha: np.ndarray) -> np.ndarray:
+    """The rendered face shown alone, as ``puppet.mp4`` has it: its colour through its soft mask
+    ``alpha`` (h, w) in [0, 1] over plain grey (a render's ``rgb`` is the face's own colour across
+    the soft edge, not yet blended with anything: see ``persona.plugins.kinds.Rendered``)."""
+    return paste(face, np.full_like(face, GREY), alpha)
 
 
 def paste(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray) -> np.ndarray:

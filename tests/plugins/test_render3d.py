@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from persona.plugins.builtin.render3d import RaycastRender, surface_map
+from persona.plugins.face import composite
 from persona.plugins.face.synthetic import Expression, Light, look_at_pose, make_face, render_photo
 from persona.plugins.kinds import Pose, Puppet
 from persona.plugins.manager import default_registry
@@ -125,14 +126,23 @@ def test_feather_softens_the_edge_inwards():
     assert np.all(soft.mask <= hard.mask + 1e-6)
 
 
-def test_driver_background():
+def test_the_soft_edge_keeps_the_face_colour():
+    # rgb is the face's own colour across the feathered edge; blending is the caller's (composite,
+    # puppet.mp4). A render blended over grey here would carry grey into the composite as a ring.
     face = make_face()
-    frame = np.random.default_rng(0).integers(0, 256, (*SIZE, 3), dtype=np.uint8)
-    out = RaycastRender({"background": "driver", "feather": 2.0}).render(puppet_of(face), None, posed(0), frame)
-    outside = out.mask == 0
-    assert np.array_equal(out.rgb[outside], frame[outside])
-    inside = out.mask == 1
-    assert not np.array_equal(out.rgb[inside], frame[inside])
+    puppet = puppet_of(face)
+    colour = np.array([200.0, 90.0, 60.0], np.float32)
+    puppet = Puppet(np.broadcast_to(colour, puppet.appearance.shape).copy(), puppet.coverage,
+                    puppet.fiducials, mesh=puppet.mesh)
+    out = RaycastRender({"feather": 3.0}).render(puppet, None, posed(0), np.zeros((*SIZE, 3), np.uint8))
+    edge = (out.mask > 0) & (out.mask < 0.9)
+    assert edge.sum() > 300
+    assert np.abs(out.rgb[edge] - colour).max() <= 1
+    shown = composite.alone(out.rgb, out.mask)  # over grey, as puppet.mp4
+    expected = colour * out.mask[edge][:, None] + 128 * (1 - out.mask[edge][:, None])
+    assert np.abs(shown[edge] - expected).max() <= 1
+    same = np.broadcast_to(colour.astype(np.uint8), out.rgb.shape)  # a frame of the face's colour
+    assert np.abs(composite.paste(out.rgb, same, out.mask).astype(float) - colour).max() <= 1
 
 
 def test_mask_respects_coverage():
@@ -171,7 +181,7 @@ def test_params_are_validated():
     with pytest.raises(ValueError):
         RaycastRender({"feather": -1})
     with pytest.raises(ValueError):
-        RaycastRender({"background": "black"})
+        RaycastRender({"background": "grey"})  # gone: the caller blends (test above)
 
 
 def test_registered_as_a_render_backend():

@@ -95,7 +95,7 @@ def test_canonical_coordinates_round_trip():
     assert np.median(error) < 0.05 and np.percentile(error, 95) < 0.5  # bilinear depth at steep parts
 
 
-def test_render_shows_the_puppet_where_the_face_is_and_the_driver_elsewhere():
+def test_render_shows_the_puppet_where_the_face_is_and_grey_elsewhere():
     template = generic_template()
     appearance = np.zeros((244, 194, 3), np.float32)
     appearance[..., 0] = 200  # a red face
@@ -105,8 +105,8 @@ def test_render_shows_the_puppet_where_the_face_is_and_the_driver_elsewhere():
     assert out.rgb.shape == frame.shape and out.rgb.dtype == np.uint8
     inside, outside = out.mask > 0.99, out.mask == 0
     assert inside.sum() > 5000 and outside.sum() > 5000
-    assert np.abs(out.rgb[inside].astype(int) - [200, 0, 0]).max() <= 3  # mask > 0.99: at most 1 % of the frame
-    assert (out.rgb[outside] == [0, 90, 0]).all()
+    assert np.abs(out.rgb[out.mask > 0].astype(int) - [200, 0, 0]).max() <= 1  # the soft edge too (Rendered)
+    assert (out.rgb[outside] == 128).all()  # the driver's frame is the composite's, not the render's
 
 
 def test_coarse_tps_evaluation_is_close_to_exact():
