@@ -12,6 +12,7 @@ import io
 import json
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from persona.plugins.face import composite
@@ -163,10 +164,33 @@ def texture_section(result: dict, grid: np.ndarray | None) -> list[str]:
     return parts
 
 
+def frames_strip(drive: Collection, frames: Collection, blending: dict, n: int = 6, side: int = 240) -> np.ndarray:
+    """``n`` frames spread over the drive, a column each: the driver's frame (top), the composite
+    as composite.mp4 has it (``blending``: the composite's params; middle), the puppet alone as
+    puppet.mp4 has it (bottom); each cropped to a square about the rendered face and shown
+    ``side`` px wide."""
+    columns = []
+    for i in np.linspace(0, drive.n - 1, min(n, drive.n)).round().astype(int):
+        frame, face = frames.array("photos/rgb")[i], drive.array("render/rgb")[i]
+        frame = frame[:face.shape[0], :face.shape[1]]
+        alpha = drive.array("render/mask")[i].astype(np.float32) / 255
+        images = [frame, composite.blend(face, frame, alpha, **blending), composite.alone(face, alpha)]
+        ys, xs = np.nonzero(alpha > 0)
+        if len(ys):  # a square 1.5 times the face's larger side about its middle, moved inside the frame
+            h, w = alpha.shape
+            size = min(int(1.5 * max(np.ptp(ys), np.ptp(xs))) + 2, h, w)
+            y0 = int(np.clip((ys.min() + ys.max() - size) // 2, 0, h - size))
+            x0 = int(np.clip((xs.min() + xs.max() - size) // 2, 0, w - size))
+            images = [im[y0:y0 + size, x0:x0 + size] for im in images]
+        columns.append(np.concatenate([cv2.resize(im, (side, side), interpolation=cv2.INTER_AREA)
+                                       for im in images], axis=0))
+    return np.concatenate(columns, axis=1)
+
+
 def write_run_report(wf, root, metrics: dict, series: dict | None) -> Path | str:
     """report.html in the workflow's output folder, from a run's ``metrics`` (metrics.json), its
-    store (pictures, the frame strip) and ``series`` (the plots); with every texture evaluation
-    found in the folder."""
+    store (pictures, the frame strip, also written as frames.png) and ``series`` (the plots); with
+    every texture evaluation found in the folder."""
     out = wf.output
     pictures = {}
     for path, c in metrics["collections"].items():
@@ -175,16 +199,8 @@ def write_run_report(wf, root, metrics: dict, series: dict | None) -> Path | str
                 pictures[f"{path}: {kind.replace('_', ' ')}"] = media.decode_image(file, max_side=4000)
     strip = None
     if root.get("drive") is not None:
-        drive, frames = Collection(root, "drive"), Collection(root, "driver/frames")
-        chosen = np.linspace(0, drive.n - 1, min(6, drive.n)).round().astype(int)
-        rows = [[], [], []]  # the driver's frames, composite.mp4's, puppet.mp4's
-        for i in chosen:
-            frame, face = frames.array("photos/rgb")[i], drive.array("render/rgb")[i]
-            alpha = drive.array("render/mask")[i].astype(np.float32) / 255
-            rows[0].append(frame)
-            rows[1].append(composite.blend(face, frame, alpha, **wf.backendless("composite")))
-            rows[2].append(composite.alone(face, alpha))
-        strip = np.concatenate([np.concatenate(row, axis=1) for row in rows], axis=0)
+        strip = frames_strip(Collection(root, "drive"), Collection(root, "driver/frames"), wf.backendless("composite"))
+        media.write_png(storage.join(out, "frames.png"), strip)
     fps = float(root["driver/frames"].attrs["fps"]) if strip is not None else 25.0
     texture = []
     for file in storage.glob(storage.join(out, "*_texture_evaluation*.json")):
@@ -223,7 +239,7 @@ def write_report(path, *, metrics: dict, pictures: dict[str, np.ndarray], strip:
     for result, grid in texture:
         parts += texture_section(result, grid)
     if strip is not None:
-        parts += ["<h2>Driver frames (top), the composite (middle), the puppet alone (bottom)</h2>", _img(_png(strip), "frames", 960)]
+        parts += ["<h2>Driver frames (top), the composite (middle), the puppet alone (bottom)</h2>", _img(_png(strip), "frames", min(960, strip.shape[1]))]
     if series:
         for name, src in plots(series, threshold, fps).items():
             parts.append(_img(src, name))

@@ -155,6 +155,10 @@ def test_report_is_one_self_contained_page(drive_run):
     assert page.index("<h2>composite</h2>") < page.index("<h2>puppet</h2>") < page.index("<h2>Figures</h2>")
     assert "B and not A" in page and "composite seam (blend)" in page
     assert 'src="http' not in page  # nothing fetched from elsewhere
+    strip = media.decode_image(folder / "output" / "frames.png")  # driver, composite, puppet alone
+    assert strip.shape[0] == 3 * 240 and strip.shape[1] % 240 == 0
+    driver, puppet = strip[:240].astype(float), strip[480:].astype(float)
+    assert np.abs(puppet - 128).max(axis=2).mean() < np.abs(driver - 128).max(axis=2).mean()  # grey around
 
 
 def test_evaluate_command_prints_json(drive_run, capsys):
