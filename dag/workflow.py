@@ -292,6 +292,9 @@ class CompositeParams(Strict):
     tone: float = Field(1.0, ge=0, le=1, description="how much of A's mean skin tone B's face takes with the light: "
                         "1 = all (no colour step at the edge), 0 = B's own mean tone kept, only the way A's light "
                         "varies along the edge matched (the blend spreads the rest; docs/composite.md)")
+    hair: float = Field(1.0, ge=0, le=1, description="how much of A's hair that falls inside the upper edge of B's "
+                        "face (a fringe, strands at the temples) stays in front of it: 1 = all, 0 = B's face "
+                        "covers it (docs/composite.md)")
 
 
 BACKENDLESS = {"ingest": IngestParams, "screen": ScreenParams, "align": AlignParams, "motion": MotionParams,

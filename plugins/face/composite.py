@@ -170,12 +170,44 @@ def match_lighting(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, li
     return out
 
 
+def hair_in_front(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, reach: float = 0.12,
+                  upper: float = 0.5, tint: float = 0.1, shade: float = 0.5) -> np.ndarray:
+    """How much of A's frame stays in front of B's face (h, w) in [0, 1]: A's hair that falls inside
+    the edge of B's mask (a fringe over the forehead, strands at the temples), where B's render shows
+    skin. It counts where A's frame is far from A's skin (skin likeness, as :func:`match_lighting`'s,
+    under 0.1: all; over 0.5: none) and B's render near B's skin, only within ``reach`` (a fraction of
+    the face's smaller side) of the mask's edge and in the ``upper`` part of the mask (hair falls
+    from above; the jaw, the chin and the collar below are left to B), softened over a pixel."""
+    alpha = np.asarray(alpha, np.float32)
+    inside = (alpha > 0.5).astype(np.uint8)
+    out = np.zeros(alpha.shape, np.float32)
+    if not inside.any():
+        return out
+    ys, xs = np.nonzero(inside)
+    y0, y1, x0, x1 = ys.min(), ys.max() + 1, xs.min(), xs.max() + 1
+    side = min(y1 - y0, x1 - x0)
+    depth = cv2.distanceTransform(inside[y0:y1, x0:x1], cv2.DIST_L2, 5)
+    centre = depth > reach * side
+    if not centre.any():
+        return out
+    edge = (alpha[y0:y1, x0:x1] > 0) & (depth <= reach * side)
+    edge[int(round(upper * (y1 - y0))):] = False
+    a = np.log1p(np.asarray(frame, np.float32)[y0:y1, x0:x1])
+    b = np.log1p(np.asarray(face, np.float32)[y0:y1, x0:x1])
+    not_skin = np.clip((0.5 - _skin_likeness(a, centre, tint, shade)) / 0.4, 0, 1)
+    out[y0:y1, x0:x1] = not_skin * _skin_likeness(b, centre, tint, shade) * edge
+    return cv2.GaussianBlur(out, (0, 0), 1.0)
+
+
 def blend(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, lighting: float = 1.0,
-          tone: float = 1.0) -> np.ndarray:
+          tone: float = 1.0, hair: float = 1.0) -> np.ndarray:
     """The composite as ``composite.mp4`` shows it: B's face matched to A's light and tone at its edge
     (:func:`match_lighting`, by ``lighting`` and ``tone`` in [0, 1]), then blended band by band
-    (:func:`multiband`)."""
-    return multiband(match_lighting(face, frame, alpha, lighting=lighting, tone=tone), frame, alpha)
+    (:func:`multiband`) through the mask less ``hair`` (in [0, 1]) times :func:`hair_in_front`."""
+    matched = match_lighting(face, frame, alpha, lighting=lighting, tone=tone)
+    if hair > 0:
+        alpha = np.asarray(alpha, np.float32) * (1 - hair * hair_in_front(face, frame, alpha))
+    return multiband(matched, frame, alpha)
 
 
 def seam(image: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, reach: int = 4) -> dict | None:

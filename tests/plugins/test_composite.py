@@ -75,7 +75,7 @@ def lit_scene(size=200, radius=60):
 
 def test_matching_the_light_removes_the_step_and_keeps_the_detail():
     face, frame, alpha = lit_scene()
-    assert np.array_equal(composite.blend(face, frame, alpha, lighting=0), composite.multiband(face, frame, alpha))
+    assert np.array_equal(composite.blend(face, frame, alpha, lighting=0, hair=0), composite.multiband(face, frame, alpha))
     before = composite.seam(composite.multiband(face, frame, alpha), frame, alpha)
     blended = composite.blend(face, frame, alpha, lighting=1)
     after = composite.seam(blended, frame, alpha)
@@ -111,3 +111,21 @@ def test_tone_zero_keeps_b_mean_tone_and_takes_a_light():
     # A's light from the right: B's right edge lighter than its left, as the frame's (ratio 1.22 at x 150/50)
     ratio = kept[95:105, 145:155].mean() / kept[95:105, 45:55].mean()
     assert abs(ratio - frame[95:105, 145:155].mean() / frame[95:105, 45:55].mean()) < 0.1
+
+
+def test_a_fringe_stays_in_front_and_a_collar_does_not():
+    face, frame, alpha = lit_scene()  # the disk spans rows 40-160; reach: 12 % of 120 px
+    hair = (30, 22, 18)
+    frame[:50] = hair  # A's fringe, 10 px into the top of B's face
+    frame[152:] = hair  # a dark collar as far into its bottom
+    kept, covered = composite.blend(face, frame, alpha), composite.blend(face, frame, alpha, hair=0)
+    fringe, collar = np.s_[44:48, 90:110], np.s_[153:157, 90:110]
+    print(f"\nfringe: kept {kept[fringe].mean():.1f}, covered {covered[fringe].mean():.1f}; "
+          f"collar: {kept[collar].mean():.1f}, {covered[collar].mean():.1f}")
+    assert np.abs(kept[fringe].astype(float) - hair).mean() < 15  # A's hair in front of B's forehead
+    assert covered[fringe].mean() > 2 * kept[fringe].mean()  # B's face over it, as before
+    assert np.abs(kept[collar].astype(float) - covered[collar]).max() <= 2  # below, B's chin stays
+    middle = np.s_[70:130, 70:130]
+    assert np.abs(kept[middle].astype(float) - covered[middle]).mean() < 1  # B's face itself unchanged
+    alone = np.zeros_like(alpha)  # no face, nothing in front
+    assert not composite.hair_in_front(face, frame, alone).any()
