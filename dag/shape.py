@@ -90,10 +90,7 @@ def run_shape(runner, coll: Collection, aligned: Provenance) -> dict[str, str]:
     """Photometric stereo over the aligned collection -> normals, albedo, lighting, depth;
     the textured mesh (PLY, OBJ) and shaded previews into the output folder."""
     from persona.plugins.builtin.shape import as_grey
-    from persona.plugins.face.meshing import METRIC_UNITS, depth_to_mesh, metric_frame, shaded_previews
     from persona.plugins.face.template import generic_template
-    from persona.stores import media
-    from persona.stores.meshes import clean_mesh, write_mesh
 
     shape_name, shape_params = runner.wf.stage("shape")
     integrate_name, integrate_params = runner.wf.stage("integrate")
@@ -104,9 +101,11 @@ def run_shape(runner, coll: Collection, aligned: Provenance) -> dict[str, str]:
                            inputs={"align": aligned.key}, persona_version=runner.version)
     out, slug = runner.wf.output, coll.path.replace("/", "_")
     files = {"mesh_ply": storage.join(out, f"{slug}_mesh.ply"), "mesh_obj": storage.join(out, f"{slug}_mesh.obj"),
-             "mesh_previews": storage.join(out, f"{slug}_mesh_previews.png")}
+             "mesh_previews": storage.join(out, f"{slug}_mesh_previews.png")}  # as export writes them
     current = coll.provenance("shape/depth")
-    if current is not None and current.key == prov.key and all(storage.isfile(f) for f in files.values()):
+    if current is not None and current.key == prov.key:  # done: only the files, should they be missing
+        if not all(storage.isfile(f) for f in files.values()):  # e.g. a new output folder
+            export(coll, out, slug, *(coll.array(name)[...] for name in ("shape/depth", "shape/mask", "shape/texture")))
         return {k: str(v) for k, v in files.items()}
     ok = coll.state("align") == OK
     tasks = [(runner.wf.store, coll.path, s, e, "collection", "align") for s, e in coll.shard_ranges() if ok[s:e].any()]
@@ -128,16 +127,25 @@ def run_shape(runner, coll: Collection, aligned: Provenance) -> dict[str, str]:
         result.normals, mask, reference=template.depth)
     lighting = np.full((coll.n, result.lighting.shape[1]), np.nan)
     lighting[ok] = result.lighting
-    mesh = clean_mesh(depth_to_mesh(depth, mask, texture))
-    origin, scale = metric_frame(coll.array("aligned/mean_fiducials")[...], depth, mask)
-    written = write_mesh(out, f"{slug}_mesh", mesh, texture, y_up=True, origin=origin, scale=scale,
-                         units=METRIC_UNITS)
-    previews = shaded_previews(depth, mask)
-    media.write_png(files["mesh_previews"], np.concatenate(previews, axis=1))
+    export(coll, out, slug, depth, mask, texture)
     # shape/depth last: its provenance marks the step done (files above, arrays it depends on before it)
     for name, value, dims in (("shape/normals", result.normals, ("y", "x", "xyz")),
                               ("shape/albedo", result.albedo, ("y", "x")), ("shape/mask", mask, ("y", "x")),
                               ("shape/texture", texture, ("y", "x", "channel")),
                               ("shape/lighting", lighting, ("photo", "sh")), ("shape/depth", depth, ("y", "x"))):
         coll.create_single(name, np.asarray(value), dims, prov)
-    return {"mesh_ply": str(written["ply"]), "mesh_obj": str(written["obj"]), "mesh_previews": str(files["mesh_previews"])}
+    return {k: str(v) for k, v in files.items()}
+
+
+def export(coll: Collection, out, slug: str, depth: np.ndarray, mask: np.ndarray, texture: np.ndarray) -> None:
+    """The collection's average mesh, ``{slug}_mesh`` (PLY, and OBJ with its texture, in metres), and
+    its shaded previews, ``{slug}_mesh_previews.png``, into the folder ``out``, from its depth, mask and
+    texture."""
+    from persona.plugins.face.meshing import METRIC_UNITS, depth_to_mesh, metric_frame, shaded_previews
+    from persona.stores import media
+    from persona.stores.meshes import clean_mesh, write_mesh
+
+    mesh = clean_mesh(depth_to_mesh(depth, mask, texture))
+    origin, scale = metric_frame(coll.array("aligned/mean_fiducials")[...], depth, mask)
+    write_mesh(out, f"{slug}_mesh", mesh, texture, y_up=True, origin=origin, scale=scale, units=METRIC_UNITS)
+    media.write_png(storage.join(out, f"{slug}_mesh_previews.png"), np.concatenate(shaded_previews(depth, mask), axis=1))

@@ -407,3 +407,25 @@ def test_a_texture_evaluation_joins_the_report(drive_run):
         (out / "puppet_texture_evaluation.json").unlink()
         (out / "puppet_texture_grid.png").unlink()
         _refresh_report(load_workflow(path))
+
+
+def test_a_new_output_folder_gets_the_meshes_from_the_stored_shape(drive_run):
+    """The shape is in the store; a run into a new output folder writes its mesh files from it
+    instead of computing the shape again (it once took a minute on a real collection)."""
+    folder, path, _ = drive_run
+    depth = folder / "run.zarr" / "puppet" / "shape" / "depth" / "zarr.json"
+    written = depth.stat().st_mtime_ns
+    assert cli(["run", str(path), "--scheduler", "sync", "--quiet", "--set", "output=output_new"]) == 0
+    for name in ("puppet_mesh.ply", "puppet_mesh.obj", "puppet_mesh_previews.png", "driver_mesh.ply"):
+        assert (folder / "output_new" / name).stat().st_size > 0, name
+    assert depth.stat().st_mtime_ns == written  # not computed again
+
+
+def test_a_video_decoded_before_is_not_decoded_again(drive_run):
+    """A re-run skips the decoding of a video collection whose frames are all in the store (it once
+    decoded the whole video again and counted its frames twice: "done: 1800 of 900 frames")."""
+    from persona.dag import stages as st
+
+    folder, _, _ = drive_run
+    summary = st.ingest_video(str(folder / "run.zarr"), "driver/frames", {})["ingest"]
+    assert summary["skipped"] and summary["n"] == 16
