@@ -161,8 +161,9 @@ def _cmd_evaluate(args) -> int:
     wf = load_workflow(args.workflow, args.set)
     if args.texture:
         return _evaluate_texture(wf, args)
-    if open_store(wf.store, mode="r").get("drive") is None:
-        raise RunError(f"{wf.store} holds no rendered output yet: run `persona run {args.workflow}` first")
+    drive = open_store(wf.store, mode="r").get("drive")
+    if drive is None or drive.get("composite") is None:
+        raise RunError(f"{wf.store} holds no composited output yet: run `persona run {args.workflow}` first")
     with executor_for(wf, args.scheduler, args.workers) as ex:
         result = Runner(wf, ex, progress=False).evaluate()
     result.pop("series")

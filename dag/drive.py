@@ -14,7 +14,7 @@ import logging
 
 import numpy as np
 
-from persona.plugins.face.composite import alone, blend
+from persona.plugins.face.composite import alone
 from persona.plugins.face.dynamics import smooth_in_time
 from persona.plugins.face.fiducials import mean_shape
 from persona.plugins.face.tracks import bridge
@@ -58,9 +58,12 @@ def run_drive(runner) -> Collection:
         with runner.step("mouth", "puppet"):
             inputs["mouth"] = run_mouth(runner, puppet).key
         stage = st.RENDER_3D
-    drive.group.attrs["stages"] = ["retarget", *(["dynamics"] if stage is st.RENDER_3D else []), stage.name]
+    drive.group.attrs["stages"] = ["retarget", *(["dynamics"] if stage is st.RENDER_3D else []), stage.name,
+                                   "composite"]
     render = runner.prepare_stage(drive, stage, inputs)
     runner.run_stage_tasks(drive, [(stage.name, render.backend, render.params)])
+    composite = runner.prepare_stage(drive, st.COMPOSITE, {"render": render.key})
+    runner.run_stage_tasks(drive, [("composite", composite.backend, composite.params)])
     every = runner.motion_params()["export_every"]
     if stage is st.RENDER_3D and every:
         export_meshes(runner, drive, every)
@@ -99,30 +102,23 @@ def driver_sound(frames: Collection, fps: float) -> media.Audio | None:
     return media.read_audio(sources.pop(), index[0] / fps, (index[-1] + 1) / fps)
 
 
-def write_videos(drive: Collection, frames: Collection, output, blending: dict) -> dict[str, str]:
-    """puppet.mp4 (the puppet's face alone, on grey), side_by_side.mp4 (driver | puppet) and composite.mp4
-    (the puppet's face matched to the driver's light at its edge and blended into the driver's frames
-    through the render's soft mask, band by band: :func:`persona.plugins.face.composite.blend` with
-    ``blending``), at the video's fps, with the driver video's sound (:func:`driver_sound`)."""
+def write_videos(drive: Collection, frames: Collection, output) -> dict[str, str]:
+    """puppet.mp4 (the puppet's face alone, on grey), side_by_side.mp4 (driver | puppet) and
+    composite.mp4 (the ``composite`` stage's frames: B's face in A's light and frame), at the video's
+    fps, with the driver video's sound (:func:`driver_sound`)."""
     fps = float(drive.attrs["fps"])
-    rendered, original, mask = drive.array("render/rgb"), frames.array("photos/rgb"), drive.array("render/mask")
+    rendered, mask = drive.array("render/rgb"), drive.array("render/mask")
 
-    def shards(*views):
-        """Each view (a function of one shard's rendered faces, their masks and the driver's frames
-        giving one image per frame) side by side, frame by frame."""
+    def shards(*arrays):
+        """Frame by frame, side by side, the images of ``arrays`` (frame-indexed; None: the puppet alone)."""
         for start, stop in drive.shard_ranges():
-            r, m, o = rendered[start:stop], mask[start:stop].astype(np.float32) / 255, original[start:stop]
-            yield from (np.concatenate(row, axis=1) for row in zip(*(view(r, m, o) for view in views)))
-
-    def puppet(r, m, o):
-        return [alone(*x) for x in zip(r, m)]
-
-    def composite(r, m, o):
-        return [blend(*x, **blending) for x in zip(r, o, m)]
+            parts = [[alone(r, m.astype(np.float32) / 255) for r, m in zip(rendered[start:stop], mask[start:stop])]
+                     if a is None else a[start:stop] for a in arrays]
+            yield from (np.concatenate(row, axis=1) for row in zip(*parts))
 
     sound = driver_sound(frames, fps)
     files = {name: storage.join(output, f"{name}.mp4") for name in ("puppet", "side_by_side", "composite")}
-    media.write_video_mp4(files["puppet"], shards(puppet), fps, sound)
-    media.write_video_mp4(files["side_by_side"], shards(lambda r, m, o: o, puppet), fps, sound)
-    media.write_video_mp4(files["composite"], shards(composite), fps, sound)
+    media.write_video_mp4(files["puppet"], shards(None), fps, sound)
+    media.write_video_mp4(files["side_by_side"], shards(frames.array("photos/rgb"), None), fps, sound)
+    media.write_video_mp4(files["composite"], shards(drive.array("composite/rgb")), fps, sound)
     return {name: str(file) for name, file in files.items()}

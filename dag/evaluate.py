@@ -60,15 +60,15 @@ def describe_photos(url: str, path: str, indices: list[int], identity: tuple[str
     return np.array(out).reshape(len(out), -1)
 
 
-def analyse_frames(url: str, start: int, stop: int, identity: tuple[str, dict], compare: bool,
-                   blending: dict) -> dict:
+def analyse_frames(url: str, start: int, stop: int, identity: tuple[str, dict], compare: bool) -> dict:
     """For output frames [start, stop): landmarks found anew, descriptors, the mean face colour of
     output and driver inside the rendered face, and (``compare``) PSNR and SSIM against the driver,
-    of the render and of the composite (made as composite.mp4's, with ``blending``)."""
+    of the render and of the composite (the composite stage's frames, composite.mp4's)."""
     root = open_store(url, mode="r")
     drive, frames = Collection(root, "drive"), Collection(root, "driver/frames")
     rendered = drive.array("render/rgb")[start:stop]
     alphas = drive.array("render/mask")[start:stop]
+    composites = drive.array("composite/rgb")[start:stop]
     masks = alphas > 127
     original = frames.array("photos/rgb")[start:stop]
     detector, backend = DlibLandmarks(), _identity(identity)
@@ -86,7 +86,7 @@ def analyse_frames(url: str, start: int, stop: int, identity: tuple[str, dict], 
             descriptors[j, 0] = backend.describe(face, landmarks[j])
         except Rejected:
             pass
-        blended = composite.blend(rendered[j], original[j], alpha, **blending)
+        blended = composites[j]
         try:
             composite_landmarks[j] = detector.detect(blended).points
             descriptors[j, 1] = backend.describe(blended, composite_landmarks[j])
@@ -116,10 +116,9 @@ def _sample(ok: np.ndarray, k: int) -> list[int]:
     return [int(i) for i in idx[np.linspace(0, len(idx) - 1, min(k, len(idx))).round().astype(int)]] if len(idx) else []
 
 
-def evaluate(store: str, executor, *, identity: tuple[str, dict], blending: dict, threshold: float = 0.6,
+def evaluate(store: str, executor, *, identity: tuple[str, dict], threshold: float = 0.6,
              collection_sample: int = 100, self_reenactment: bool = False) -> dict:
-    """Every figure of a finished run, as a JSON-ready dict (plus per-frame series under "series").
-    blending: the composite's settings (``stages.composite.params``)."""
+    """Every figure of a finished run, as a JSON-ready dict (plus per-frame series under "series")."""
     root = open_store(store, mode="r")
     centroids = {}
     for actor in ("puppet", "driver"):
@@ -132,7 +131,7 @@ def evaluate(store: str, executor, *, identity: tuple[str, dict], blending: dict
         parts = list(executor.run(describe_photos, [(store, actor, chosen[i::2], identity) for i in range(2)]))
         centroids[actor] = ev.centroid(np.concatenate(parts))
     drive = Collection(root, "drive")
-    tasks = [(store, s, e, identity, self_reenactment, blending) for s, e in drive.shard_ranges()]
+    tasks = [(store, s, e, identity, self_reenactment) for s, e in drive.shard_ranges()]
     parts = sorted(executor.run(analyse_frames, tasks), key=lambda p: p["start"])
     joined = {k: np.concatenate([p[k] for p in parts]) for k in parts[0] if k != "start"}
 

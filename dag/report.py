@@ -164,9 +164,9 @@ def texture_section(result: dict, grid: np.ndarray | None) -> list[str]:
     return parts
 
 
-def frames_strip(drive: Collection, frames: Collection, blending: dict, n: int = 6, side: int = 240) -> np.ndarray:
+def frames_strip(drive: Collection, frames: Collection, n: int = 6, side: int = 240) -> np.ndarray:
     """``n`` frames spread over the drive, a column each: the driver's frame (top), the composite
-    as composite.mp4 has it (``blending``: the composite's params; middle), the puppet alone as
+    as composite.mp4 has it (middle), the puppet alone as
     puppet.mp4 has it (bottom); each cropped to a square about the rendered face and shown
     ``side`` px wide."""
     columns = []
@@ -174,7 +174,7 @@ def frames_strip(drive: Collection, frames: Collection, blending: dict, n: int =
         frame, face = frames.array("photos/rgb")[i], drive.array("render/rgb")[i]
         frame = frame[:face.shape[0], :face.shape[1]]
         alpha = drive.array("render/mask")[i].astype(np.float32) / 255
-        images = [frame, composite.blend(face, frame, alpha, **blending), composite.alone(face, alpha)]
+        images = [frame, drive.array("composite/rgb")[i][:face.shape[0], :face.shape[1]], composite.alone(face, alpha)]
         ys, xs = np.nonzero(alpha > 0)
         if len(ys):  # a square 1.5 times the face's larger side about its middle, moved inside the frame
             h, w = alpha.shape
@@ -199,7 +199,7 @@ def write_run_report(wf, root, metrics: dict, series: dict | None) -> Path | str
                 pictures[f"{path}: {kind.replace('_', ' ')}"] = media.decode_image(file, max_side=4000)
     strip = None
     if root.get("drive") is not None:
-        strip = frames_strip(Collection(root, "drive"), Collection(root, "driver/frames"), wf.backendless("composite"))
+        strip = frames_strip(Collection(root, "drive"), Collection(root, "driver/frames"))
         media.write_png(storage.join(out, "frames.png"), strip)
     fps = float(root["driver/frames"].attrs["fps"]) if strip is not None else 25.0
     texture = []

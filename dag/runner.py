@@ -644,8 +644,7 @@ class Runner:
             drive = run_drive(self)
             drive_seconds = time.perf_counter() - t0
             with self.step("videos", "drive"):
-                report["videos"] = write_videos(drive, Collection(self.root, "driver/frames"), self.wf.output,
-                                                self.wf.backendless("composite"))
+                report["videos"] = write_videos(drive, Collection(self.root, "driver/frames"), self.wf.output)
             render = [r for r in self.timer.records if r["stage"] in ("render", "render3d")][-1]
             report["speed"] = {}
             if render["n_done"] == drive.n:  # timed only when this run rendered every frame
@@ -667,7 +666,7 @@ class Runner:
     def evaluate(self) -> dict:
         e = self.wf.evaluate
         return evaluate(self.wf.store, self.executor, identity=self.wf.stage("identity"),
-                        blending=self.wf.backendless("composite"), threshold=e.threshold,
+                        threshold=e.threshold,
                         collection_sample=e.collection_sample, self_reenactment=e.self_reenactment)
 
 def _canvas(sources, params) -> list[int]:

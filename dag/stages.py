@@ -98,8 +98,9 @@ STEPS = {step.name: step for step in (
     Step("mouth", ("puppet",), ("render",), "the inside of B's mouth from its widest-open photos", "the client",
          mesh=True),
     Step("render", ("drive",), ("render",), "the puppet's frames"),
-    Step("videos", ("drive",), ("composite",), "puppet.mp4, side_by_side.mp4, composite.mp4", "the client"),
-    Step("evaluate", ("drive",), ("identity", "composite"), "metrics.json and report.html", "tasks over shards, then the client"),
+    Step("composite", ("drive",), ("composite",), "B's face blended into each of the driver's frames"),
+    Step("videos", ("drive",), (), "puppet.mp4, side_by_side.mp4, composite.mp4 (encoded)", "the client"),
+    Step("evaluate", ("drive",), ("identity",), "metrics.json and report.html", "tasks over shards, then the client"),
 )}
 
 
@@ -283,6 +284,23 @@ RENDER_3D = PhotoStage("render3d", "render", "retarget", (*_RENDER_INPUTS, "mesh
 PHOTO_STAGES.update(render=RENDER, render3d=RENDER_3D)
 
 
+def _composite(backend, params, inputs, context):
+    from persona.plugins.face.composite import blend
+
+    h, w = inputs["/driver/frames/photos/size"]
+    alpha = inputs["render/mask"][:h, :w].astype(np.float32) / 255
+    return {"composite/rgb": blend(inputs["render/rgb"][:h, :w], inputs["/driver/frames/photos/rgb"][:h, :w],
+                                   alpha, **params)}
+
+
+#: B's rendered face blended into each driver frame (composite.mp4's frames; params: the workflow's
+#: stages.composite); a frame without a render is the driver's own
+COMPOSITE = PhotoStage("composite", None, None, ("render/rgb", "render/mask", "/driver/frames/photos/rgb",
+                                                 "/driver/frames/photos/size"),
+                       (Output("composite/rgb", (), "uint8", ("frame", "y", "x", "channel")),), _composite)
+PHOTO_STAGES["composite"] = COMPOSITE
+
+
 def driver_model(root, path) -> dict:
     """The context of the dynamics stage: the driver's average model and the dynamics params."""
     from persona.plugins.face.dynamics import DriverModel, DynamicsParams
@@ -315,7 +333,7 @@ PHOTO_STAGES["dynamics"] = DYNAMICS
 
 def output_tail(output: Output, canvas) -> tuple[int, ...]:
     """The per-photo shape of an output; frame-sized outputs take the collection's canvas."""
-    if output.name in ("photos/rgb", "render/rgb"):
+    if output.name in ("photos/rgb", "render/rgb", "composite/rgb"):
         return (*canvas, 3)
     return tuple(canvas) if output.name == "render/mask" else output.tail
 
