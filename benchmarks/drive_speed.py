@@ -61,7 +61,7 @@ def main():
         n = args.frames
         ms = report["speed"]["ms_per_driver_frame"]
         print(f"{n} driver frames (obama_address.mov, 256x256), puppet george_w_bush, render {args.render}, {args.workers} workers")
-        print(f"  whole drive (retarget, texture, motion, render): {ms:.1f} ms/frame wall = {1000 / ms:.2f} frames/s")
+        print(f"  whole drive (retarget, texture, motion, render, composite): {ms:.1f} ms/frame wall = {1000 / ms:.2f} frames/s")
         for r in report["stages"]:
             if r["collection"] in ("driver/frames", "drive"):
                 print(f"  {r['collection']:>13} {r['stage']:<10} {1000 * r['task_seconds'] / n:7.1f} ms/frame on one worker")
