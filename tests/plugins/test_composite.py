@@ -129,3 +129,16 @@ def test_a_fringe_stays_in_front_and_a_collar_does_not():
     assert np.abs(kept[middle].astype(float) - covered[middle]).mean() < 1  # B's face itself unchanged
     alone = np.zeros_like(alpha)  # no face, nothing in front
     assert not composite.hair_in_front(face, frame, alone).any()
+
+
+def test_blending_a_box_about_the_face_is_blending_the_whole_frame():
+    # a small face off centre in a wide frame: only a box about it is blended, with the same result
+    rng = np.random.default_rng(2)
+    frame = cv2.GaussianBlur(rng.integers(0, 256, (300, 640, 3), dtype=np.uint8), (0, 0), 2)
+    face = np.clip(150 + rng.normal(0, 20, frame.shape), 0, 255).astype(np.uint8)
+    alpha = np.zeros(frame.shape[:2], np.float32)
+    alpha[60:200, 380:500] = feathered_disk(140, 60)[0][:, 10:130]
+    whole = composite._pyramid_blend(face, frame, alpha, composite.levels_for(alpha))
+    boxed = composite.multiband(face, frame, alpha)
+    assert np.array_equal(boxed, whole)
+    assert np.array_equal(boxed[:, :100], frame[:, :100])  # far from the face: A's frame itself
