@@ -18,6 +18,12 @@ A's gradient of light across the face), robustly, where the frame looks like A's
 times that gain has A's colour and light at its edge, so little step is left to blend; B's shading,
 detail and the differences of tone between B's regions remain.
 
+A's hair that falls inside the top of B's face (a fringe) is left in front of it
+(``hair_in_front``): B's face would otherwise cut a clean hairline through it.
+
+The render's ``rgb`` is the face's own colour across its soft edge (see
+``persona.plugins.kinds.Rendered``); ``alone`` shows it over grey as ``puppet.mp4`` does.
+
 The seam is measured on a ring along the mask's edge (``seam``): the colour step across it (the
 mean colour a few pixels inside minus that a few pixels outside, against the same step in A's own
 frame) and the gradient energy on it over that of A's frame there (1 = as smooth as the frame).
