@@ -18,6 +18,7 @@ import time
 
 import numpy as np
 
+from persona.dag.stages import render_alpha
 from persona.dag.workflow import load_workflow
 from persona.plugins.face import composite
 from persona.stores.layout import Collection, open_store
@@ -35,7 +36,7 @@ def main() -> None:
     found = {name: [] for name in ways}
     seconds = {name: [] for name in ways}
     for t in range(0, drive.n, args.every):
-        face, alpha = drive.array("render/rgb")[t], drive.array("render/mask")[t].astype(np.float32) / 255
+        face, alpha = drive.array("render/rgb")[t], render_alpha(drive.array("render/mask")[t])
         frame = frames.array("photos/rgb")[t][:face.shape[0], :face.shape[1]]
         for name, way in ways.items():
             start = time.perf_counter()

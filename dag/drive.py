@@ -109,16 +109,20 @@ def write_videos(drive: Collection, frames: Collection, output) -> dict[str, str
     fps = float(drive.attrs["fps"])
     rendered, mask = drive.array("render/rgb"), drive.array("render/mask")
 
-    def shards(*arrays):
-        """Frame by frame, side by side, the images of ``arrays`` (frame-indexed; None: the puppet alone)."""
+    def puppet(start, stop):
+        return [alone(r, st.render_alpha(m)) for r, m in zip(rendered[start:stop], mask[start:stop])]
+
+    def stored(array):
+        return lambda start, stop: array[start:stop]
+
+    def shards(*views):
+        """Frame by frame, side by side, the images of ``views`` (each a shard's range -> its images)."""
         for start, stop in drive.shard_ranges():
-            parts = [[alone(r, m.astype(np.float32) / 255) for r, m in zip(rendered[start:stop], mask[start:stop])]
-                     if a is None else a[start:stop] for a in arrays]
-            yield from (np.concatenate(row, axis=1) for row in zip(*parts))
+            yield from (np.concatenate(row, axis=1) for row in zip(*(view(start, stop) for view in views)))
 
     sound = driver_sound(frames, fps)
     files = {name: storage.join(output, f"{name}.mp4") for name in ("puppet", "side_by_side", "composite")}
-    media.write_video_mp4(files["puppet"], shards(None), fps, sound)
-    media.write_video_mp4(files["side_by_side"], shards(frames.array("photos/rgb"), None), fps, sound)
-    media.write_video_mp4(files["composite"], shards(drive.array("composite/rgb")), fps, sound)
+    media.write_video_mp4(files["puppet"], shards(puppet), fps, sound)
+    media.write_video_mp4(files["side_by_side"], shards(stored(frames.array("photos/rgb")), puppet), fps, sound)
+    media.write_video_mp4(files["composite"], shards(stored(drive.array("composite/rgb"))), fps, sound)
     return {name: str(file) for name, file in files.items()}

@@ -40,7 +40,7 @@ from persona.plugins.manager import default_registry
 from persona.stores.errors import InputError
 from persona.stores.layout import OK, Collection, open_store
 
-from .stages import RENDER_3D, accepted
+from .stages import RENDER_3D, accepted, render_alpha
 
 
 def _identity(spec: tuple[str, dict]):
@@ -79,7 +79,7 @@ def analyse_frames(url: str, start: int, stop: int, identity: tuple[str, dict], 
     psnr, ssim = np.full((n, 2), np.nan), np.full((n, 2), np.nan)  # the render's, the composite's
     seams = {"blend": [], "paste": []}
     for j in range(n):
-        alpha = alphas[j].astype(np.float32) / 255
+        alpha = render_alpha(alphas[j])
         face = composite.alone(rendered[j], alpha)  # as puppet.mp4 shows it
         try:
             landmarks[j] = detector.detect(face).points

@@ -19,6 +19,8 @@ from persona.plugins.face import composite
 from persona.stores import media, storage
 from persona.stores.layout import Collection, item
 
+from .stages import render_alpha
+
 MAX_EMBEDDED_VIDEO = 40 * 2**20
 
 
@@ -171,10 +173,9 @@ def frames_strip(drive: Collection, frames: Collection, n: int = 6, side: int = 
     ``side`` px wide."""
     columns = []
     for i in np.linspace(0, drive.n - 1, min(n, drive.n)).round().astype(int):
-        frame, face = frames.array("photos/rgb")[i], drive.array("render/rgb")[i]
-        frame = frame[:face.shape[0], :face.shape[1]]
-        alpha = drive.array("render/mask")[i].astype(np.float32) / 255
-        images = [frame, drive.array("composite/rgb")[i][:face.shape[0], :face.shape[1]], composite.alone(face, alpha)]
+        alpha = render_alpha(drive.array("render/mask")[i])  # the frames, render and composite share the canvas
+        images = [frames.array("photos/rgb")[i], drive.array("composite/rgb")[i],
+                  composite.alone(drive.array("render/rgb")[i], alpha)]
         ys, xs = np.nonzero(alpha > 0)
         if len(ys):  # a square 1.5 times the face's larger side about its middle, moved inside the frame
             h, w = alpha.shape

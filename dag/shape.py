@@ -99,13 +99,11 @@ def run_shape(runner, coll: Collection, aligned: Provenance) -> dict[str, str]:
                            backend_version=registry.get("shape", shape_name).version,
                            params={"shape": shape_params, "integrate": integrate_params},
                            inputs={"align": aligned.key}, persona_version=runner.version)
-    out, slug = runner.wf.output, coll.path.replace("/", "_")
-    files = {"mesh_ply": storage.join(out, f"{slug}_mesh.ply"), "mesh_obj": storage.join(out, f"{slug}_mesh.obj"),
-             "mesh_previews": storage.join(out, f"{slug}_mesh_previews.png")}  # as export writes them
+    files = mesh_files(runner.wf.output, coll)
     current = coll.provenance("shape/depth")
     if current is not None and current.key == prov.key:  # done: only the files, should they be missing
         if not all(storage.isfile(f) for f in files.values()):  # e.g. a new output folder
-            export(coll, out, slug, *(coll.array(name)[...] for name in ("shape/depth", "shape/mask", "shape/texture")))
+            export(coll, runner.wf.output, *(coll.array(name)[...] for name in ("shape/depth", "shape/mask", "shape/texture")))
         return {k: str(v) for k, v in files.items()}
     ok = coll.state("align") == OK
     tasks = [(runner.wf.store, coll.path, s, e, "collection", "align") for s, e in coll.shard_ranges() if ok[s:e].any()]
@@ -127,7 +125,7 @@ def run_shape(runner, coll: Collection, aligned: Provenance) -> dict[str, str]:
         result.normals, mask, reference=template.depth)
     lighting = np.full((coll.n, result.lighting.shape[1]), np.nan)
     lighting[ok] = result.lighting
-    export(coll, out, slug, depth, mask, texture)
+    export(coll, runner.wf.output, depth, mask, texture)
     # shape/depth last: its provenance marks the step done (files above, arrays it depends on before it)
     for name, value, dims in (("shape/normals", result.normals, ("y", "x", "xyz")),
                               ("shape/albedo", result.albedo, ("y", "x")), ("shape/mask", mask, ("y", "x")),
@@ -137,15 +135,26 @@ def run_shape(runner, coll: Collection, aligned: Provenance) -> dict[str, str]:
     return {k: str(v) for k, v in files.items()}
 
 
-def export(coll: Collection, out, slug: str, depth: np.ndarray, mask: np.ndarray, texture: np.ndarray) -> None:
-    """The collection's average mesh, ``{slug}_mesh`` (PLY, and OBJ with its texture, in metres), and
-    its shaded previews, ``{slug}_mesh_previews.png``, into the folder ``out``, from its depth, mask and
-    texture."""
+def mesh_name(coll: Collection) -> str:
+    """The file name, without extension, of a collection's average mesh: ``puppet_mesh``."""
+    return f"{coll.path.replace('/', '_')}_mesh"
+
+
+def mesh_files(out, coll: Collection) -> dict:
+    """Where :func:`export` writes a collection's mesh (PLY, OBJ) and its previews in the folder ``out``."""
+    name = mesh_name(coll)
+    return {"mesh_ply": storage.join(out, f"{name}.ply"), "mesh_obj": storage.join(out, f"{name}.obj"),
+            "mesh_previews": storage.join(out, f"{name}_previews.png")}
+
+
+def export(coll: Collection, out, depth: np.ndarray, mask: np.ndarray, texture: np.ndarray) -> None:
+    """The collection's average mesh (PLY, and OBJ with its texture, in metres) and its shaded
+    previews into the folder ``out`` (:func:`mesh_files`), from its depth, mask and texture."""
     from persona.plugins.face.meshing import METRIC_UNITS, depth_to_mesh, metric_frame, shaded_previews
     from persona.stores import media
     from persona.stores.meshes import clean_mesh, write_mesh
 
     mesh = clean_mesh(depth_to_mesh(depth, mask, texture))
     origin, scale = metric_frame(coll.array("aligned/mean_fiducials")[...], depth, mask)
-    write_mesh(out, f"{slug}_mesh", mesh, texture, y_up=True, origin=origin, scale=scale, units=METRIC_UNITS)
-    media.write_png(storage.join(out, f"{slug}_mesh_previews.png"), np.concatenate(shaded_previews(depth, mask), axis=1))
+    write_mesh(out, mesh_name(coll), mesh, texture, y_up=True, origin=origin, scale=scale, units=METRIC_UNITS)
+    media.write_png(mesh_files(out, coll)["mesh_previews"], np.concatenate(shaded_previews(depth, mask), axis=1))

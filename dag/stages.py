@@ -270,6 +270,11 @@ def _render(backend, params, inputs, context):
     return {"render/rgb": out.rgb, "render/mask": np.round(out.mask * 255).astype(np.uint8)}
 
 
+def render_alpha(mask: np.ndarray) -> np.ndarray:
+    """A stored ``render/mask`` (uint8, as :func:`_render` writes it) as the renderer's alpha, float32 in [0, 1]."""
+    return np.asarray(mask).astype(np.float32) / 255
+
+
 _RENDER_OUTPUTS = (
     Output("render/rgb", (), "uint8", ("frame", "y", "x", "channel")),  # tail = the canvas
     Output("render/mask", (), "uint8", ("frame", "y", "x")),
@@ -288,9 +293,8 @@ def _composite(backend, params, inputs, context):
     from persona.plugins.face.composite import blend
 
     h, w = inputs["/driver/frames/photos/size"]
-    alpha = inputs["render/mask"][:h, :w].astype(np.float32) / 255
     return {"composite/rgb": blend(inputs["render/rgb"][:h, :w], inputs["/driver/frames/photos/rgb"][:h, :w],
-                                   alpha, **params)}
+                                   render_alpha(inputs["render/mask"][:h, :w]), **params)}
 
 
 #: B's rendered face blended into each driver frame (composite.mp4's frames; params: the workflow's
