@@ -62,7 +62,7 @@ def _plan(wf) -> str:
     stages and the steps over it, then the drive's (:data:`persona.dag.stages.STEPS`)."""
     from persona.plugins.manager import default_registry
 
-    from .runner import ALL_STAGES, collection_specs
+    from .runner import ALL_STAGES
     from .stages import STEPS
 
     uses_mesh = default_registry().get("render", wf.stage("render")[0]).uses_mesh
@@ -76,12 +76,15 @@ def _plan(wf) -> str:
         return lines
 
     lines = [f"workflow {wf.name}: store {wf.store}, output {wf.output}"]
-    for path, spec in collection_specs(wf):
-        lines.append(f"  {path}: {spec}")
+    for plan in wf.collections():
+        lines.append(f"  {plan.path}: {plan.photos}")
         lines += [f"    {_setting(wf, stage)}" for stage in ALL_STAGES]
-        lines += steps(path) if path != "driver/frames" else []  # a video gives frames, not a 3D shape
-    if wf.driver is not None and wf.driver.video is not None:
-        lines.append("  drive: the puppet performing driver/frames, frame by frame")
+        if not plan.video:  # a video gives frames, not a 3D shape; a puppet's steps include the driver's
+            lines += steps("puppet" if plan.texture else "driver")
+    for drive in wf.drive_plans():
+        c = drive.cast
+        lines.append(f"  {c.drive}: {c.puppet} performing {c.frames} (driver model {c.driver}), frame by frame, "
+                     f"into {drive.output}")
         lines += steps("drive")
     c = wf.cluster
     if c.kind == "local":
@@ -161,12 +164,21 @@ def _cmd_evaluate(args) -> int:
     wf = load_workflow(args.workflow, args.set)
     if args.texture:
         return _evaluate_texture(wf, args)
-    drive = open_store(wf.store, mode="r").get("drive")
-    if drive is None or drive.get("composite") is None:
-        raise RunError(f"{wf.store} holds no composited output yet: run `persona run {args.workflow}` first")
+    plans = wf.drive_plans()
+    if not plans:
+        raise RunError(f"{args.workflow} drives no puppet (no driver video): there is no output to evaluate")
+    root = open_store(wf.store, mode="r")
+    for plan in plans:
+        drive = root.get(plan.cast.drive)
+        if drive is None or drive.get("composite") is None:
+            raise RunError(f"{wf.store} holds no composited output of {plan.cast.drive} yet: run "
+                           f"`persona run {args.workflow}` first")
+    results = {}
     with executor_for(wf, args.scheduler, args.workers) as ex:
-        result = Runner(wf, ex, progress=False).evaluate()
-    result.pop("series")
+        for plan in plans:
+            results[plan.name] = Runner(wf, ex, progress=False).evaluate(plan.cast)
+            results[plan.name].pop("series")
+    result = results.get("drive", {}) if wf.version == 1 else results  # version 2: by drive
     if args.json:
         print(json.dumps(result, indent=2))
         return 0

@@ -20,7 +20,7 @@ from persona.plugins.face.fiducials import mean_shape
 from persona.plugins.face.tracks import bridge
 from persona.plugins.face.warp import retarget
 from persona.stores import media, storage
-from persona.stores.layout import OK, PENDING, Collection
+from persona.stores.layout import OK, PENDING, Cast, Collection
 from persona.stores.provenance import Provenance
 
 from . import stages as st
@@ -30,10 +30,11 @@ from .texture import run_frame_textures, run_mouth
 log = logging.getLogger(__name__)
 
 
-def run_drive(runner) -> Collection:
-    """Retarget and render every driver frame; returns the ``drive`` collection."""
-    frames = Collection(runner.root, "driver/frames")
-    puppet = Collection(runner.root, "puppet")
+def run_drive(runner, cast: Cast, output: str) -> Collection:
+    """Retarget and render every frame of ``cast.frames`` with ``cast.puppet``'s face; returns the
+    drive's collection (``cast.drive``). Meshes the workflow asks for are exported into ``output``."""
+    frames = Collection(runner.root, cast.frames)
+    puppet = Collection(runner.root, cast.puppet)
     found = st.accepted(frames)
     inputs = {"frames": frames.provenance("status/screen/state").key,
               "puppet": puppet.provenance("aligned/mean").key}
@@ -43,19 +44,19 @@ def run_drive(runner) -> Collection:
     prov = Provenance.make(stage="retarget", backend="-", backend_version="2",
                            params={"pose_sigma": sigma, **({"lips": lips} if lips != "mean" else {})},
                            inputs=inputs, persona_version=runner.version)
-    drive = Collection(runner.root, "drive")
+    drive = Collection(runner.root, cast.drive)
     current = drive.provenance("status/retarget/state") if drive.exists() else None
     # the status is created before the targets and written after them: done only when no frame is pending
     if current is None or current.key != prov.key or (drive.state("retarget") == PENDING).any():
-        _retarget(runner, drive, frames, puppet, found, prov, sigma, lips)
-    with runner.step("frame textures", "drive"):
+        _retarget(runner, cast, drive, frames, puppet, found, prov, sigma, lips)
+    with runner.step("frame textures", cast.drive):
         textures = run_frame_textures(runner, drive, puppet, prov)
     inputs = {"retarget": prov.key, "texture": textures.key}
     stage = st.RENDER
     if st.default_registry().get("render", runner.wf.stage("render")[0]).uses_mesh:
-        with runner.step("motion", "drive"):
-            inputs["mesh"] = run_motion(runner, drive, prov).key
-        with runner.step("mouth", "puppet"):
+        with runner.step("motion", cast.drive):
+            inputs["mesh"] = run_motion(runner, cast, prov).key
+        with runner.step("mouth", cast.puppet):
             inputs["mouth"] = run_mouth(runner, puppet).key
         stage = st.RENDER_3D
     drive.group.attrs["stages"] = ["retarget", *(["dynamics"] if stage is st.RENDER_3D else []), stage.name,
@@ -66,13 +67,14 @@ def run_drive(runner) -> Collection:
     runner.run_stage_tasks(drive, [("composite", composite.backend, composite.params)])
     every = runner.motion_params()["export_every"]
     if stage is st.RENDER_3D and every:
-        export_meshes(runner, drive, every)
+        export_meshes(runner, cast, output, every)
     return drive
 
 
-def _retarget(runner, drive, frames, puppet, found, prov, sigma: float, lips: str) -> None:
+def _retarget(runner, cast, drive, frames, puppet, found, prov, sigma: float, lips: str) -> None:
     n = frames.n
-    group = runner.root.require_group("drive")
+    group = runner.root.require_group(cast.drive)
+    cast.record(group)
     group.attrs.update({"n_photos": n, "photos_per_shard": runner.wf.photos_per_shard,
                         "canvas": frames.attrs["canvas"], "fps": frames.attrs["fps"]})
     fiducials = frames.array("aligned/fiducials")[:].astype(np.float64)

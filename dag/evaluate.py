@@ -8,7 +8,9 @@ Figures (paper §6, with dlib's descriptor and landmarks only; nothing downloade
 - expression: Pearson correlation of mouth opening, eye openness, brow height and mouth
   width between A's video and the output (landmarks found anew in the output frames);
 - amplitude: for the same signals, the gain (slope of the output's signal on the driver's:
-  1 = the same amplitude, which a correlation cannot see), the correlation and both ranges;
+  1 = the same amplitude, which a correlation cannot see), the correlation and both ranges, of the
+  face alone (puppet.mp4) and of composite.mp4's frames (the same face, found by dlib with A's head
+  around it);
 - stability: landmark jitter and face-colour flicker, output over driver; the jitter also on
   composite.mp4's frames (the output as a viewer sees it: B's face in A's frame, with A's jaw line,
   where on the face alone dlib guesses a jaw below a puppet whose mask ends above the chin); the texture's own
@@ -38,7 +40,7 @@ from persona.plugins.face.template import generic_template
 from persona.plugins.base import Rejected
 from persona.plugins.manager import default_registry
 from persona.stores.errors import InputError
-from persona.stores.layout import OK, Collection, open_store
+from persona.stores.layout import OK, Cast, Collection, open_store
 
 from .stages import RENDER_3D, accepted, render_alpha
 
@@ -60,12 +62,13 @@ def describe_photos(url: str, path: str, indices: list[int], identity: tuple[str
     return np.array(out).reshape(len(out), -1)
 
 
-def analyse_frames(url: str, start: int, stop: int, identity: tuple[str, dict], compare: bool) -> dict:
-    """For output frames [start, stop): landmarks found anew, descriptors, the mean face colour of
-    output and driver inside the rendered face, and (``compare``) PSNR and SSIM against the driver,
-    of the render and of the composite (the composite stage's frames, composite.mp4's)."""
+def analyse_frames(url: str, start: int, stop: int, identity: tuple[str, dict], compare: bool, cast: Cast) -> dict:
+    """For output frames [start, stop) of the drive of ``cast``: landmarks found anew, descriptors,
+    the mean face colour of output and driver inside the rendered face, and (``compare``) PSNR and
+    SSIM against the driver, of the render and of the composite (the composite stage's frames,
+    composite.mp4's)."""
     root = open_store(url, mode="r")
-    drive, frames = Collection(root, "drive"), Collection(root, "driver/frames")
+    drive, frames = Collection(root, cast.drive), Collection(root, cast.frames)
     rendered = drive.array("render/rgb")[start:stop]
     alphas = drive.array("render/mask")[start:stop]
     composites = drive.array("composite/rgb")[start:stop]
@@ -117,29 +120,31 @@ def _sample(ok: np.ndarray, k: int) -> list[int]:
 
 
 def evaluate(store: str, executor, *, identity: tuple[str, dict], threshold: float = 0.6,
-             collection_sample: int = 100, self_reenactment: bool = False) -> dict:
-    """Every figure of a finished run, as a JSON-ready dict (plus per-frame series under "series")."""
+             collection_sample: int = 100, self_reenactment: bool = False, cast: Cast = Cast()) -> dict:
+    """Every figure of a finished drive (``cast``; a format-1 store's by default), as a JSON-ready
+    dict (plus per-frame series under "series")."""
     root = open_store(store, mode="r")
     centroids = {}
-    for actor in ("puppet", "driver"):
-        coll = Collection(root, actor)
+    for actor, path in (("puppet", cast.puppet), ("driver", cast.driver)):
+        coll = Collection(root, path)
         if not coll.has("status/screen/state"):
             raise InputError(f"{store}: the {actor}'s photos were processed by an older Persona, before the "
                              "collection's screen existed; run `persona run` on the workflow again to bring "
                              "the store up to date, then evaluate")
         chosen = _sample(accepted(coll), collection_sample)
-        parts = list(executor.run(describe_photos, [(store, actor, chosen[i::2], identity) for i in range(2)]))
+        parts = list(executor.run(describe_photos, [(store, path, chosen[i::2], identity) for i in range(2)]))
         centroids[actor] = ev.centroid(np.concatenate(parts))
-    drive = Collection(root, "drive")
-    tasks = [(store, s, e, identity, self_reenactment) for s, e in drive.shard_ranges()]
+    drive = Collection(root, cast.drive)
+    tasks = [(store, s, e, identity, self_reenactment, cast) for s, e in drive.shard_ranges()]
     parts = sorted(executor.run(analyse_frames, tasks), key=lambda p: p["start"])
     joined = {k: np.concatenate([p[k] for p in parts]) for k in parts[0] if k != "start"}
 
-    driver_landmarks = driver_frame_landmarks(root)
+    driver_landmarks = driver_frame_landmarks(root, cast.frames)
     identity_figures = ev.identity_figures(joined["descriptors"][:, 0], centroids["puppet"], centroids["driver"],
                                            threshold)
     on_composite = ev.identity_figures(joined["descriptors"][:, 1], centroids["puppet"], centroids["driver"], threshold)
     video = ev.compare_videos(driver_landmarks, joined["landmarks"])
+    on_composite_video = ev.compare_videos(driver_landmarks, joined["composite_landmarks"])
     stability = video["stability"]
     stability["jitter_composite"] = ev.jitter(joined["composite_landmarks"])
     stability["jitter_ratio_composite"] = _ratio(stability["jitter_composite"], stability["jitter_driver"])
@@ -152,9 +157,10 @@ def evaluate(store: str, executor, *, identity: tuple[str, dict], threshold: flo
     result = {
         "identity": {**{k: v for k, v in identity_figures.items() if not isinstance(v, np.ndarray)},
                      "fraction_b_not_a_composite": on_composite["fraction_b_not_a"]},
-        "texture": texture_figures(root, collection_sample),
+        "texture": texture_figures(root, cast, collection_sample),
         "expression": video["expression"],
         "amplitude": video["amplitude"],
+        "amplitude_composite": on_composite_video["amplitude"],
         "stability": stability,
         "composite": {k: {"colour_step": _median(joined[f"seam_{k}"][:, 0]),
                           "gradient_ratio": _median(joined[f"seam_{k}"][:, 1])} for k in ("blend", "paste")},
@@ -169,8 +175,8 @@ def evaluate(store: str, executor, *, identity: tuple[str, dict], threshold: flo
     }
     if drive.provenance("render/rgb").stage == RENDER_3D.name:  # rendered from the motion step's meshes
         result["motion"] = {
-            "driver_meshes": mesh_expression(root, "drive/motion/driver_mesh", "driver", driver_landmarks),
-            "puppet_meshes": mesh_expression(root, "drive/mesh", "puppet", driver_landmarks)}
+            "driver_meshes": mesh_expression(root, f"{cast.drive}/motion/driver_mesh", cast.driver, driver_landmarks),
+            "puppet_meshes": mesh_expression(root, f"{cast.drive}/mesh", cast.puppet, driver_landmarks)}
     if self_reenactment:
         result["self_reenactment"] = {"psnr_db": _nanmean(joined["psnr"][:, 0]), "ssim": _nanmean(joined["ssim"][:, 0]),
                                       "psnr_db_composite": _nanmean(joined["psnr"][:, 1]),
@@ -188,7 +194,7 @@ def own_photos(puppet: Collection, sample: int = 100):
     return chosen, photos, inside, ev.tear_reference(photos, inside)
 
 
-def texture_figures(root, sample: int = 100, every: int = 8) -> dict[str, dict[str, float]]:
+def texture_figures(root, cast: Cast, sample: int = 100, every: int = 8) -> dict[str, dict[str, float]]:
     """B's textures against ``sample`` of B's own frontalized photos, inside the face (docs/texture.md).
 
     tears (:func:`ev.tear_energy`: thin cracks and jumps beyond the photos' own lines there): the
@@ -197,7 +203,7 @@ def texture_figures(root, sample: int = 100, every: int = 8) -> dict[str, dict[s
     texture; ``ratio`` is the frames' over the photos' (≤ 1: no more tears than the photos have).
     detail (:func:`ev.detail_energy`, band-pass energy): the same medians, ``ratio`` again the frames'
     over the photos' (1: as sharp as a photo)."""
-    puppet, drive = Collection(root, "puppet"), Collection(root, "drive")
+    puppet, drive = Collection(root, cast.puppet), Collection(root, cast.drive)
     chosen, photos, inside, reference = own_photos(puppet, sample)
     face = generic_template().mask
     aligned = puppet.has("collection/rgb")  # not when the collection was too small for a collection flow
@@ -217,10 +223,10 @@ def texture_figures(root, sample: int = 100, every: int = 8) -> dict[str, dict[s
     return out
 
 
-def driver_frame_landmarks(root) -> np.ndarray:
-    """(T, 68, 2) dlib's landmarks on the driver's frames, the reference of every expression figure;
-    NaN for a frame without a face."""
-    frames = Collection(root, "driver/frames")
+def driver_frame_landmarks(root, path: str = Cast.frames) -> np.ndarray:
+    """(T, 68, 2) dlib's landmarks on the driver's frames (the collection at ``path``), the reference
+    of every expression figure; NaN for a frame without a face."""
+    frames = Collection(root, path)
     landmarks = frames.array("landmarks/points")[:].astype(np.float64)
     landmarks[frames.state("landmarks") != OK] = np.nan
     return landmarks

@@ -28,16 +28,16 @@ from persona.plugins.face.dynamics import FrameTrack, frame_mesh, smooth_in_time
 from persona.plugins.face.transfer import DeformationTransfer, FiducialFollow, correspondence
 from persona.plugins.face.warp import pin, tps_map
 from persona.plugins.kinds import Pose
-from persona.stores.layout import OK, Collection, open_store
+from persona.stores.layout import OK, Cast, Collection, open_store
 from persona.stores.provenance import Provenance, cache_key
 
 from . import stages as st
 
 
-def run_motion(runner, drive: Collection, retargeted: Provenance) -> Provenance:
-    """Steps 1-4 (see the module's docstring); returns the provenance of ``mesh``."""
+def run_motion(runner, cast: Cast, retargeted: Provenance) -> Provenance:
+    """Steps 1-4 (see the module's docstring) for the drive of ``cast``; returns the provenance of ``mesh``."""
     root = runner.root
-    driver, puppet = Collection(root, "driver"), Collection(root, "puppet")
+    drive, driver, puppet = (Collection(root, path) for path in (cast.drive, cast.driver, cast.puppet))
     for coll in (driver, puppet):
         problem = runner.shape_problems.get(coll.path) or (None if coll.has("shape/depth") else "not built")
         if problem:
@@ -140,21 +140,22 @@ def _transfer(root, drive: Collection, puppet: Collection, denoise) -> tuple:
     return transfer, follow, targets, mask
 
 
-def export_meshes(runner, drive: Collection, every: int) -> list[str]:
-    """B's textured mesh of every ``every``-th frame: ``<output>/meshes/frame_<t>.ply`` and ``.obj``."""
+def export_meshes(runner, cast: Cast, output: str, every: int) -> list[str]:
+    """B's textured mesh of every ``every``-th frame of the drive: ``<output>/meshes/frame_<t>.ply`` and ``.obj``."""
     import open3d as o3d
 
     from persona.plugins.face.meshing import METRIC_UNITS, depth_to_mesh, metric_frame
     from persona.stores import storage
     from persona.stores.meshes import write_mesh
 
-    folder = storage.join(runner.wf.output, "meshes")
-    puppet = Collection(runner.root, "puppet")  # B's frame: every exported frame shares it
+    folder = storage.join(output, "meshes")
+    drive = Collection(runner.root, cast.drive)
+    puppet = Collection(runner.root, cast.puppet)  # B's frame: every exported frame shares it
     origin, scale = metric_frame(puppet.array("aligned/mean_fiducials")[...], puppet.array("shape/depth")[...],
                                  puppet.array("shape/mask")[...])
     written = []
     frames = range(0, drive.n, every)
-    with runner.progress_bar(f"{'drive':>13} export    ", len(frames)) as bar:
+    with runner.progress_bar(f"{cast.drive:>13} export    ", len(frames)) as bar:
         for t in frames:
             mesh, texture = drive.array("mesh")[t], drive.array("texture/rgb")[t]
             face = np.isfinite(mesh).all(axis=-1)

@@ -17,7 +17,7 @@ import numpy as np
 
 from persona.plugins.face import composite
 from persona.stores import media, storage
-from persona.stores.layout import Collection, item
+from persona.stores.layout import Cast, Collection, item
 
 from .stages import render_alpha
 
@@ -108,6 +108,8 @@ def figure_rows(ev: dict) -> list[tuple]:
              for k, v in ev["expression"].items()]
     rows += [(f"expression gain (output / driver): {k.replace('_', ' ')}", a["gain"],
               "1 = the driver's amplitude; target 0.7-1.4") for k, a in ev.get("amplitude", {}).items()]
+    rows += [(f"expression gain on composite.mp4: {k.replace('_', ' ')}", a["gain"],
+              "1 = the driver's amplitude; target 0.7-1.4") for k, a in ev.get("amplitude_composite", {}).items()]
     rows += [(k.replace("_", " "), v, _STABILITY.get(k, "lower is better")) for k, v in ev["stability"].items()]
     for how, f in ev.get("composite", {}).items():
         rows += [(f"composite seam ({how}): colour step beyond the driver's own (grey levels)", f["colour_step"],
@@ -188,27 +190,35 @@ def frames_strip(drive: Collection, frames: Collection, n: int = 6, side: int = 
     return np.concatenate(columns, axis=1)
 
 
-def write_run_report(wf, root, metrics: dict, series: dict | None) -> Path | str:
-    """report.html in the workflow's output folder, from a run's ``metrics`` (metrics.json), its
-    store (pictures, the frame strip, also written as frames.png) and ``series`` (the plots); with
-    every texture evaluation found in the folder."""
-    out = wf.output
+def write_run_report(wf, root, metrics: dict, series: dict | None, *, cast: Cast | None = Cast(),
+                     output=None) -> Path | str:
+    """report.html in ``output`` (the workflow's output folder by default), from a run's ``metrics``
+    (metrics.json), its store (pictures, and the frame strip of the drive of ``cast``, also written as
+    frames.png; none when ``cast`` is None or its drive is not in the store) and ``series`` (the
+    plots); with every texture evaluation found in the folder. A version-2 workflow's own page links
+    each drive's page (``metrics["drives"]``)."""
+    out = wf.output if output is None else output
     pictures = {}
     for path, c in metrics["collections"].items():
         for kind, file in c["pictures"].items():
             if str(file).endswith(".png") and storage.isfile(file):
                 pictures[f"{path}: {kind.replace('_', ' ')}"] = media.decode_image(file, max_side=4000)
     strip = None
-    if root.get("drive") is not None:
-        strip = frames_strip(Collection(root, "drive"), Collection(root, "driver/frames"))
+    if cast is not None and root.get(cast.drive) is not None:
+        strip = frames_strip(Collection(root, cast.drive), Collection(root, cast.frames))
         media.write_png(storage.join(out, "frames.png"), strip)
-    fps = float(root["driver/frames"].attrs["fps"]) if strip is not None else 25.0
+    fps = float(root[cast.frames].attrs["fps"]) if strip is not None else 25.0
     texture = []
     for file in storage.glob(storage.join(out, "*_texture_evaluation*.json")):
         result = json.loads(storage.read_text(file))
         grid = result.get("grid")
         texture.append((result, media.decode_image(grid, max_side=4000) if grid and storage.isfile(grid) else None))
-    return write_report(storage.join(out, "report.html"), metrics=metrics, pictures=pictures, strip=strip,
+    drives = []  # a version-2 workflow's page: each drive's frames, linking its own page
+    for name, d in metrics.get("drives", {}).items():
+        frames = storage.join(d["output"], "frames.png")
+        drives.append((name, f"{name}/report.html", media.decode_image(frames, max_side=4000)
+                       if storage.isfile(frames) else None, d.get("evaluation", {}), d.get("error")))
+    return write_report(storage.join(out, "report.html"), metrics=metrics, pictures=pictures, strip=strip, drives=drives,
                         series=series, threshold=wf.evaluate.threshold, fps=fps,
                         videos=[storage.join(out, f"{name}.mp4") for name in ("composite", "puppet", "side_by_side")],
                         texture=texture)
@@ -216,10 +226,12 @@ def write_run_report(wf, root, metrics: dict, series: dict | None) -> Path | str
 
 def write_report(path, *, metrics: dict, pictures: dict[str, np.ndarray], strip: np.ndarray | None,
                  series: dict | None, threshold: float, fps: float, videos: list = (),
-                 texture: list[tuple[dict, np.ndarray | None]] = ()) -> Path | str:
+                 texture: list[tuple[dict, np.ndarray | None]] = (), drives: list[tuple] = ()) -> Path | str:
     """Write the page atomically; ``pictures`` are titled images (means, contact sheets); ``videos``
     are embedded in their order (the composite first), each up to ``MAX_EMBEDDED_VIDEO`` bytes;
-    ``texture``: the results of ``persona evaluate --texture`` (its JSON, and its picture grid)."""
+    ``texture``: the results of ``persona evaluate --texture`` (its JSON, and its picture grid);
+    ``drives``: (name, link to its page, its frames.png or None, its evaluation, why it failed or None)
+    of each drive of a version-2 workflow."""
     parts = [f"<h1>Persona — {html.escape(str(metrics.get('workflow', '')))}</h1>"]
     if metrics.get("warnings"):
         items = [f"<li>{html.escape(str(w))}</li>" for w in metrics["warnings"]]
@@ -239,6 +251,17 @@ def write_report(path, *, metrics: dict, pictures: dict[str, np.ndarray], strip:
         parts += ["<h2>Figures</h2>", _table(rows)]
     for result, grid in texture:
         parts += texture_section(result, grid)
+    for name, link, frames, ev, error in drives:
+        if error:
+            parts += [f"<h2>Drive {html.escape(name)}: failed</h2>", f"<p>{html.escape(error)}</p>"]
+            continue
+        identity = ev.get("identity", {}).get("fraction_b_not_a_composite")
+        gain = ev.get("amplitude", {}).get("mouth_open", {}).get("gain")
+        figures = (f" — B and not A {identity:.0%}, mouth gain {gain:.2f}" if identity is not None and gain is not None
+                   else "")
+        parts.append(f'<h2>Drive <a href="{html.escape(link)}">{html.escape(name)}</a>{html.escape(figures)}</h2>')
+        if frames is not None:
+            parts.append(_img(_png(frames), name, min(960, frames.shape[1])))
     if strip is not None:
         parts += ["<h2>Driver frames (top), the composite (middle), the puppet alone (bottom)</h2>", _img(_png(strip), "frames", min(960, strip.shape[1]))]
     if series:

@@ -27,7 +27,7 @@ from persona.plugins.manager import get_plugin_manager
 from persona.stores import media, storage, verify
 from persona.stores.chunks import ChunkError
 from persona.stores.errors import InputError, PersonaError
-from persona.stores.layout import OK, PENDING, REJECTED, Collection, item, open_store
+from persona.stores.layout import OK, PENDING, REJECTED, Cast, Collection, item, open_store
 from persona.stores.provenance import Provenance, cache_key
 
 from . import stages as st
@@ -281,16 +281,6 @@ class StageTimer:
 
 # -- the run -----------------------------------------------------------------------------
 
-def collection_specs(wf: Workflow) -> list[tuple[str, object]]:
-    """(store path, photo spec) of every collection the workflow names."""
-    specs = [("puppet", wf.puppet.photos)]
-    if wf.driver is not None:
-        specs.append(("driver", wf.driver.photos))
-        if wf.driver.video is not None:
-            specs.append(("driver/frames", wf.driver.video))
-    return specs
-
-
 class _Lines:
     """Progress for a log file or a batch job: one timestamped line when a step starts and one when
     it ends, instead of a bar redrawn with carriage returns."""
@@ -345,12 +335,13 @@ def resolve_inputs(wf: Workflow) -> dict[str, list[media.Source]]:
     storage.check(wf.store, "store")
     storage.check(wf.output, "output")
     resolved = {}
-    for path, spec in collection_specs(wf):
-        sources = media.resolve_sources(_media_spec(spec), wf.base_dir)
-        if path == "driver/frames" and any(s.frame is None for s in sources):
-            raise InputError(f"driver.video: {sources[0].path} is not a video; give a video file (.mp4, .mov, "
+    for plan in wf.collections():
+        sources = media.resolve_sources(_media_spec(plan.photos), wf.base_dir)
+        if plan.video and any(s.frame is None for s in sources):
+            where = "driver.video" if wf.version == 1 else "drives: video"
+            raise InputError(f"{where}: {sources[0].path} is not a video; give a video file (.mp4, .mov, "
                              "...) or a range {video: PATH, start: 0, stop: N}")
-        resolved[path] = sources
+        resolved[plan.path] = sources
     return resolved
 
 
@@ -608,66 +599,113 @@ class Runner:
             log.warning("%s", line)
 
     def run_stages(self, inputs: dict[str, list[media.Source]]) -> dict:
-        """Every stage, in order (:meth:`run`)."""
+        """Every stage, in order (:meth:`run`): each collection once, then each drive."""
         report = {"workflow": self.wf.name, "store": self.wf.store, "collections": {}}
-        for path, sources in inputs.items():
-            coll, video = self.collection(path, sources)
-            self.run_photo_stages(coll, video)
-            if not st.accepted(coll).any():
-                raise RunError(f"{path}: no photo of the {coll.n} got through to an aligned face; "
-                               f"see `persona inspect {self.wf.store}` for each photo's reason")
-            mean = self.mean_face(coll)
-            pictures = self.pictures(coll, mean)
-            shape_seconds = None
-            if path != "driver/frames":  # the 3D shape comes from photo collections, not video frames
-                t0 = time.perf_counter()
-                try:
-                    aligned = run_alignment(self, coll)  # per-photo stages: timed as such
-                    with self.step("shape", path):
-                        pictures.update(run_shape(self, coll, aligned))
-                    if path == "puppet":  # B's expression-dependent texture (video mode)
-                        with self.step("texture", path):
-                            pictures.update(run_texture(self, coll, aligned))
-                except Rejected as exc:  # e.g. too few photos for photometric stereo: the run goes on
-                    coll.remove("shape", "texture")  # an earlier run's: nothing later may take them for this one's
-                    self.shape_problems[path] = exc.reason
-                    log.warning("%s: no 3D shape: %s", path, exc.reason)
-                    report.setdefault("warnings", []).append(f"{path}: no 3D shape: {exc.reason}")
-                shape_seconds = round(time.perf_counter() - t0, 3)
-            accepted = int(st.accepted(coll).sum())
-            report["collections"][path] = {
-                "n_photos": coll.n, "accepted": accepted, "rejected": coll.n - accepted,
-                "pictures": pictures, "shape_seconds": shape_seconds}
-        series = None
-        if self.wf.driver is not None and self.wf.driver.video is not None:
-            t0 = time.perf_counter()
-            drive = run_drive(self)
-            drive_seconds = time.perf_counter() - t0
-            with self.step("videos", "drive"):
-                report["videos"] = write_videos(drive, Collection(self.root, "driver/frames"), self.wf.output)
-            render = [r for r in self.timer.records if r["stage"] in ("render", "render3d")][-1]
-            report["speed"] = {}
-            if render["n_done"] == drive.n:  # timed only when this run rendered every frame
-                report["speed"] = {"ms_per_driver_frame": 1000 * drive_seconds / drive.n,
-                                   "render_ms_per_frame_one_worker": 1000 * render["task_seconds"] / drive.n}
-            t0 = time.perf_counter()
-            evaluation = self.evaluate()
-            report["speed"]["evaluate_seconds"] = time.perf_counter() - t0
-            series = evaluation.pop("series")
-            report["evaluation"] = evaluation
-            write_json(storage.join(self.wf.output, "series.json"),  # the report's plots, should it be made again
-                       {k: np.asarray(v, float).tolist() for k, v in series.items()})
+        for plan in self.wf.collections():
+            report["collections"][plan.path] = self.build_collection(plan, inputs[plan.path], report)
+        if self.wf.version == 1:  # one drive (or none), whose outputs are the run's
+            plans = self.wf.drive_plans()
+            part = self.drive(plans[0]) if plans else {}
+            report.update({k: v for k, v in part.items() if k != "series"})
+            report["stages"] = self.timer.records
+            report["report"] = str(storage.join(self.wf.output, "report.html"))
+            self.write_outputs(self.wf.output, report, part.get("series"), Cast() if plans else None)
+            return report
         report["stages"] = self.timer.records
         report["report"] = str(storage.join(self.wf.output, "report.html"))
-        write_json(storage.join(self.wf.output, "metrics.json"), report)
-        write_run_report(self.wf, self.root, report, series)
+        report["drives"], failed = {}, {}
+        for plan in self.wf.drive_plans():
+            try:
+                part = self.drive(plan)
+            except ChunkError:  # a damaged store: recovered by run(), every drive then run again
+                raise
+            except Exception as exc:  # one drive that fails does not take the others down
+                failed[plan.name] = f"{type(exc).__name__}: {exc}"
+                log.error("drive %s failed: %s", plan.name, failed[plan.name])
+                report["drives"][plan.name] = {"output": str(plan.output), "error": failed[plan.name]}
+                continue
+            own = {"workflow": f"{self.wf.name}: {plan.name}", "store": self.wf.store,
+                   "collections": {p: report["collections"][p] for p in (plan.cast.puppet, plan.cast.driver,
+                                                                           plan.cast.frames)},
+                   **{k: v for k, v in part.items() if k != "series"},
+                   "stages": [r for r in self.timer.records if r["collection"] in (plan.cast.drive, plan.cast.puppet)],
+                   "report": str(storage.join(plan.output, "report.html"))}
+            self.write_outputs(plan.output, own, part["series"], plan.cast)
+            report["drives"][plan.name] = {"output": str(plan.output), "report": own["report"],
+                                           "evaluation": own["evaluation"]}
+        self.write_outputs(self.wf.output, report, None, None)
+        if failed:
+            raise RunError(f"{len(failed)} of {len(report['drives'])} drives failed: "
+                           + "; ".join(f"{name}: {why}" for name, why in failed.items())
+                           + f". The others are done (in {self.wf.output}); fix the cause and run again: "
+                           "what is done is not redone")
         return report
 
-    def evaluate(self) -> dict:
+    def build_collection(self, plan, sources: list[media.Source], report: dict) -> dict:
+        """One collection's per-photo stages, mean face and pictures; for photo collections (not a
+        video's frames) their alignment and 3D shape, and for puppets their texture cache. Returns its
+        counts and pictures."""
+        coll, video = self.collection(plan.path, sources)
+        self.run_photo_stages(coll, video)
+        if not st.accepted(coll).any():
+            raise RunError(f"{plan.path}: no photo of the {coll.n} got through to an aligned face; "
+                           f"see `persona inspect {self.wf.store}` for each photo's reason")
+        mean = self.mean_face(coll)
+        pictures = self.pictures(coll, mean)
+        shape_seconds = None
+        if not plan.video:  # the 3D shape comes from photo collections, not video frames
+            t0 = time.perf_counter()
+            try:
+                aligned = run_alignment(self, coll)  # per-photo stages: timed as such
+                with self.step("shape", plan.path):
+                    pictures.update(run_shape(self, coll, aligned))
+                if plan.texture:  # B's expression-dependent texture (video mode)
+                    with self.step("texture", plan.path):
+                        pictures.update(run_texture(self, coll, aligned))
+            except Rejected as exc:  # e.g. too few photos for photometric stereo: the run goes on
+                coll.remove("shape", "texture")  # an earlier run's: nothing later may take them for this one's
+                self.shape_problems[plan.path] = exc.reason
+                log.warning("%s: no 3D shape: %s", plan.path, exc.reason)
+                report.setdefault("warnings", []).append(f"{plan.path}: no 3D shape: {exc.reason}")
+            shape_seconds = round(time.perf_counter() - t0, 3)
+        accepted = int(st.accepted(coll).sum())
+        return {"n_photos": coll.n, "accepted": accepted, "rejected": coll.n - accepted,
+                "pictures": pictures, "shape_seconds": shape_seconds}
+
+    def drive(self, plan) -> dict:
+        """One drive: its stages, its videos and its evaluation (``videos``, ``speed``, ``evaluation``
+        and the per-frame ``series`` of the report's plots)."""
+        t0 = time.perf_counter()
+        drive = run_drive(self, plan.cast, plan.output)
+        drive_seconds = time.perf_counter() - t0
+        out = {}
+        with self.step("videos", plan.cast.drive):
+            out["videos"] = write_videos(drive, Collection(self.root, plan.cast.frames), plan.output)
+        render = [r for r in self.timer.records if r["stage"] in ("render", "render3d")][-1]
+        out["speed"] = {}
+        if render["n_done"] == drive.n:  # timed only when this run rendered every frame
+            out["speed"] = {"ms_per_driver_frame": 1000 * drive_seconds / drive.n,
+                            "render_ms_per_frame_one_worker": 1000 * render["task_seconds"] / drive.n}
+        t0 = time.perf_counter()
+        evaluation = self.evaluate(plan.cast)
+        out["speed"]["evaluate_seconds"] = time.perf_counter() - t0
+        out["series"] = evaluation.pop("series")
+        out["evaluation"] = evaluation
+        return out
+
+    def write_outputs(self, output: str, report: dict, series: dict | None, cast: Cast | None) -> None:
+        """metrics.json, series.json (the report's plots, should it be made again) and report.html in ``output``."""
+        if series is not None:
+            write_json(storage.join(output, "series.json"), {k: np.asarray(v, float).tolist() for k, v in series.items()})
+        write_json(storage.join(output, "metrics.json"), report)
+        write_run_report(self.wf, self.root, report, series, cast=cast, output=output)
+
+    def evaluate(self, cast: Cast = Cast()) -> dict:
         e = self.wf.evaluate
         return evaluate(self.wf.store, self.executor, identity=self.wf.stage("identity"),
-                        threshold=e.threshold,
-                        collection_sample=e.collection_sample, self_reenactment=e.self_reenactment)
+                        threshold=e.threshold, collection_sample=e.collection_sample,
+                        self_reenactment=e.self_reenactment, cast=cast)
+
 
 def _canvas(sources, params) -> list[int]:
     """The smallest canvas that holds every readable photo and video frame after downscaling to max_side."""

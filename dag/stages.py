@@ -32,7 +32,7 @@ from persona.plugins.kinds import POSE_FIELDS, Pose, Puppet
 from persona.plugins.manager import default_registry
 from persona.stores import media
 from persona.stores.errors import InputError
-from persona.stores.layout import OK, PENDING, REJECTED, UPSTREAM, Collection, open_store
+from persona.stores.layout import OK, PENDING, REJECTED, UPSTREAM, Cast, Collection, open_store
 
 log = logging.getLogger(__name__)
 
@@ -53,8 +53,9 @@ class PhotoStage:
 
     ``compute(backend, params, inputs, context)`` gets one photo's inputs by array name
     and returns its outputs by array name, or raises :class:`Rejected`. Input names are
-    relative to the collection, or absolute ("/driver/frames/photos/rgb") for another
-    collection's arrays with the same photo axis. ``context(root, path)`` loads what every
+    relative to the collection, or, for a drive's stages, "@frames/..." (:data:`FRAMES`) for the
+    arrays of the driver's frames the drive performs (its :class:`Cast`'s ``frames``, on the same
+    frame axis). ``context(root, path)`` loads what every
     photo shares (the collection's canvas is always in it). ``kind`` is the backend kind, or None
     for a stage without backends (ingest).
     """
@@ -253,20 +254,26 @@ ALIGN = PhotoStage(
 PHOTO_STAGES["align"] = ALIGN
 
 
+#: the prefix of a drive stage's inputs that are arrays of the driver's frames (:class:`PhotoStage`)
+FRAMES = "@frames/"
+
+
 def _puppet(root, path) -> dict:
-    group, puppet = root["puppet/aligned"], Collection(root, "puppet")
+    """The context of the render stages: the drive's puppet's average face, fiducials and mouth."""
+    puppet = Collection(root, Cast.of(root, path).puppet)
+    group = puppet.group["aligned"]
     return {"coverage": group["coverage"][...], "fiducials": group["mean_fiducials"][...].astype(np.float64),
             "mouth": puppet.array("texture/mouth")[...].astype(np.float32) if puppet.has("texture/mouth") else None,
             "lips": puppet.array("texture/lips")[...] if puppet.has("texture/lips") else None}
 
 
 def _render(backend, params, inputs, context):
-    h, w = inputs["/driver/frames/photos/size"]
+    h, w = inputs["@frames/photos/size"]
     puppet = Puppet(appearance=inputs["texture/rgb"].astype(np.float32), coverage=context["coverage"],
                     fiducials=context["fiducials"], mesh=inputs.get("mesh"), mouth=context["mouth"],
                     lips=context["lips"])
     out = backend.render(puppet, inputs["target"].astype(np.float64),
-                         Pose.from_vector(inputs["pose"]), inputs["/driver/frames/photos/rgb"][:h, :w])
+                         Pose.from_vector(inputs["pose"]), inputs["@frames/photos/rgb"][:h, :w])
     return {"render/rgb": out.rgb, "render/mask": np.round(out.mask * 255).astype(np.uint8)}
 
 
@@ -279,7 +286,7 @@ _RENDER_OUTPUTS = (
     Output("render/rgb", (), "uint8", ("frame", "y", "x", "channel")),  # tail = the canvas
     Output("render/mask", (), "uint8", ("frame", "y", "x")),
 )
-_RENDER_INPUTS = ("target", "pose", "texture/rgb", "/driver/frames/photos/rgb", "/driver/frames/photos/size")
+_RENDER_INPUTS = ("target", "pose", "texture/rgb", "@frames/photos/rgb", "@frames/photos/size")
 
 #: the puppet performing the driver's video: one "photo" per driver frame, in the ``drive`` collection
 RENDER = PhotoStage("render", "render", "retarget", _RENDER_INPUTS, _RENDER_OUTPUTS, _render, _puppet)
@@ -292,15 +299,15 @@ PHOTO_STAGES.update(render=RENDER, render3d=RENDER_3D)
 def _composite(backend, params, inputs, context):
     from persona.plugins.face.composite import blend
 
-    h, w = inputs["/driver/frames/photos/size"]
-    return {"composite/rgb": blend(inputs["render/rgb"][:h, :w], inputs["/driver/frames/photos/rgb"][:h, :w],
+    h, w = inputs["@frames/photos/size"]
+    return {"composite/rgb": blend(inputs["render/rgb"][:h, :w], inputs["@frames/photos/rgb"][:h, :w],
                                    render_alpha(inputs["render/mask"][:h, :w]), **params)}
 
 
 #: B's rendered face blended into each driver frame (composite.mp4's frames; params: the workflow's
 #: stages.composite); a frame without a render is the driver's own
-COMPOSITE = PhotoStage("composite", None, None, ("render/rgb", "render/mask", "/driver/frames/photos/rgb",
-                                                 "/driver/frames/photos/size"),
+COMPOSITE = PhotoStage("composite", None, None, ("render/rgb", "render/mask", "@frames/photos/rgb",
+                                                 "@frames/photos/size"),
                        (Output("composite/rgb", (), "uint8", ("frame", "y", "x", "channel")),), _composite)
 PHOTO_STAGES["composite"] = COMPOSITE
 
@@ -309,26 +316,27 @@ def driver_model(root, path) -> dict:
     """The context of the dynamics stage: the driver's average model and the dynamics params."""
     from persona.plugins.face.dynamics import DriverModel, DynamicsParams
 
-    shape, basis = root["driver/shape"], root["driver/subspace/basis"]
+    driver = root[Cast.of(root, path).driver]
+    shape, basis = driver["shape"], driver["subspace/basis"]
     return {"model": DriverModel.build(shape["depth"][...], shape["albedo"][...], shape["mask"][...], basis[...],
-                                       root["driver/aligned/mean_fiducials"][...]),
+                                       driver["aligned/mean_fiducials"][...]),
             "dynamics": DynamicsParams.model_validate(root[path].attrs["motion"]["dynamics"])}
 
 
 def _dynamics(backend, params, inputs, context):
     from persona.plugins.face.dynamics import track_frame
 
-    h, w = inputs["/driver/frames/photos/size"]
-    track = track_frame(context["model"], inputs["/driver/frames/photos/rgb"][:h, :w], Pose.from_vector(inputs["pose"]),
-                        backend, context["dynamics"], inputs["/driver/frames/landmarks/points"])
+    h, w = inputs["@frames/photos/size"]
+    track = track_frame(context["model"], inputs["@frames/photos/rgb"][:h, :w], Pose.from_vector(inputs["pose"]),
+                        backend, context["dynamics"], inputs["@frames/landmarks/points"])
     return {"dynamics/flow": track.flow, "dynamics/delta": track.delta}
 
 
 #: the driver's per-frame 3D flow (ALGORITHMS §9) before temporal smoothing: the flow of the
 #: average face into each frame (``flow`` backend) and the depth change along the ray
 DYNAMICS = PhotoStage(
-    "dynamics", "flow", "retarget", ("pose", "/driver/frames/photos/rgb", "/driver/frames/photos/size",
-                                     "/driver/frames/landmarks/points"), (
+    "dynamics", "flow", "retarget", ("pose", "@frames/photos/rgb", "@frames/photos/size",
+                                     "@frames/landmarks/points"), (
         Output("dynamics/flow", (H, W, 2), "float32", ("frame", "y", "x", "xy")),
         Output("dynamics/delta", (H, W), "float32", ("frame", "y", "x")),
     ), _dynamics, driver_model)
@@ -387,7 +395,8 @@ def run_chain(url: str, path: str, start: int, stop: int, steps: list[tuple[str,
 
     def get(name: str) -> np.ndarray:
         if name not in shard:
-            shard[name] = root[name[1:]][start:stop] if name.startswith("/") else coll.array(name)[start:stop]
+            source = Collection(root, Cast.of(root, path).frames) if name.startswith(FRAMES) else coll
+            shard[name] = source.array(name.removeprefix(FRAMES))[start:stop]
         return shard[name]
 
     summaries = {}

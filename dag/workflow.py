@@ -7,6 +7,8 @@ resolve against the workflow file's folder.
 
 from __future__ import annotations
 
+import re
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal, Union
 
@@ -18,6 +20,7 @@ from persona.plugins.face.transfer import TransferParams
 from persona.plugins.manager import FlowChoice, Registry, default_registry, did_you_mean
 from persona.stores import storage
 from persona.stores.errors import PersonaError
+from persona.stores.layout import Cast
 
 
 class WorkflowError(PersonaError, ValueError):
@@ -52,6 +55,62 @@ class Actor(Strict):
                               "list mixing any of these (e.g. several videos: the paper builds collections "
                               "from many films)")
     video: Union[str, VideoRange, None] = Field(None, description="the actor's driving video (driver only)")
+
+
+class Person(Strict):
+    photos: PhotoSpec = Field(description="a folder, a glob, a photo, a video, {video, start, stop, step}, or a "
+                              "list mixing any of these")
+
+
+VideoSpec = Union[str, VideoRange]
+
+
+class DriveSpec(Strict):
+    puppet: Union[str, list[str]] = Field(description="the person (or people) performing: names under people")
+    driver: str = Field(description="the person whose video drives them: a name under people (the driver's model "
+                        "is built from that person's photos)")
+    video: Union[VideoSpec, list[VideoSpec]] = Field(description="the driving video(s) of the driver: a video "
+                                                     "file or {video, start, stop, step}, or a list of them")
+
+    def puppets(self) -> list[str]:
+        return self.puppet if isinstance(self.puppet, list) else [self.puppet]
+
+    def videos(self) -> list[VideoSpec]:
+        return self.video if isinstance(self.video, list) else [self.video]
+
+
+def _frames(spec: VideoSpec) -> tuple:
+    """(path, start, stop, step) of a video or a range of one: a video and its whole range are the same frames."""
+    return (spec, 0, None, 1) if isinstance(spec, str) else (spec.video, spec.start, spec.stop, spec.step)
+
+
+def video_name(spec: VideoSpec) -> str:
+    """A driving video's name in a version-2 store: its file's stem, and the range when it has one
+    (``address_0-900-10``); characters other than letters, digits, ``-`` and ``_`` become ``_``."""
+    path, extra = (spec, "") if isinstance(spec, str) else (spec.video, "")
+    if isinstance(spec, VideoRange) and (spec.start, spec.stop, spec.step) != (0, None, 1):
+        extra = f"_{spec.start}-{'' if spec.stop is None else spec.stop}" + (f"-{spec.step}" if spec.step != 1 else "")
+    return re.sub(r"[^A-Za-z0-9_-]", "_", storage.name(storage.with_suffix(path, "")) + extra)
+
+
+@dataclass(frozen=True)
+class CollectionPlan:
+    """A collection the workflow builds: its store path, its photos, whether it is a driving video's
+    frames (no 3D shape) and whether it is a puppet (its expression-dependent texture is built)."""
+
+    path: str
+    photos: Any
+    video: bool
+    texture: bool
+
+
+@dataclass(frozen=True)
+class DrivePlan:
+    """One drive of the workflow: its name, where its collections are (:class:`Cast`) and its output folder."""
+
+    name: str
+    cast: Cast
+    output: str
 
 
 class StageConfig(Strict):
@@ -189,15 +248,20 @@ class Evaluation(Strict):
 
 
 class Workflow(Strict):
-    version: Literal[1] = Field(1, description="workflow format version")
+    version: Literal[1, 2] = Field(1, description="workflow format version: 1, one puppet, one driver, one video "
+                                   "(puppet, driver); 2, many people built once and every drive of them (people, drives)")
     name: str = Field(description="a short name for the run")
     store: str = Field(description="the Zarr store of the run (folder or fsspec URL, e.g. s3://bucket/run.zarr)")
     output: str = Field(description="folder (or URL, e.g. s3://bucket/run) for the pictures, videos and reports "
                         "people open")
     storage_options: StorageOptions = Field(default_factory=StorageOptions, description="how to reach object "
                                             "storage (s3:// URLs); unset: the AWS environment variables")
-    puppet: Actor = Field(description="actor B, whose face is built")
-    driver: Actor | None = Field(None, description="actor A, whose video drives the puppet")
+    puppet: Actor | None = Field(None, description="(version 1) actor B, whose face is built")
+    driver: Actor | None = Field(None, description="(version 1) actor A, whose video drives the puppet")
+    people: dict[str, Person] = Field(default_factory=dict, description="(version 2) every person by name, each "
+                                      "built once whatever uses it")
+    drives: list[DriveSpec] = Field(default_factory=list, description="(version 2) each puppet (or list of them) "
+                                    "performing each of a driver's videos; a drive's outputs go to OUTPUT/<its name>")
     stages: dict[str, StageConfig] = Field(default_factory=dict, description="backend and params per kind")
     cluster: Cluster = Field(default_factory=Cluster)
     evaluate: Evaluation = Field(default_factory=Evaluation, description="how `persona evaluate` judges the output")
@@ -205,6 +269,48 @@ class Workflow(Strict):
 
     #: the folder relative paths were resolved against (not part of the YAML)
     base_dir: str = Field(".", exclude=True, description="(internal) folder of the workflow file")
+
+    def collections(self) -> list[CollectionPlan]:
+        """Every collection the workflow builds, each once, in the order they are built."""
+        if self.version == 1:
+            out = [CollectionPlan("puppet", self.puppet.photos, video=False, texture=True)]
+            if self.driver is not None:
+                out.append(CollectionPlan("driver", self.driver.photos, video=False, texture=False))
+                if self.driver.video is not None:
+                    out.append(CollectionPlan("driver/frames", self.driver.video, video=True, texture=False))
+            return out
+        puppets = {name for d in self.drives for name in d.puppets()}
+        out = [CollectionPlan(f"people/{name}", person.photos, video=False, texture=name in puppets)
+               for name, person in self.people.items()]
+        return out + [CollectionPlan(path, spec, video=True, texture=False) for path, spec in self._videos()]
+
+    def _videos(self) -> list[tuple[str, VideoSpec]]:
+        """(store path, spec) of every distinct driving video of a version-2 workflow, in order of first use."""
+        out: list[tuple[str, VideoSpec]] = []
+        for d in self.drives:
+            for video in d.videos():
+                if all(_frames(spec) != _frames(video) for _, spec in out):
+                    name = video_name(video)
+                    taken = sum(path == f"videos/{name}" or path.startswith(f"videos/{name}~") for path, _ in out)
+                    out.append((f"videos/{name}" + (f"~{taken + 1}" if taken else ""), video))
+        return out
+
+    def drive_plans(self) -> list[DrivePlan]:
+        """Every drive: its name, its :class:`Cast` (where its collections are in the store) and its
+        output folder. Version 1: one drive, ``drive``, into ``output`` (none without a video);
+        version 2: each puppet of each drive with each of its videos, into ``output/<name>``."""
+        if self.version == 1:
+            return [DrivePlan("drive", Cast(), self.output)] if self.driver and self.driver.video is not None else []
+        videos = self._videos()
+        out: dict[str, DrivePlan] = {}
+        for d in self.drives:
+            for puppet in d.puppets():
+                for video in d.videos():
+                    path = next(p for p, spec in videos if _frames(spec) == _frames(video))
+                    name = f"{puppet}_{d.driver}_{path.removeprefix('videos/')}"
+                    out[name] = DrivePlan(name, Cast(f"people/{puppet}", f"people/{d.driver}", path, f"drives/{name}"),
+                                          storage.join(self.output, name))
+        return list(out.values())
 
     def stage(self, kind: str, registry: Registry | None = None) -> tuple[str, dict]:
         """(backend name, validated params as a dict) for a kind, defaults filled in."""
@@ -377,6 +483,29 @@ def _check_stages(wf: Workflow, registry: Registry) -> list[tuple[str, str]]:
     return errors
 
 
+def _check_people(wf: Workflow) -> list[tuple[str, str]]:
+    """The keys each format needs and forbids, people's names, and the people each drive names."""
+    errors = []
+    if wf.version == 1:
+        if wf.puppet is None:
+            errors.append(("puppet", "required in a version-1 workflow (or write version: 2 with people and drives)"))
+        errors += [(key, f"{key} belongs to version 2: write version: 2, and people and drives instead of puppet "
+                         "and driver") for key in ("people", "drives") if getattr(wf, key)]
+        return errors
+    errors += [(key, f"{key} belongs to version 1: in version 2, name each person under people and say who "
+                     "drives whom under drives") for key in ("puppet", "driver") if getattr(wf, key) is not None]
+    if not wf.people:
+        errors.append(("people", "a version-2 workflow needs people: name: {photos: FOLDER}"))
+    errors += [(f"people.{name}", "a person's name is letters, digits, - and _ (it names folders)")
+               for name in wf.people if not re.fullmatch(r"[A-Za-z0-9_-]+", name)]
+    for i, d in enumerate(wf.drives):
+        named = [(f"drives.{i}.puppet", name) for name in d.puppets()] + [(f"drives.{i}.driver", d.driver)]
+        errors += [(where, f'no person "{name}" under people.{did_you_mean(name, wf.people)} '
+                           f"People: {', '.join(wf.people) or '(none)'}.") for where, name in named
+                   if name not in wf.people]
+    return errors
+
+
 def _params_errors(exc: ValidationError, prefix: str, model: type[BaseModel]) -> list[tuple[str, str]]:
     out = []
     for err in exc.errors():
@@ -397,10 +526,12 @@ def _resolve_paths(wf: Workflow, base: Path) -> None:
     if wf.cluster.tls is not None:
         for name in ("ca_file", "cert", "key"):
             setattr(wf.cluster.tls, name, _resolve(getattr(wf.cluster.tls, name), base))
-    for actor in (wf.puppet, wf.driver):
+    for actor in (wf.puppet, wf.driver, *wf.people.values(), *wf.drives):
         if actor is None:
             continue
         for attr in ("photos", "video"):
+            if not hasattr(actor, attr):
+                continue
             spec = getattr(actor, attr)
             items = spec if isinstance(spec, list) else [spec]
             resolved = [_resolve(s, base) if isinstance(s, str) else s for s in items]
@@ -444,7 +575,7 @@ def parse_workflow(data: Any, *, source: str = "<workflow>", base_dir: str | Pat
             except ValidationError:
                 pass
         raise WorkflowError(source, errors) from None
-    errors = _check_stages(wf, registry)
+    errors = _check_stages(wf, registry) + _check_people(wf)
     if errors:
         raise WorkflowError(source, errors)
     _resolve_paths(wf, Path(base_dir))

@@ -17,6 +17,11 @@
         aligned/mean              (y, x, 3) float32
       driver/                     the driver's photos, the same arrays
       driver/frames/              the driver's video frames, the same arrays (+ fps)
+      drive/                      the puppet performing the video: one item per frame
+
+A store of a format-2 workflow (many people, many drives) holds each person once, each video
+once and each drive once: ``people/<name>/``, ``videos/<name>/``, ``drives/<name>/``. A drive
+records which collections it was made from (its :class:`Cast`).
 
 Per-photo images have one photo per chunk and ``photos_per_shard`` photos per shard;
 small per-photo values (landmarks, pose, status) are chunked by shard. A shard is the
@@ -69,10 +74,36 @@ def open_store(url: str, mode: str = "a") -> zarr.Group:
 IMAGE_BYTES = 4096
 
 
+#: the collections whose items are a video's frames: the driver's frames and the drive (format 1),
+#: every video and every drive (format 2)
+FRAME_COLLECTIONS = ("driver/frames", "drive", "videos", "drives")
+
+
 def item(path: str) -> str:
     """What one item of the collection at ``path`` (or of an array in it) is: a video's "frame" (the
     driver's frames, the drive) or a "photo"."""
-    return "frame" if any(path == c or path.startswith(c + "/") for c in ("driver/frames", "drive")) else "photo"
+    return "frame" if any(path == c or path.startswith(c + "/") for c in FRAME_COLLECTIONS) else "photo"
+
+
+@dataclass(frozen=True)
+class Cast:
+    """Where one drive's collections are in the store: B's photos (``puppet``), A's photos (``driver``,
+    whose average face is the driver's model), A's video frames (``frames``) and the drive itself
+    (``drive``: B performing the frames, one item per frame). The defaults are a format-1 store's."""
+
+    puppet: str = "puppet"
+    driver: str = "driver"
+    frames: str = "driver/frames"
+    drive: str = "drive"
+
+    @classmethod
+    def of(cls, root: zarr.Group, drive: str) -> "Cast":
+        """The cast the drive at ``drive`` records (a format-1 store's drive records none: the defaults)."""
+        return cls(**{**dict(root[drive].attrs).get("cast", {}), "drive": drive})
+
+    def record(self, group: zarr.Group) -> None:
+        """Record the cast in the drive's group (:meth:`of` reads it back)."""
+        group.attrs["cast"] = {"puppet": self.puppet, "driver": self.driver, "frames": self.frames}
 
 
 @dataclass

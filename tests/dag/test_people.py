@@ -1,0 +1,125 @@
+"""Workflow format 2: people built once, every drive of them in one run (docs/batch.md)."""
+
+import contextlib
+import io
+
+import numpy as np
+import pytest
+import yaml
+
+from persona.dag.demo import make_demo_data, write_collection
+from persona.dag.runner import run_workflow
+from persona.dag.workflow import WorkflowError, load_workflow, parse_workflow
+from persona.plugins.face import synthetic
+from persona.stores import media
+from persona.stores.layout import Cast, Collection, open_store
+
+SETTINGS = {"photos_per_shard": 4, "stages": {"pose": {"params": {"focal_factor": 2.0}}}}
+
+
+def _people_workflow(folder, drives) -> dict:
+    return {"version": 2, "name": "two puppets", "store": "people.zarr", "output": "people",
+            "people": {"bea": {"photos": "data/puppet/*.png"}, "cy": {"photos": "data/puppet2/*.png"},
+                       "al": {"photos": "data/driver/*.png"}},
+            "drives": drives, **SETTINGS}
+
+
+def _run(folder, data: dict, name: str):
+    path = folder / name
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    with contextlib.redirect_stderr(io.StringIO()):
+        return run_workflow(load_workflow(path), scheduler="sync", progress=False)
+
+
+@pytest.fixture(scope="module")
+def people_run(tmp_path_factory):
+    """Two puppets (bea, cy) driven by al's video in one version-2 run, and bea driven by the same
+    video in a version-1 run of its own, from the same photos."""
+    folder = tmp_path_factory.mktemp("people")
+    one = yaml.safe_load(make_demo_data(folder, n_photos=10, n_frames=12).read_text())
+    write_collection(folder / "data" / "puppet2", synthetic.make_collection(10, seed=7))
+    drives = [{"puppet": ["bea", "cy"], "driver": "al", "video": "data/driver.mp4"}]
+    report = _run(folder, _people_workflow(folder, drives), "people.yaml")
+    alone = _run(folder, {**one, **SETTINGS, "store": "alone.zarr", "output": "alone"}, "alone.yaml")
+    return folder, drives, report, alone
+
+
+def test_each_puppet_gets_its_own_drive_and_folder(people_run):
+    folder, _, report, _ = people_run
+    assert set(report["drives"]) == {"bea_al_driver", "cy_al_driver"}
+    for name in report["drives"]:
+        out = folder / "people" / name
+        for file in ("composite.mp4", "puppet.mp4", "frames.png", "metrics.json", "report.html"):
+            assert (out / file).is_file(), out / file
+        with media.VideoReader(out / "composite.mp4") as video:
+            assert video.n_frames == 12
+    page = (folder / "people" / "report.html").read_text()
+    assert 'href="bea_al_driver/report.html"' in page and 'href="cy_al_driver/report.html"' in page
+
+
+def test_each_person_and_the_video_are_built_once(people_run):
+    """Three people and one video, whatever uses them: one shape per person, one ingest of the video."""
+    _, _, report, _ = people_run
+    shapes = sorted(r["collection"] for r in report["stages"] if r["stage"] == "shape")
+    assert shapes == ["people/al", "people/bea", "people/cy"]
+    textures = sorted(r["collection"] for r in report["stages"] if r["stage"] == "texture")
+    assert textures == ["people/bea", "people/cy"]  # puppets only: al only drives
+    ingests = [r for r in report["stages"] if r["stage"] == "ingest" and r["collection"] == "videos/driver"]
+    assert len(ingests) == 1 and ingests[0]["n_done"] == 12
+
+
+def test_a_drive_of_format_2_is_the_drive_of_format_1(people_run):
+    """bea driven by al in the batch renders the same frames as bea driven by al alone."""
+    folder, _, _, _ = people_run
+    batch = Collection(open_store(str(folder / "people.zarr"), mode="r"), "drives/bea_al_driver")
+    alone = Collection(open_store(str(folder / "alone.zarr"), mode="r"), "drive")
+    assert Cast.of(batch.root, batch.path) == Cast("people/bea", "people/al", "videos/driver", "drives/bea_al_driver")
+    for name in ("mesh", "render/rgb", "composite/rgb"):
+        assert np.array_equal(batch.array(name)[:], alone.array(name)[:], equal_nan=name == "mesh"), name
+
+
+def test_a_new_drive_builds_only_what_is_new(people_run):
+    """Adding a drive (a range of the same video) to the workflow: no person, no finished drive is
+    built again; only the new range's frames and its drive are."""
+    folder, drives, _, _ = people_run
+    more = [*drives, {"puppet": "cy", "driver": "al", "video": {"video": "data/driver.mp4", "stop": 6}}]
+    report = _run(folder, _people_workflow(folder, more), "more.yaml")
+    assert set(report["drives"]) == {"bea_al_driver", "cy_al_driver", "cy_al_driver_0-6"}
+    done = {(r["collection"], r["stage"]): r.get("n_done") for r in report["stages"]}
+    for person in ("people/al", "people/bea", "people/cy"):
+        assert done[(person, "landmarks")] == 0, person
+    assert done[("drives/bea_al_driver", "render3d")] == 0
+    assert done[("videos/driver_0-6", "ingest")] == 6 and done[("drives/cy_al_driver_0-6", "render3d")] == 6
+
+
+def test_version_2_names_people_and_says_what_is_wrong(tmp_path):
+    data = {"version": 2, "name": "x", "store": "s.zarr", "output": "o",
+            "people": {"bush": {"photos": "a"}, "obama": {"photos": "b"}},
+            "puppet": {"photos": "c"},
+            "drives": [{"puppet": ["bush", "powel"], "driver": "obmaa", "video": "v.mp4"}]}
+    with pytest.raises(WorkflowError) as info:
+        parse_workflow(data, base_dir=tmp_path)
+    errors = dict(info.value.errors)
+    assert "version 1" in errors["puppet"]
+    assert 'no person "powel"' in errors["drives.0.puppet"]
+    assert 'did you mean "obama"' in errors["drives.0.driver"].lower()
+    with pytest.raises(WorkflowError) as info:
+        parse_workflow({"version": 1, "name": "x", "store": "s", "output": "o", "people": {"a": {"photos": "p"}}},
+                       base_dir=tmp_path)
+    assert {"puppet", "people"} <= set(dict(info.value.errors))
+
+
+def test_a_drive_that_fails_fails_alone(people_run):
+    """A driver with too few photos for a 3D shape: that drive fails and says why, the run ends with
+    an error naming it, and the other drives are done, their outputs written. (Runs last: it adds a
+    person to the module's store.)"""
+    from persona.dag.runner import RunError
+
+    folder, drives, _, _ = people_run
+    data = _people_workflow(folder, [*drives, {"puppet": "bea", "driver": "few", "video": "data/driver.mp4"}])
+    data["people"]["few"] = {"photos": "data/driver/photo000[0-3].png"}
+    with pytest.raises(RunError, match=r"1 of 3 drives failed: bea_few_driver: .*no 3D shape"):
+        _run(folder, data, "few.yaml")
+    assert (folder / "people" / "cy_al_driver" / "composite.mp4").is_file()
+    page = (folder / "people" / "report.html").read_text()
+    assert "Drive bea_few_driver: failed" in page and 'href="cy_al_driver/report.html"' in page
