@@ -168,13 +168,12 @@ def texture_section(result: dict, grid: np.ndarray | None) -> list[str]:
     return parts
 
 
-def frames_strip(drive: Collection, frames: Collection, n: int = 6, side: int = 240) -> np.ndarray:
-    """``n`` frames spread over the drive, a column each: the driver's frame (top), the composite
-    as composite.mp4 has it (middle), the puppet alone as
-    puppet.mp4 has it (bottom); each cropped to a square about the rendered face and shown
-    ``side`` px wide."""
+def frames_strip(drive: Collection, frames: Collection, n: int = 6, side: int = 240, at=None) -> np.ndarray:
+    """``n`` frames spread over the drive (or the frames ``at``), a column each: the driver's frame
+    (top), the composite as composite.mp4 has it (middle), the puppet alone as puppet.mp4 has it
+    (bottom); each cropped to a square about the rendered face and shown ``side`` px wide."""
     columns = []
-    for i in np.linspace(0, drive.n - 1, min(n, drive.n)).round().astype(int):
+    for i in np.linspace(0, drive.n - 1, min(n, drive.n)).round().astype(int) if at is None else at:
         alpha = render_alpha(drive.array("render/mask")[i])  # the frames, render and composite share the canvas
         images = [frames.array("photos/rgb")[i], drive.array("composite/rgb")[i],
                   composite.alone(drive.array("render/rgb")[i], alpha)]
@@ -195,8 +194,7 @@ def write_run_report(wf, root, metrics: dict, series: dict | None, *, cast: Cast
     """report.html in ``output`` (the workflow's output folder by default), from a run's ``metrics``
     (metrics.json), its store (pictures, and the frame strip of the drive of ``cast``, also written as
     frames.png; none when ``cast`` is None or its drive is not in the store) and ``series`` (the
-    plots); with every texture evaluation found in the folder. A version-2 workflow's own page links
-    each drive's page (``metrics["drives"]``)."""
+    plots); with every texture evaluation found in the folder."""
     out = wf.output if output is None else output
     pictures = {}
     for path, c in metrics["collections"].items():
@@ -213,12 +211,7 @@ def write_run_report(wf, root, metrics: dict, series: dict | None, *, cast: Cast
         result = json.loads(storage.read_text(file))
         grid = result.get("grid")
         texture.append((result, media.decode_image(grid, max_side=4000) if grid and storage.isfile(grid) else None))
-    drives = []  # a version-2 workflow's page: each drive's frames, linking its own page
-    for name, d in metrics.get("drives", {}).items():
-        frames = storage.join(d["output"], "frames.png")
-        drives.append((name, f"{name}/report.html", media.decode_image(frames, max_side=4000)
-                       if storage.isfile(frames) else None, d.get("evaluation", {}), d.get("error")))
-    return write_report(storage.join(out, "report.html"), metrics=metrics, pictures=pictures, strip=strip, drives=drives,
+    return write_report(storage.join(out, "report.html"), metrics=metrics, pictures=pictures, strip=strip,
                         series=series, threshold=wf.evaluate.threshold, fps=fps,
                         videos=[storage.join(out, f"{name}.mp4") for name in ("composite", "puppet", "side_by_side")],
                         texture=texture)
@@ -226,12 +219,10 @@ def write_run_report(wf, root, metrics: dict, series: dict | None, *, cast: Cast
 
 def write_report(path, *, metrics: dict, pictures: dict[str, np.ndarray], strip: np.ndarray | None,
                  series: dict | None, threshold: float, fps: float, videos: list = (),
-                 texture: list[tuple[dict, np.ndarray | None]] = (), drives: list[tuple] = ()) -> Path | str:
+                 texture: list[tuple[dict, np.ndarray | None]] = ()) -> Path | str:
     """Write the page atomically; ``pictures`` are titled images (means, contact sheets); ``videos``
     are embedded in their order (the composite first), each up to ``MAX_EMBEDDED_VIDEO`` bytes;
-    ``texture``: the results of ``persona evaluate --texture`` (its JSON, and its picture grid);
-    ``drives``: (name, link to its page, its frames.png or None, its evaluation, why it failed or None)
-    of each drive of a version-2 workflow."""
+    ``texture``: the results of ``persona evaluate --texture`` (its JSON, and its picture grid)."""
     parts = [f"<h1>Persona — {html.escape(str(metrics.get('workflow', '')))}</h1>"]
     if metrics.get("warnings"):
         items = [f"<li>{html.escape(str(w))}</li>" for w in metrics["warnings"]]
@@ -251,17 +242,6 @@ def write_report(path, *, metrics: dict, pictures: dict[str, np.ndarray], strip:
         parts += ["<h2>Figures</h2>", _table(rows)]
     for result, grid in texture:
         parts += texture_section(result, grid)
-    for name, link, frames, ev, error in drives:
-        if error:
-            parts += [f"<h2>Drive {html.escape(name)}: failed</h2>", f"<p>{html.escape(error)}</p>"]
-            continue
-        identity = ev.get("identity", {}).get("fraction_b_not_a_composite")
-        gain = ev.get("amplitude", {}).get("mouth_open", {}).get("gain")
-        figures = (f" — B and not A {identity:.0%}, mouth gain {gain:.2f}" if identity is not None and gain is not None
-                   else "")
-        parts.append(f'<h2>Drive <a href="{html.escape(link)}">{html.escape(name)}</a>{html.escape(figures)}</h2>')
-        if frames is not None:
-            parts.append(_img(_png(frames), name, min(960, frames.shape[1])))
     if strip is not None:
         parts += ["<h2>Driver frames (top), the composite (middle), the puppet alone (bottom)</h2>", _img(_png(strip), "frames", min(960, strip.shape[1]))]
     if series:
@@ -278,10 +258,70 @@ def write_report(path, *, metrics: dict, pictures: dict[str, np.ndarray], strip:
     parts += ["<h2>Counts and timing</h2>", _table(counts + extra + timing),
               "<details><summary>metrics.json</summary><pre>"
               + html.escape(json.dumps(metrics, indent=2, default=str)) + "</pre></details>"]
-    page = ("<!doctype html><html><head><meta charset='utf-8'><title>Persona report</title><style>"
-            "body{font-family:sans-serif;max-width:1000px;margin:2em auto;color:#222}"
-            "table{border-collapse:collapse}th,td{border-bottom:1px solid #ddd;padding:3px 10px;text-align:left}"
-            "img,video{display:block;margin:0.5em 0;max-width:100%}</style></head><body>"
+    media.write_bytes(path, _page("Persona report", parts).encode())
+    return path
+
+
+def _page(title: str, parts: list[str]) -> str:
+    """An HTML page of ``parts``, in the reports' style."""
+    return ("<!doctype html><html><head><meta charset='utf-8'>"
+            f"<title>{html.escape(title)}</title><style>"
+            "body{font-family:sans-serif;max-width:1200px;margin:2em auto;color:#222}"
+            "table{border-collapse:collapse}th,td{border-bottom:1px solid #ddd;padding:3px 10px;text-align:left;"
+            "vertical-align:top}img,video{display:block;margin:0.5em 0;max-width:100%}</style></head><body>"
             + "\n".join(parts) + "</body></html>")
-    media.write_bytes(path, page.encode())
+
+
+#: the batch page's columns: (heading, the figure's path in a drive's evaluation, its format)
+_BATCH_FIGURES = (("B and not A", ("identity", "fraction_b_not_a_composite"), "{:.0%}"),
+                  ("mouth open gain", ("amplitude", "mouth_open", "gain"), "{:.2f}"),
+                  ("mouth width gain", ("amplitude", "mouth_width", "gain"), "{:.2f}"),
+                  ("eye open gain", ("amplitude", "eye_open", "gain"), "{:.2f}"),
+                  ("brow gain", ("amplitude", "brow_height", "gain"), "{:.2f}"),
+                  ("jitter", ("stability", "jitter_ratio_composite"), "{:.2f}"))
+
+
+def _figure_at(ev: dict, path: tuple) -> str:
+    for key in path:
+        ev = ev.get(key, {}) if isinstance(ev, dict) else {}
+    return ev if isinstance(ev, (int, float)) else None
+
+
+def write_batch_page(wf, metrics: dict) -> Path | str:
+    """``index.html`` in the output folder of a version-2 workflow: every drive in a table — its
+    puppet, driver and video, a poster (the driver's frame over the composite at the drive's middle
+    frame), its headline figures (composite.mp4's: 1 = the driver's amplitude, jitter over the
+    driver's) or why it failed — each linking to the drive's own report; then every person's
+    pictures."""
+    from persona.stores.layout import open_store
+
+    root = open_store(wf.store, mode="r")
+    head = "".join(f"<th>{html.escape(h)}</th>" for h in ("drive", "poster", *(c[0] for c in _BATCH_FIGURES)))
+    rows = []
+    for plan in wf.drive_plans():
+        d, c = metrics["drives"][plan.name], plan.cast
+        title = (f'<a href="{html.escape(plan.name)}/report.html">{html.escape(plan.name)}</a><br>'
+                 f"<small>{html.escape(c.puppet)} performing {html.escape(c.frames)}, driven by "
+                 f"{html.escape(c.driver)}</small>")
+        if d.get("error"):
+            rows.append(f"<tr><td>{title}</td><td colspan='{1 + len(_BATCH_FIGURES)}'>failed: "
+                        f"{html.escape(d['error'])}</td></tr>")
+            continue
+        drive = Collection(root, c.drive)
+        poster = frames_strip(drive, Collection(root, c.frames), side=160, at=[drive.n // 2])[:320]
+        cells = [(f.format(v) if (v := _figure_at(d["evaluation"], path)) is not None else "–")
+                 for _, path, f in _BATCH_FIGURES]
+        rows.append(f"<tr><td>{title}</td><td>{_img(_png(poster), plan.name)}</td>"
+                    + "".join(f"<td>{html.escape(v)}</td>" for v in cells) + "</tr>")
+    parts = [f"<h1>Persona — {html.escape(wf.name)}: {len(rows)} drives</h1>",
+             "<p>Each drive's headline figures on composite.mp4 (gains: 1 = the driver's amplitude, "
+             "target 0.7-1.4; jitter: over the driver's, target ≤ 1); its name opens its report.</p>",
+             f"<table><tr>{head}</tr>{''.join(rows)}</table>"]
+    for path, c in metrics["collections"].items():
+        for kind, file in c["pictures"].items():
+            if str(file).endswith(".png") and storage.isfile(file):
+                parts += [f"<h2>{html.escape(path)}: {html.escape(kind.replace('_', ' '))}</h2>",
+                          _img(_png(media.decode_image(file, max_side=4000)), kind, 480)]
+    path = storage.join(wf.output, "index.html")
+    media.write_bytes(path, _page(f"Persona batch: {wf.name}", parts).encode())
     return path

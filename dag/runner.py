@@ -35,7 +35,7 @@ from .drive import run_drive, write_videos
 from .shape import run_alignment, run_shape
 from .texture import run_texture
 from .evaluate import evaluate
-from .report import write_run_report
+from .report import write_batch_page, write_run_report
 from .workflow import TLS, Cluster, VideoRange, Workflow, tls_problem
 
 log = logging.getLogger(__name__)
@@ -326,21 +326,29 @@ def progress(what: str, total: int, unit: str = "frame", *, initial: int = 0, en
                 dynamic_ncols=True)
 
 
-def resolve_inputs(wf: Workflow) -> dict[str, list[media.Source]]:
+def resolve_inputs(wf: Workflow, *, keep_going: bool = False) -> dict[str, list[media.Source] | InputError]:
     """Every collection's photos and video frames, resolved before any work is done or any file
     created: paths that do not exist, empty folders and frame ranges, files that are not videos
-    where a video is needed and videos that do not open raise an :class:`InputError` naming them.
-    Takes a second or two (a video's frames are counted, not decoded). The buckets of a store and an
-    output in object storage are reached first (:func:`persona.stores.storage.check`)."""
+    where a video is needed and videos that do not open raise an :class:`InputError` naming them
+    (with ``keep_going``, the error is that collection's value instead: a batch's drives that do
+    not use it still run). Takes a second or two (a video's frames are counted, not decoded). The
+    buckets of a store and an output in object storage are reached first
+    (:func:`persona.stores.storage.check`)."""
     storage.check(wf.store, "store")
     storage.check(wf.output, "output")
     resolved = {}
     for plan in wf.collections():
-        sources = media.resolve_sources(_media_spec(plan.photos), wf.base_dir)
-        if plan.video and any(s.frame is None for s in sources):
-            where = "driver.video" if wf.version == 1 else "drives: video"
-            raise InputError(f"{where}: {sources[0].path} is not a video; give a video file (.mp4, .mov, "
-                             "...) or a range {video: PATH, start: 0, stop: N}")
+        try:
+            sources = media.resolve_sources(_media_spec(plan.photos), wf.base_dir)
+            if plan.video and any(s.frame is None for s in sources):
+                where = "driver.video" if wf.version == 1 else "drives: video"
+                raise InputError(f"{where}: {sources[0].path} is not a video; give a video file (.mp4, .mov, "
+                                 "...) or a range {video: PATH, start: 0, stop: N}")
+        except InputError as exc:
+            if not keep_going:
+                raise
+            resolved[plan.path] = exc
+            continue
         resolved[plan.path] = sources
     return resolved
 
@@ -601,9 +609,9 @@ class Runner:
     def run_stages(self, inputs: dict[str, list[media.Source]]) -> dict:
         """Every stage, in order (:meth:`run`): each collection once, then each drive."""
         report = {"workflow": self.wf.name, "store": self.wf.store, "collections": {}}
-        for plan in self.wf.collections():
-            report["collections"][plan.path] = self.build_collection(plan, inputs[plan.path], report)
         if self.wf.version == 1:  # one drive (or none), whose outputs are the run's
+            for plan in self.wf.collections():
+                report["collections"][plan.path] = self.build_collection(plan, inputs[plan.path], report)
             plans = self.wf.drive_plans()
             part = self.drive(plans[0]) if plans else {}
             report.update({k: v for k, v in part.items() if k != "series"})
@@ -611,20 +619,35 @@ class Runner:
             report["report"] = str(storage.join(self.wf.output, "report.html"))
             self.write_outputs(self.wf.output, report, part.get("series"), Cast() if plans else None)
             return report
+        # a batch: a person or a video that cannot be built fails the drives that use it, no others
+        broken = {}
+        for plan in self.wf.collections():
+            try:
+                if isinstance(inputs[plan.path], InputError):
+                    raise inputs[plan.path]
+                report["collections"][plan.path] = self.build_collection(plan, inputs[plan.path], report)
+            except ChunkError:  # a damaged store: recovered by run(), then everything is run again
+                raise
+            except Exception as exc:
+                broken[plan.path] = f"{plan.path}: {_why(exc)}"
+                log.error("%s", broken[plan.path])
         report["stages"] = self.timer.records
-        report["report"] = str(storage.join(self.wf.output, "report.html"))
+        report["report"] = str(storage.join(self.wf.output, "index.html"))
         report["drives"], failed = {}, {}
         for plan in self.wf.drive_plans():
             try:
+                cause = [broken[p] for p in (plan.cast.puppet, plan.cast.driver, plan.cast.frames) if p in broken]
+                if cause:
+                    raise RunError("; ".join(cause))
                 part = self.drive(plan)
-            except ChunkError:  # a damaged store: recovered by run(), every drive then run again
+            except ChunkError:
                 raise
             except Exception as exc:  # one drive that fails does not take the others down
-                failed[plan.name] = f"{type(exc).__name__}: {exc}"
+                failed[plan.name] = _why(exc)
                 log.error("drive %s failed: %s", plan.name, failed[plan.name])
                 report["drives"][plan.name] = {"output": str(plan.output), "error": failed[plan.name]}
                 continue
-            own = {"workflow": f"{self.wf.name}: {plan.name}", "store": self.wf.store,
+            own = {"workflow": f"{self.wf.name}: {plan.name}", "store": self.wf.store, "drive": plan.name,
                    "collections": {p: report["collections"][p] for p in (plan.cast.puppet, plan.cast.driver,
                                                                            plan.cast.frames)},
                    **{k: v for k, v in part.items() if k != "series"},
@@ -633,7 +656,8 @@ class Runner:
             self.write_outputs(plan.output, own, part["series"], plan.cast)
             report["drives"][plan.name] = {"output": str(plan.output), "report": own["report"],
                                            "evaluation": own["evaluation"]}
-        self.write_outputs(self.wf.output, report, None, None)
+        write_json(storage.join(self.wf.output, "metrics.json"), report)
+        write_batch_page(self.wf, report)
         if failed:
             raise RunError(f"{len(failed)} of {len(report['drives'])} drives failed: "
                            + "; ".join(f"{name}: {why}" for name, why in failed.items())
@@ -707,6 +731,11 @@ class Runner:
                         self_reenactment=e.self_reenactment, cast=cast)
 
 
+def _why(exc: Exception) -> str:
+    """A failure's reason in a line: a Persona error's own message, else the exception's type too."""
+    return str(exc) if isinstance(exc, PersonaError) else f"{type(exc).__name__}: {exc}"
+
+
 def _canvas(sources, params) -> list[int]:
     """The smallest canvas that holds every readable photo and video frame after downscaling to max_side."""
     h = w = 1
@@ -754,6 +783,6 @@ def run_workflow(wf: Workflow, *, scheduler: str | None = None, workers: int | N
     """Run every stage of a workflow; returns the run report (also in OUTPUT/metrics.json). The
     inputs are resolved first (:func:`resolve_inputs`): a bad one stops the run before anything is
     created."""
-    inputs = resolve_inputs(wf)
+    inputs = resolve_inputs(wf, keep_going=wf.version == 2)  # a batch: a bad input fails its drives only
     with executor_for(wf, scheduler, workers) as ex:
         return Runner(wf, ex, progress=progress).run(inputs)

@@ -53,8 +53,9 @@ def test_each_puppet_gets_its_own_drive_and_folder(people_run):
             assert (out / file).is_file(), out / file
         with media.VideoReader(out / "composite.mp4") as video:
             assert video.n_frames == 12
-    page = (folder / "people" / "report.html").read_text()
+    page = (folder / "people" / "index.html").read_text()  # the batch page: every drive, linking its report
     assert 'href="bea_al_driver/report.html"' in page and 'href="cy_al_driver/report.html"' in page
+    assert page.count("<img") >= 2 + 3  # a poster per drive, the people's pictures
 
 
 def test_each_person_and_the_video_are_built_once(people_run):
@@ -110,16 +111,19 @@ def test_version_2_names_people_and_says_what_is_wrong(tmp_path):
 
 
 def test_a_drive_that_fails_fails_alone(people_run):
-    """A driver with too few photos for a 3D shape: that drive fails and says why, the run ends with
-    an error naming it, and the other drives are done, their outputs written. (Runs last: it adds a
-    person to the module's store.)"""
+    """A driver with too few photos for a 3D shape, and a video that is not one: their drives fail
+    and say why, the run ends with an error naming them, and the other drives are done, their
+    outputs written. (Runs last: it adds to the module's store.)"""
     from persona.dag.runner import RunError
 
     folder, drives, _, _ = people_run
-    data = _people_workflow(folder, [*drives, {"puppet": "bea", "driver": "few", "video": "data/driver.mp4"}])
+    (folder / "data" / "broken.mp4").write_bytes(b"not a video at all")
+    data = _people_workflow(folder, [*drives, {"puppet": "bea", "driver": "few", "video": "data/driver.mp4"},
+                                     {"puppet": "cy", "driver": "al", "video": "data/broken.mp4"}])
     data["people"]["few"] = {"photos": "data/driver/photo000[0-3].png"}
-    with pytest.raises(RunError, match=r"1 of 3 drives failed: bea_few_driver: .*no 3D shape"):
+    with pytest.raises(RunError, match=r"2 of 4 drives failed: bea_few_driver: .*no 3D shape.*; "
+                                       r"cy_al_broken: videos/broken: .*broken\.mp4"):
         _run(folder, data, "few.yaml")
     assert (folder / "people" / "cy_al_driver" / "composite.mp4").is_file()
-    page = (folder / "people" / "report.html").read_text()
-    assert "Drive bea_few_driver: failed" in page and 'href="cy_al_driver/report.html"' in page
+    page = (folder / "people" / "index.html").read_text()
+    assert page.count("failed: ") == 2 and 'href="cy_al_driver/report.html"' in page
