@@ -312,6 +312,6 @@ def summarize(url: str) -> dict:
             "rejections": {str(root[c.path]["photos/ids"][i]): why[i] for i in np.flatnonzero(final == REJECTED)},
             "stages": per_stage,
             "arrays": arrays,
-            "attrs": {k: v for k, v in c.attrs.items() if k in ("source", "fps", "canvas", "video")},
+            "attrs": {k: v for k, v in c.attrs.items() if k in ("source", "fps", "canvas", "video", "cast")},
         }
     return out

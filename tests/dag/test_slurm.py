@@ -105,3 +105,28 @@ def test_slurm_workers_give_the_same_store_as_a_local_run(tmp_path, synthetic_ph
     assert f"{seen} persona-worker RUNNING" in queue, queue
     assert (batch / "out" / "worker-logs" / f"persona-worker-{seen}.err").is_file()
     assert_same_store(batch / "run.zarr", local / "run.zarr")
+
+
+@needs_slurm
+def test_a_batch_of_drives_on_slurm_gives_the_same_store_as_a_local_run(tmp_path):
+    """Fig. 8 in small (docs/batch.md): two puppets built once and driven by one driver's video, every
+    stage through Dask workers that sbatch started, gives the same store, array for array, as the
+    same workflow run in this process."""
+    import yaml
+
+    from persona.dag.demo import make_demo_data, write_collection
+    from persona.plugins.face import synthetic
+
+    make_demo_data(tmp_path, n_photos=10, n_frames=8)
+    write_collection(tmp_path / "data" / "puppet2", synthetic.make_collection(10, seed=7))
+    for name, cluster in (("slurm", SLURM), ("local", {"scheduler": "sync"})):
+        workflow = {"version": 2, "name": f"fig8 on {name}", "store": f"{name}.zarr", "output": name,
+                    "people": {"bea": {"photos": "data/puppet/*.png"}, "cy": {"photos": "data/puppet2/*.png"},
+                               "al": {"photos": "data/driver/*.png"}},
+                    "drives": [{"puppet": ["bea", "cy"], "driver": "al", "video": "data/driver.mp4"}],
+                    "photos_per_shard": 4, "stages": {"pose": {"params": {"focal_factor": 2.0}}}, "cluster": cluster}
+        (tmp_path / f"{name}.yaml").write_text(yaml.safe_dump(workflow))
+        report = run_workflow(load_workflow(tmp_path / f"{name}.yaml"), progress=False)
+        assert set(report["drives"]) == {"bea_al_driver", "cy_al_driver"}
+    assert (tmp_path / "slurm" / "worker-logs").is_dir()  # the batch jobs' logs
+    assert_same_store(tmp_path / "slurm.zarr", tmp_path / "local.zarr")
