@@ -25,8 +25,7 @@ import numpy as np
 
 from persona.plugins.base import Rejected
 from persona.plugins.face.dynamics import FrameTrack, frame_mesh, smooth_in_time, smooth_tracks
-from persona.plugins.face.transfer import DeformationTransfer, FiducialFollow, correspondence
-from persona.plugins.face.warp import pin, tps_map
+from persona.plugins.face.transfer import DeformationTransfer, FiducialFollow, guided_correspondence
 from persona.plugins.kinds import Pose
 from persona.stores.layout import OK, Cast, Collection, open_store
 from persona.stores.provenance import Provenance, cache_key
@@ -70,14 +69,11 @@ def run_motion(runner, cast: Cast, retargeted: Provenance) -> Provenance:
 
     puppet_mask = puppet.array("shape/mask")[...]
     corr = motion["correspondence"]
-    registry = st.default_registry()
-    guide = tps_map(puppet.array("aligned/mean_fiducials")[...], driver.array("aligned/mean_fiducials")[...],
-                    puppet_mask.shape, lam=corr["guide_lambda"], step=4) if corr["landmark_guide"] else None
-    phi = correspondence(puppet.array("shape/texture")[...], puppet_mask, driver.array("subspace/basis")[...],
-                         registry.get("flow", corr["backend"])(corr["params"]), guide)
-    if corr["pin_fiducials"]:
-        phi = pin(phi, puppet.array("aligned/mean_fiducials")[...], driver.array("aligned/mean_fiducials")[...],
-                  lam=corr["pin_lambda"])
+    phi = guided_correspondence(
+        puppet.array("shape/texture")[...], puppet_mask, driver.array("subspace/basis")[...],
+        st.default_registry().get("flow", corr["backend"])(corr["params"]),
+        puppet.array("aligned/mean_fiducials")[...], driver.array("aligned/mean_fiducials")[...],
+        **{k: corr[k] for k in ("landmark_guide", "guide_lambda", "pin_fiducials", "pin_lambda")})
     drive.create_single("motion/correspondence", phi.astype(np.float32), ("y", "x", "xy"), prov)
     drive.create("mesh", (*puppet_mask.shape, 3), np.float32, ("frame", "y", "x", "xyz"), prov, pending=True)
     runner.map_shards(drive, "transfer", transfer_meshes, prov.key, puppet.path, denoise)

@@ -19,7 +19,7 @@ from persona.plugins.face import composite
 from persona.stores import media, storage
 from persona.stores.layout import Cast, Collection, item
 
-from .stages import render_alpha
+from .stages import accepted, render_alpha
 
 MAX_EMBEDDED_VIDEO = 40 * 2**20
 
@@ -166,6 +166,28 @@ def texture_section(result: dict, grid: np.ndarray | None) -> list[str]:
     if grid is not None:
         parts.append(_img(_png(grid), "reference | ii | iii | iv | ours", min(960, grid.shape[1])))
     return parts
+
+
+def collection_pictures(coll: Collection, mean: np.ndarray | None, output, n_faces: int = 60) -> dict[str, str]:
+    """A collection's mean aligned face (x2) and a contact sheet of its first accepted aligned faces,
+    written into ``output`` as ``<collection>_mean_face.png`` and ``<collection>_contact_sheet.png``."""
+    slug = coll.path.replace("/", "_")
+    written = {}
+    if mean is not None:
+        big = np.kron(np.clip(mean, 0, 255).round().astype(np.uint8), np.ones((2, 2, 1), np.uint8))
+        written["mean_face"] = storage.join(output, f"{slug}_mean_face.png")
+        media.write_png(written["mean_face"], big)
+    ok = accepted(coll)
+    faces = []
+    for start, stop in coll.shard_ranges():  # whole shards: slices read fast, selections do not
+        if len(faces) >= n_faces:
+            break
+        if ok[start:stop].any():
+            faces += list(coll.array("aligned/rgb")[start:stop][ok[start:stop]])
+    if faces:
+        written["contact_sheet"] = storage.join(output, f"{slug}_contact_sheet.png")
+        media.write_png(written["contact_sheet"], media.contact_sheet(faces[:n_faces], columns=10))
+    return {k: str(v) for k, v in written.items()}
 
 
 def frames_strip(drive: Collection, frames: Collection, n: int = 6, side: int = 240, at=None) -> np.ndarray:

@@ -35,7 +35,7 @@ from .drive import run_drive, write_videos
 from .shape import run_alignment, run_shape
 from .texture import run_texture
 from .evaluate import evaluate
-from .report import write_batch_page, write_run_report
+from .report import collection_pictures, write_batch_page, write_run_report
 from .workflow import TLS, Cluster, VideoRange, Workflow, tls_problem
 
 log = logging.getLogger(__name__)
@@ -564,26 +564,6 @@ class Runner:
         coll.create_single("aligned/mean_fiducials", fiducials, ("fiducial", "xy"), prov)
         return mean
 
-    def pictures(self, coll: Collection, mean: np.ndarray | None, n_faces: int = 60) -> dict:
-        """The mean aligned face (x2) and a contact sheet of the first accepted aligned faces."""
-        slug = coll.path.replace("/", "_")
-        written = {}
-        if mean is not None:
-            big = np.kron(np.clip(mean, 0, 255).round().astype(np.uint8), np.ones((2, 2, 1), np.uint8))
-            written["mean_face"] = storage.join(self.wf.output, f"{slug}_mean_face.png")
-            media.write_png(written["mean_face"], big)
-        ok = st.accepted(coll)
-        faces = []
-        for start, stop in coll.shard_ranges():  # whole shards: slices read fast, selections do not
-            if len(faces) >= n_faces:
-                break
-            if ok[start:stop].any():
-                faces += list(coll.array("aligned/rgb")[start:stop][ok[start:stop]])
-        if faces:
-            written["contact_sheet"] = storage.join(self.wf.output, f"{slug}_contact_sheet.png")
-            media.write_png(written["contact_sheet"], media.contact_sheet(faces[:n_faces], columns=10))
-        return {k: str(v) for k, v in written.items()}
-
     def run(self, inputs: dict[str, list[media.Source]]) -> dict:
         """Every stage of the workflow on its resolved ``inputs`` (:func:`resolve_inputs`).
 
@@ -675,7 +655,7 @@ class Runner:
             raise RunError(f"{plan.path}: no photo of the {coll.n} got through to an aligned face; "
                            f"see `persona inspect {self.wf.store}` for each photo's reason")
         mean = self.mean_face(coll)
-        pictures = self.pictures(coll, mean)
+        pictures = collection_pictures(coll, mean, self.wf.output)
         shape_seconds = None
         if not plan.video:  # the 3D shape comes from photo collections, not video frames
             t0 = time.perf_counter()

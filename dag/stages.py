@@ -23,11 +23,9 @@ import cv2
 import numpy as np
 
 from persona.plugins.base import Backend, Rejected
-from persona.plugins.builtin.frontalize import frontalizing_map
+from persona.plugins.face.collection_flow import collection_flow
 from persona.plugins.face.fiducials import median_shape, shape_distance
-from persona.plugins.face.subspace import project
-from persona.plugins.face.template import CANONICAL_HEIGHT, CANONICAL_WIDTH, IDX49, generic_template
-from persona.plugins.face.warp import tps_map
+from persona.plugins.face.template import CANONICAL_HEIGHT, CANONICAL_WIDTH, IDX49
 from persona.plugins.kinds import POSE_FIELDS, Pose, Puppet
 from persona.plugins.manager import default_registry
 from persona.stores import media
@@ -218,30 +216,21 @@ def accepted(coll: Collection) -> np.ndarray:
 
 
 def _subspace(root, path) -> dict:
+    """The context of the collection flow: the collection's subspace, mean fiducials, TPS smoothing,
+    and the frontalize backend its photos went through (from its provenance), whose map it bends."""
     group = root[f"{path}/subspace"]
+    frontalized = Collection(root, path).provenance("status/frontalize/state")
     return {"basis": group["basis"][...], "mean_fiducials": root[f"{path}/aligned/mean_fiducials"][...],
-            "tps_lambda": float(group.attrs["tps_lambda"])}
+            "tps_lambda": float(group.attrs["tps_lambda"]),
+            "frontalize": default_registry().get("frontalize", frontalized.backend)(frontalized.params)}
 
 
 def _align(backend, params, inputs, context):
-    """Collection flow ([15]): TPS to the mean fiducials, then dense flow to the photo's own
-    rank-k projection; the maps are composed and the raw photo is sampled once."""
+    """Collection flow (:func:`persona.plugins.face.collection_flow.collection_flow`) of one photo."""
     h, w = inputs["photos/size"]
-    photo = inputs["photos/rgb"][:h, :w]
-    fmap = frontalizing_map(generic_template().depth, Pose.from_vector(inputs["pose"]))[0]
-    tps = tps_map(context["mean_fiducials"], inputs["aligned/fiducials"], (H, W), lam=context["tps_lambda"], step=4)
-    to_photo = cv2.remap(fmap, tps[..., 0], tps[..., 1], cv2.INTER_LINEAR)
-    warped = cv2.remap(photo, to_photo[..., 0], to_photo[..., 1], cv2.INTER_LINEAR).astype(np.float32) / 255
-    seen = cv2.remap(inputs["aligned/mask"].astype(np.float32), tps[..., 0], tps[..., 1], cv2.INTER_LINEAR) > 0.99
-    target = np.clip(project(warped, context["basis"], seen), 0, 1).astype(np.float32)
-    flow = backend.flow(target, warped, seen)
-    ys, xs = np.mgrid[0:H, 0:W].astype(np.float32)
-    fx, fy = xs + flow[..., 0], ys + flow[..., 1]
-    composed = cv2.remap(to_photo, fx, fy, cv2.INTER_LINEAR)
-    rgb = cv2.remap(photo, composed[..., 0], composed[..., 1], cv2.INTER_LINEAR)
-    mask = cv2.remap(seen.astype(np.float32), fx, fy, cv2.INTER_LINEAR) > 0.99
-    rgb[~mask] = 0
-    return {"collection/rgb": rgb, "collection/mask": mask, "collection/map": composed}
+    to_photo = context["frontalize"].canonical_map(Pose.from_vector(inputs["pose"]))
+    return collection_flow(inputs["photos/rgb"][:h, :w], to_photo, inputs["aligned/fiducials"], inputs["aligned/mask"],
+                           context["mean_fiducials"], context["basis"], context["tps_lambda"], backend)
 
 
 #: non-rigid alignment by collection flow: runs after the subspace of the frontalized faces

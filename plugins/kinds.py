@@ -99,6 +99,11 @@ class FrontalizeBackend(Backend):
     def frontalize(self, image: np.ndarray, landmarks: np.ndarray, pose: Pose) -> Frontal:
         raise NotImplementedError
 
+    def canonical_map(self, pose: Pose) -> np.ndarray:
+        """(H, W, 2) float32: the photo's (x, y) seen by each canonical pixel at ``pose`` — the warp
+        :meth:`frontalize` applies, which later stages (the collection flow) compose with theirs."""
+        raise NotImplementedError
+
 
 @dataclass(frozen=True)
 class Puppet:

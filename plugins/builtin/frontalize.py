@@ -151,9 +151,12 @@ class TemplateFrontalize(FrontalizeBackend):
         min_fiducials: float = Field(0.6, ge=0, le=1, description="reject faces with fewer than this "
                                      "fraction of the 49 fiducials visible after pose correction")
 
+    def canonical_map(self, pose):
+        return frontalizing_map(generic_template().depth, pose)[0]
+
     def frontalize(self, image, landmarks, pose):
         template = generic_template()
-        fmap, _ = frontalizing_map(template.depth, pose)
+        fmap = self.canonical_map(pose)
         mask = visible(fmap, template.mask, pose, image.shape[:2], self.params.occlusion_tolerance,
                        self.params.visibility_step)
         fraction = mask.sum() / template.mask.sum()

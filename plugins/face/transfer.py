@@ -66,7 +66,7 @@ from ..base import Params
 from ..kinds import DenoiseBackend, FlowBackend
 from .mesh import rim_points
 from .subspace import project
-from .warp import TpsWarp, compose
+from .warp import TpsWarp, compose, pin, tps_map
 
 #: the TV weight of the default denoiser (the paper's is 1; see DeformationTransfer)
 DEFAULT_TV_WEIGHT = 0.3
@@ -394,3 +394,17 @@ def correspondence(puppet_average: np.ndarray, puppet_mask: np.ndarray, driver_b
     projected = np.clip(project(average, driver_basis, puppet_mask), 0, 1).astype(np.float32)
     w = flow.flow(average, projected, puppet_mask)
     return compose(start, grid + w, cv2.BORDER_REPLICATE)
+
+
+def guided_correspondence(puppet_average: np.ndarray, puppet_mask: np.ndarray, driver_basis: np.ndarray,
+                          flow: FlowBackend, puppet_fiducials: np.ndarray, driver_fiducials: np.ndarray, *,
+                          landmark_guide: bool = True, guide_lambda: float = 1.0, pin_fiducials: bool = True,
+                          pin_lambda: float = 1.0) -> np.ndarray:
+    """φ as the motion step makes it (the workflow's ``motion.correspondence``): :func:`correspondence`
+    started from the smoothing TPS (λ ``guide_lambda``) that takes the puppet's mean fiducials (49, 2)
+    to the driver's (``landmark_guide``), then pinned to them (:func:`persona.plugins.face.warp.pin`,
+    λ ``pin_lambda``; ``pin_fiducials``), so that the two faces' fiducials correspond exactly."""
+    guide = tps_map(puppet_fiducials, driver_fiducials, puppet_mask.shape, lam=guide_lambda,
+                    step=4) if landmark_guide else None
+    phi = correspondence(puppet_average, puppet_mask, driver_basis, flow, guide)
+    return pin(phi, puppet_fiducials, driver_fiducials, lam=pin_lambda) if pin_fiducials else phi
