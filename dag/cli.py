@@ -138,6 +138,11 @@ def _print_report(report: dict) -> None:
             print(f"  {name}: {file}")
     for name, file in report.get("videos", {}).items():
         print(f"{name} video: {file}")
+    for name, d in report.get("drives", {}).items():  # a version-2 batch: a line per drive
+        amplitude = d["evaluation"]["amplitude"]
+        print(f"{name}: B and not A {d['evaluation']['identity']['fraction_b_not_a_composite']:.0%} of composite "
+              "frames; gains " + ", ".join(f"{k.replace('_', ' ')} {a['gain']:.2f}" for k, a in amplitude.items())
+              + f" — {d['report']}")
     if "evaluation" in report:
         ev = report["evaluation"]
         print(f"frames that are B and not A: {ev['identity']['fraction_b_not_a']:.1%}; "

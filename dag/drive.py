@@ -45,9 +45,8 @@ def run_drive(runner, cast: Cast, output: str) -> Collection:
                            params={"pose_sigma": sigma, **({"lips": lips} if lips != "mean" else {})},
                            inputs=inputs, persona_version=runner.version)
     drive = Collection(runner.root, cast.drive)
-    current = drive.provenance("status/retarget/state") if drive.exists() else None
     # the status is created before the targets and written after them: done only when no frame is pending
-    if current is None or current.key != prov.key or (drive.state("retarget") == PENDING).any():
+    if not (drive.exists() and drive.made_by("status/retarget/state", prov)) or (drive.state("retarget") == PENDING).any():
         _retarget(runner, cast, drive, frames, puppet, found, prov, sigma, lips)
     with runner.step("frame textures", cast.drive):
         textures = run_frame_textures(runner, drive, puppet, prov)

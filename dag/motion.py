@@ -58,8 +58,7 @@ def run_motion(runner, cast: Cast, retargeted: Provenance) -> Provenance:
                            inputs={"dynamics": dynamics.key, "puppet_shape": puppet.provenance("shape/depth").key,
                                    "puppet_texture": puppet.provenance("shape/texture").key},
                            persona_version=runner.version)
-    done = drive.provenance("mesh")
-    if done is not None and done.key == prov.key:
+    if drive.made_by("mesh", prov):
         return prov
     shape = driver.array("shape/mask").shape
     drive.create("motion/driver_mesh", (*shape, 3), np.float32, ("frame", "y", "x", "xyz"), prov)

@@ -396,8 +396,7 @@ class Runner:
         prov = Provenance.make(stage="ingest", backend="-", backend_version="1", params=params,
                                inputs={"sources": cache_key(sources=stats)}, persona_version=self.version)
         coll = Collection(self.root, path)
-        current = coll.provenance("status/ingest/state") if coll.exists() else None
-        if current is None or current.key != prov.key:
+        if not (coll.exists() and coll.made_by("status/ingest/state", prov)):
             self._create_collection(coll, sources, video, params, prov)
         return coll, video is not None
 
@@ -453,9 +452,7 @@ class Runner:
         prov = Provenance.make(stage=stage.name, backend=backend, backend_version=version,
                                params=params, inputs=inputs, persona_version=self.version)
         # outputs another stage wrote since (the 2D and 3D renderers share render/*) count as stale
-        keys = {getattr(coll.provenance(name), "key", None)
-                for name in (f"status/{stage.name}/state", *(o.name for o in stage.outputs))}
-        if keys != {prov.key}:
+        if not all(coll.made_by(name, prov) for name in (f"status/{stage.name}/state", *(o.name for o in stage.outputs))):
             self._create_outputs(coll, stage, prov)
         return prov
 

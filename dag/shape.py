@@ -30,8 +30,7 @@ def compute_subspace(runner, coll: Collection, *, source: str, state: str, rank:
     prov = Provenance.make(stage="subspace", backend="svd_compressed", backend_version="1",
                            params={"rank": rank, "source": source, "tps_lambda": tps_lambda},
                            inputs={"photos": upstream}, persona_version=runner.version)
-    current = coll.provenance("subspace/basis")
-    if current is not None and current.key == prov.key:
+    if coll.made_by("subspace/basis", prov):
         return prov
     ok = np.flatnonzero(coll.state(state) == OK)
     if len(ok) <= rank:
@@ -100,8 +99,7 @@ def run_shape(runner, coll: Collection, aligned: Provenance) -> dict[str, str]:
                            params={"shape": shape_params, "integrate": integrate_params},
                            inputs={"align": aligned.key}, persona_version=runner.version)
     files = mesh_files(runner.wf.output, coll)
-    current = coll.provenance("shape/depth")
-    if current is not None and current.key == prov.key:  # done: only the files, should they be missing
+    if coll.made_by("shape/depth", prov):  # done: only the files, should they be missing
         if not all(storage.isfile(f) for f in files.values()):  # e.g. a new output folder
             export(coll, runner.wf.output, *(coll.array(name)[...] for name in ("shape/depth", "shape/mask", "shape/texture")))
         return {k: str(v) for k, v in files.items()}

@@ -215,14 +215,19 @@ def accepted(coll: Collection) -> np.ndarray:
     return coll.state(SCREEN.name) == OK
 
 
+def frontalizer(coll: Collection):
+    """The frontalize backend, with its params, that made a collection's canonical faces (from its
+    provenance): later stages that warp the photos again compose with its map (``canonical_map``)."""
+    made = coll.provenance("status/frontalize/state")
+    return default_registry().get("frontalize", made.backend)(made.params)
+
+
 def _subspace(root, path) -> dict:
     """The context of the collection flow: the collection's subspace, mean fiducials, TPS smoothing,
-    and the frontalize backend its photos went through (from its provenance), whose map it bends."""
+    and the frontalize backend its photos went through, whose map it bends."""
     group = root[f"{path}/subspace"]
-    frontalized = Collection(root, path).provenance("status/frontalize/state")
     return {"basis": group["basis"][...], "mean_fiducials": root[f"{path}/aligned/mean_fiducials"][...],
-            "tps_lambda": float(group.attrs["tps_lambda"]),
-            "frontalize": default_registry().get("frontalize", frontalized.backend)(frontalized.params)}
+            "tps_lambda": float(group.attrs["tps_lambda"]), "frontalize": frontalizer(Collection(root, path))}
 
 
 def _align(backend, params, inputs, context):

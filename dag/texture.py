@@ -20,10 +20,8 @@ import logging
 
 import numpy as np
 
-from persona.plugins.builtin.frontalize import frontalizing_map
 from persona.plugins.face import mouth
 from persona.plugins.face.blend import BlendCache, level_bias
-from persona.plugins.face.template import generic_template
 from persona.plugins.face.texture import Aligned
 from persona.plugins.kinds import Pose, TexturePhotos
 from persona.stores import media, storage
@@ -37,15 +35,15 @@ log = logging.getLogger(__name__)
 
 def texture_photos(coll: Collection, rows: np.ndarray) -> TexturePhotos:
     """The photos ``rows`` of a collection as texture backends see them: raw photos, frontalizing
-    maps (from each photo's pose and the generic template), visibility, pose-corrected fiducials."""
+    maps (the frontalize backend's, from each photo's pose), visibility, pose-corrected fiducials."""
     rows = np.asarray(rows)
     sizes, poses = coll.array("photos/size")[:], coll.array("pose")[:]
-    fiducials, depth = coll.array("aligned/fiducials")[:], generic_template().depth
+    fiducials, frontalize = coll.array("aligned/fiducials")[:], st.frontalizer(coll)
     photos, maps, visible = [], [], []
     for i in rows:
         h, w = sizes[i]
         photos.append(coll.array("photos/rgb")[i][:h, :w])
-        maps.append(frontalizing_map(depth, Pose.from_vector(poses[i]))[0])
+        maps.append(frontalize.canonical_map(Pose.from_vector(poses[i])))
         visible.append(coll.array("aligned/mask")[i])
     return TexturePhotos(tuple(photos), np.stack(maps), np.stack(visible), fiducials[rows].astype(np.float64))
 
@@ -72,8 +70,7 @@ def run_texture(runner, coll: Collection, aligned: Provenance) -> dict[str, str]
     prov = Provenance.make(stage="texture", backend=name, backend_version=backend.version, params=params,
                            inputs={"align": aligned.key}, persona_version=runner.version)
     out = storage.join(runner.wf.output, f"{coll.path.replace('/', '_')}_texture_neutral.png")
-    current = coll.provenance("texture/neutral")
-    if current is not None and current.key == prov.key and storage.isfile(out):
+    if coll.made_by("texture/neutral", prov) and storage.isfile(out):
         return {"texture_neutral": str(out)}
     ok = np.flatnonzero(coll.state("align") == OK)
     mean_fiducials = coll.array("aligned/mean_fiducials")[...].astype(np.float64)
@@ -120,8 +117,7 @@ def run_frame_textures(runner, drive: Collection, puppet: Collection, retargeted
     prov = Provenance.make(stage="frame_texture", backend=source.backend, backend_version=source.backend_version,
                            params=source.params, inputs={"texture": source.key, "retarget": retargeted.key},
                            persona_version=runner.version)
-    current = drive.provenance("texture/rgb")
-    if current is not None and current.key == prov.key:
+    if drive.made_by("texture/rgb", prov):
         return prov
     array = drive.create("texture/rgb", puppet.array("aligned/mean").shape, np.uint8, ("frame", "y", "x", "channel"),
                          prov, pending=True)
@@ -158,8 +154,7 @@ def run_mouth(runner, coll: Collection) -> Provenance:
     prov = Provenance.make(stage="mouth", backend="-", backend_version="1", params=settings,
                            inputs={"screen": coll.provenance("status/screen/state").key},
                            persona_version=runner.version)
-    current = coll.provenance("texture/lips")
-    if current is not None and current.key == prov.key:
+    if coll.made_by("texture/lips", prov):
         return prov
     ok = np.flatnonzero(st.accepted(coll))
     points = coll.array("landmarks/points").oindex[ok].astype(np.float64)

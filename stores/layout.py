@@ -219,6 +219,12 @@ class Collection:
         raw = self.group[name].attrs.get("provenance")
         return Provenance.model_validate(raw) if raw else None
 
+    def made_by(self, name: str, provenance: Provenance) -> bool:
+        """Whether the array ``name`` is done and was made with ``provenance`` (the same cache key:
+        backend, version, params, inputs): the one test of "this step has nothing to redo"."""
+        current = self.provenance(name)
+        return current is not None and current.key == provenance.key
+
     # -- status ------------------------------------------------------------------
     def create_status(self, stage: str, provenance: Provenance) -> None:
         self.create(f"status/{stage}/state", (), np.int8, ("photo",), provenance, fill_value=PENDING)
