@@ -312,9 +312,8 @@ def _figure_at(ev: dict, path: tuple) -> str:
 def write_batch_page(wf, metrics: dict) -> Path | str:
     """``index.html`` in the output folder of a version-2 workflow: every drive in a table — its
     puppet, driver and video, a poster (the driver's frame over the composite at the drive's middle
-    frame), its headline figures (composite.mp4's: 1 = the driver's amplitude, jitter over the
-    driver's) or why it failed — each linking to the drive's own report; then every person's
-    pictures."""
+    frame), its headline figures (:data:`_BATCH_FIGURES`) or why it failed — each linking to the
+    drive's own report; then every person's pictures."""
     from persona.stores.layout import open_store
 
     root = open_store(wf.store, mode="r")
@@ -336,8 +335,9 @@ def write_batch_page(wf, metrics: dict) -> Path | str:
         rows.append(f"<tr><td>{title}</td><td>{_img(_png(poster), plan.name)}</td>"
                     + "".join(f"<td>{html.escape(v)}</td>" for v in cells) + "</tr>")
     parts = [f"<h1>Persona — {html.escape(wf.name)}: {len(rows)} drives</h1>",
-             "<p>Each drive's headline figures on composite.mp4 (gains: 1 = the driver's amplitude, "
-             "target 0.7-1.4; jitter: over the driver's, target ≤ 1); its name opens its report.</p>",
+             "<p>Each drive's headline figures: B and not A and the jitter (over the driver's, target ≤ 1) "
+             "on composite.mp4's frames, the expression gains on the face alone (puppet.mp4; 1 = the "
+             "driver's amplitude, target 0.7-1.4). A drive's name opens its report.</p>",
              f"<table><tr>{head}</tr>{''.join(rows)}</table>"]
     for path, c in metrics["collections"].items():
         for kind, file in c["pictures"].items():

@@ -596,7 +596,13 @@ class Runner:
             report["report"] = str(storage.join(self.wf.output, "report.html"))
             self.write_outputs(self.wf.output, report, part.get("series"), Cast() if plans else None)
             return report
-        # a batch: a person or a video that cannot be built fails the drives that use it, no others
+        return self.run_batch(inputs, report)
+
+    def run_batch(self, inputs: dict, report: dict) -> dict:
+        """A version-2 workflow: every person and video once, then every drive, each drive's outputs
+        in its own folder and the batch page over them. A person or a video that cannot be built
+        fails the drives that use it, a drive that fails fails alone; the run then raises a
+        :class:`RunError` naming each failed drive, after the others are done."""
         broken = {}
         for plan in self.wf.collections():
             try:
@@ -675,11 +681,18 @@ class Runner:
 
     def drive(self, plan) -> dict:
         """One drive: its stages, its videos and its evaluation (``videos``, ``speed``, ``evaluation``
-        and the per-frame ``series`` of the report's plots)."""
+        and the per-frame ``series`` of the report's plots). The videos and the evaluation are kept
+        from the last run when nothing they are made from changed (:meth:`kept_outputs`)."""
         t0 = time.perf_counter()
         drive = run_drive(self, plan.cast, plan.output)
         drive_seconds = time.perf_counter() - t0
-        out = {}
+        key = cache_key(composite=drive.provenance("composite/rgb").key, identity=self.wf.stage("identity"),
+                        evaluate=self.wf.evaluate.model_dump(mode="json"))
+        kept = self.kept_outputs(plan.output, key)
+        if kept is not None:
+            log.info("%s: nothing new since its videos and evaluation were made: kept", plan.cast.drive)
+            return kept
+        out = {"outputs_key": key}
         with self.step("videos", plan.cast.drive):
             out["videos"] = write_videos(drive, Collection(self.root, plan.cast.frames), plan.output)
         render = [r for r in self.timer.records if r["stage"] in ("render", "render3d")][-1]
@@ -693,6 +706,20 @@ class Runner:
         out["series"] = evaluation.pop("series")
         out["evaluation"] = evaluation
         return out
+
+    @staticmethod
+    def kept_outputs(output: str, key: str) -> dict | None:
+        """The videos, speed, evaluation and series a drive's last run left in ``output``, when they
+        were made from the same frames and evaluation settings (its metrics.json, written last,
+        records ``outputs_key``) and every video is still there; else None."""
+        metrics, series = storage.join(output, "metrics.json"), storage.join(output, "series.json")
+        if not (storage.isfile(metrics) and storage.isfile(series)):
+            return None
+        last = json.loads(storage.read_text(metrics))
+        if last.get("outputs_key") != key or not all(storage.isfile(v) for v in last.get("videos", {}).values()):
+            return None
+        return {**{k: last[k] for k in ("outputs_key", "videos", "speed", "evaluation")},
+                "series": json.loads(storage.read_text(series))}
 
     def write_outputs(self, output: str, report: dict, series: dict | None, cast: Cast | None) -> None:
         """metrics.json, series.json (the report's plots, should it be made again) and report.html in ``output``."""

@@ -86,10 +86,10 @@ def _frames(spec: VideoSpec) -> tuple:
 
 def video_name(spec: VideoSpec) -> str:
     """A driving video's name in a version-2 store: its file's stem, and the range when it has one
-    (``address_0-900-10``); characters other than letters, digits, ``-`` and ``_`` become ``_``."""
-    path, extra = (spec, "") if isinstance(spec, str) else (spec.video, "")
-    if isinstance(spec, VideoRange) and (spec.start, spec.stop, spec.step) != (0, None, 1):
-        extra = f"_{spec.start}-{'' if spec.stop is None else spec.stop}" + (f"-{spec.step}" if spec.step != 1 else "")
+    (``address_0-900-10``, ``address_300-end``); characters other than letters, digits, ``-`` and ``_`` become ``_``."""
+    path, start, stop, step = _frames(spec)
+    extra = "" if (start, stop, step) == (0, None, 1) else (
+        f"_{start}-{'end' if stop is None else stop}" + (f"-{step}" if step != 1 else ""))
     return re.sub(r"[^A-Za-z0-9_-]", "_", storage.name(storage.with_suffix(path, "")) + extra)
 
 

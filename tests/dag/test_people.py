@@ -81,7 +81,7 @@ def test_a_drive_of_format_2_is_the_drive_of_format_1(people_run):
 
 def test_a_new_drive_builds_only_what_is_new(people_run):
     """Adding a drive (a range of the same video) to the workflow: no person, no finished drive is
-    built again; only the new range's frames and its drive are."""
+    built, encoded or evaluated again; only the new range's frames and its drive are."""
     folder, drives, _, _ = people_run
     more = [*drives, {"puppet": "cy", "driver": "al", "video": {"video": "data/driver.mp4", "stop": 6}}]
     report = _run(folder, _people_workflow(folder, more), "more.yaml")
@@ -90,6 +90,7 @@ def test_a_new_drive_builds_only_what_is_new(people_run):
     for person in ("people/al", "people/bea", "people/cy"):
         assert done[(person, "landmarks")] == 0, person
     assert done[("drives/bea_al_driver", "render3d")] == 0
+    assert ("drives/bea_al_driver", "videos") not in done  # its videos and evaluation are kept, not made again
     assert done[("videos/driver_0-6", "ingest")] == 6 and done[("drives/cy_al_driver_0-6", "render3d")] == 6
 
 
