@@ -146,7 +146,7 @@ def evaluate(store: str, executor, *, identity: tuple[str, dict], threshold: flo
     video = ev.compare_videos(driver_landmarks, joined["landmarks"])
     on_composite_video = ev.compare_videos(driver_landmarks, joined["composite_landmarks"])
     stability = video["stability"]
-    stability["jitter_composite"] = ev.jitter(joined["composite_landmarks"])
+    stability["jitter_composite"] = on_composite_video["stability"]["jitter_output"]
     stability["jitter_ratio_composite"] = _ratio(stability["jitter_composite"], stability["jitter_driver"])
     stability["colour_change_driver"] = ev.flicker(joined["colour_driver"])
     stability["colour_change_output"] = ev.flicker(joined["colour_output"])

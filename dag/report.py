@@ -190,6 +190,13 @@ def collection_pictures(coll: Collection, mean: np.ndarray | None, output, n_fac
     return {k: str(v) for k, v in written.items()}
 
 
+def collection_images(metrics: dict) -> dict[str, np.ndarray]:
+    """The PNG pictures a run's collections wrote (metrics.json's ``collections``), by title."""
+    return {f"{path}: {kind.replace('_', ' ')}": media.decode_image(file, max_side=4000)
+            for path, c in metrics["collections"].items() for kind, file in c["pictures"].items()
+            if str(file).endswith(".png") and storage.isfile(file)}
+
+
 def frames_strip(drive: Collection, frames: Collection, n: int = 6, side: int = 240, at=None) -> np.ndarray:
     """``n`` frames spread over the drive (or the frames ``at``), a column each: the driver's frame
     (top), the composite as composite.mp4 has it (middle), the puppet alone as puppet.mp4 has it
@@ -218,11 +225,7 @@ def write_run_report(wf, root, metrics: dict, series: dict | None, *, cast: Cast
     frames.png; none when ``cast`` is None or its drive is not in the store) and ``series`` (the
     plots); with every texture evaluation found in the folder."""
     out = wf.output if output is None else output
-    pictures = {}
-    for path, c in metrics["collections"].items():
-        for kind, file in c["pictures"].items():
-            if str(file).endswith(".png") and storage.isfile(file):
-                pictures[f"{path}: {kind.replace('_', ' ')}"] = media.decode_image(file, max_side=4000)
+    pictures = collection_images(metrics)
     strip = None
     if cast is not None and root.get(cast.drive) is not None:
         strip = frames_strip(Collection(root, cast.drive), Collection(root, cast.frames))
@@ -339,11 +342,8 @@ def write_batch_page(wf, metrics: dict) -> Path | str:
              "on composite.mp4's frames, the expression gains on the face alone (puppet.mp4; 1 = the "
              "driver's amplitude, target 0.7-1.4). A drive's name opens its report.</p>",
              f"<table><tr>{head}</tr>{''.join(rows)}</table>"]
-    for path, c in metrics["collections"].items():
-        for kind, file in c["pictures"].items():
-            if str(file).endswith(".png") and storage.isfile(file):
-                parts += [f"<h2>{html.escape(path)}: {html.escape(kind.replace('_', ' '))}</h2>",
-                          _img(_png(media.decode_image(file, max_side=4000)), kind, 480)]
+    for title, image in collection_images(metrics).items():
+        parts += [f"<h2>{html.escape(title)}</h2>", _img(_png(image), title, 480)]
     path = storage.join(wf.output, "index.html")
     media.write_bytes(path, _page(f"Persona batch: {wf.name}", parts).encode())
     return path
