@@ -31,6 +31,8 @@ Descriptors are computed by Dask tasks over shards; only small per-frame figures
 
 from __future__ import annotations
 
+from typing import Callable
+
 import numpy as np
 
 from persona.plugins.builtin import evaluate as ev
@@ -120,9 +122,11 @@ def _sample(ok: np.ndarray, k: int) -> list[int]:
 
 
 def evaluate(store: str, executor, *, identity: tuple[str, dict], threshold: float = 0.6,
-             collection_sample: int = 100, self_reenactment: bool = False, cast: Cast = Cast()) -> dict:
+             collection_sample: int = 100, self_reenactment: bool = False, cast: Cast = Cast(),
+             progress: Callable[[int], object] = lambda frames: None) -> dict:
     """Every figure of a finished drive (``cast``; a format-1 store's by default), as a JSON-ready
-    dict (plus per-frame series under "series")."""
+    dict (plus per-frame series under "series"); ``progress(n)`` is called as each shard of n
+    frames is analysed."""
     root = open_store(store, mode="r")
     centroids = {}
     for actor, path in (("puppet", cast.puppet), ("driver", cast.driver)):
@@ -136,7 +140,11 @@ def evaluate(store: str, executor, *, identity: tuple[str, dict], threshold: flo
         centroids[actor] = ev.centroid(np.concatenate(parts))
     drive = Collection(root, cast.drive)
     tasks = [(store, s, e, identity, self_reenactment, cast) for s, e in drive.shard_ranges()]
-    parts = sorted(executor.run(analyse_frames, tasks), key=lambda p: p["start"])
+    parts = []
+    for part in executor.run(analyse_frames, tasks):
+        parts.append(part)
+        progress(len(part["landmarks"]))
+    parts.sort(key=lambda p: p["start"])
     joined = {k: np.concatenate([p[k] for p in parts]) for k in parts[0] if k != "start"}
 
     driver_landmarks = driver_frame_landmarks(root, cast.frames)

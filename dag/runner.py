@@ -505,7 +505,7 @@ class Runner:
         its first frame."""
         tasks = [(fn, self.wf.store, coll.path, s, e, *args) for s, e in coll.shard_ranges()]
         results = {}
-        with self.progress_bar(f"{coll.path:>13} {label:<10}", coll.n) as bar:
+        with self.progress_bar(f"{coll.path:>13} {label:<10}", coll.n, item(coll.path)) as bar:
             for start, stop, result in self.executor.run(st.on_shard, tasks):
                 results[start] = result
                 bar.update(stop - start)
@@ -701,7 +701,9 @@ class Runner:
             out["speed"] = {"ms_per_driver_frame": 1000 * drive_seconds / drive.n,
                             "render_ms_per_frame_one_worker": 1000 * render["task_seconds"] / drive.n}
         t0 = time.perf_counter()
-        evaluation = self.evaluate(plan.cast)
+        with self.step("evaluate", plan.cast.drive), \
+                self.progress_bar(f"{plan.cast.drive:>13} {'analyse':<10}", drive.n) as bar:
+            evaluation = self.evaluate(plan.cast, progress=bar.update)
         out["speed"]["evaluate_seconds"] = time.perf_counter() - t0
         out["series"] = evaluation.pop("series")
         out["evaluation"] = evaluation
@@ -728,11 +730,11 @@ class Runner:
         write_json(storage.join(output, "metrics.json"), report)
         write_run_report(self.wf, self.root, report, series, cast=cast, output=output)
 
-    def evaluate(self, cast: Cast = Cast()) -> dict:
+    def evaluate(self, cast: Cast = Cast(), progress=lambda frames: None) -> dict:
         e = self.wf.evaluate
         return evaluate(self.wf.store, self.executor, identity=self.wf.stage("identity"),
                         threshold=e.threshold, collection_sample=e.collection_sample,
-                        self_reenactment=e.self_reenactment, cast=cast)
+                        self_reenactment=e.self_reenactment, cast=cast, progress=progress)
 
 
 def _why(exc: Exception) -> str:

@@ -14,6 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 from persona.plugins.base import Rejected
+from persona.plugins.face.subspace import streamed_svd
 from persona.plugins.face.template import CANONICAL_HEIGHT as H, CANONICAL_WIDTH as W
 from persona.stores import storage
 from persona.stores.layout import OK, Collection
@@ -52,26 +53,6 @@ def compute_subspace(runner, coll: Collection, *, source: str, state: str, rank:
     coll.root[f"{coll.path}/subspace"].attrs.update({"rank": rank, "tps_lambda": tps_lambda})
     coll.create_single("subspace/basis", basis, ("component", "y", "x", "channel"), prov)
     return prov
-
-
-def streamed_svd(rows, rank: int, compute, *, oversample: int = 10, power_iterations: int = 2,
-                 seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    """Top ``rank`` singular values and right singular vectors (rank, p) of a tall dask array.
-
-    A randomised SVD (Halko et al. 2011) in which every product with ``rows`` is its own
-    computation: each pass streams the shards once and keeps only small (n, l) or (p, l)
-    results, so memory does not grow with the number of rows (dask's ``svd_compressed``
-    computes all passes in one graph and holds every shard between them).
-    """
-    p = rows.shape[1]
-    omega = np.random.default_rng(seed).standard_normal((p, rank + oversample)).astype(np.float32)
-    q = np.linalg.qr(compute(rows @ omega)[0])[0]
-    for _ in range(power_iterations):
-        z = np.linalg.qr(compute(rows.T @ q.astype(np.float32))[0])[0]
-        q = np.linalg.qr(compute(rows @ z.astype(np.float32))[0])[0]
-    projected = compute(rows.T @ q.astype(np.float32))[0].T  # Qᵀ A, (l, p)
-    _, singular, vt = np.linalg.svd(projected.astype(np.float64), full_matrices=False)
-    return singular[:rank], vt[:rank]
 
 
 def run_alignment(runner, coll: Collection) -> Provenance:

@@ -89,7 +89,7 @@ STEPS = {step.name: step for step in (
     Step("shape", ("puppet", "driver"), ("shape", "integrate"), "depth, albedo and meshes by photometric stereo",
          "the client"),
     Step("texture", ("puppet",), ("texture",), "the expression-dependent texture's cache of aligned photos",
-         "the client"),
+         "tasks over shards (warp, basis by products over them, cache), then one task (the neutral texture)"),
     Step("retarget", ("drive",), ("motion",), "the driver's smoothed poses and B's target fiducials", "the client"),
     Step("frame textures", ("drive",), ("texture",), "B's face for each frame's expression"),
     Step("dynamics", ("drive",), ("flow", "motion"), "the driver's per-frame 3D flow", mesh=True),

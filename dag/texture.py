@@ -1,14 +1,16 @@
 """Expression-dependent texture in the run (paper §5-§6).
 
 Video mode, the paper's way for puppetry: the collection is warped once to the puppet's mean
-fiducials (the ``align`` stage's collection flow already does exactly this, with the workflow's
-``flow`` stage; the texture backend's own ``flow`` param is for synthesis to one target), the target-
-independent terms of Eq. 3 (Laplacian pyramids times detail weights) are cached in the store
-under ``texture/``, and each driver frame only changes the expression weights. The textures
-keep the neutral geometry with the target's detail; the renderer moves the geometry.
+fiducials (with the texture backend's own alignment, or as the ``align`` stage's collection flow
+warped it: its ``video_alignment``), the target-independent terms of Eq. 3 (Laplacian pyramids
+times detail weights) are cached in the store under ``texture/``, and each driver frame only
+changes the expression weights. The textures keep the neutral geometry with the target's detail;
+the renderer moves the geometry. Every step is Dask tasks over shards of photos or frames, and
+no process holds the whole cache (:func:`run_texture`, :func:`stored_textures`).
 
-Stored: ``<puppet>/texture/weighted_<k>``, ``texture/detail_<k>`` (per photo and level),
-``texture/neutral`` (the texture at the mean fiducials) and ``drive/texture/rgb`` (per frame).
+Stored: ``<puppet>/texture/weighted_<k>``, ``texture/detail_<k>`` (per photo and level), their
+sums over all photos ``texture/total_<weighted|detail|energy>_<k>``, ``texture/neutral`` (the
+texture at the mean fiducials, written last) and ``drive/texture/rgb`` (per frame).
 For 3D renderers also the inside of B's mouth (:mod:`persona.plugins.face.mouth`):
 ``texture/mouth`` (when a photo shows it) and ``texture/lips`` (B's mean inner-lip curves,
 written last).
@@ -16,14 +18,18 @@ written last).
 
 from __future__ import annotations
 
+import functools
 import logging
+import operator
 
 import numpy as np
 
 from persona.plugins.face import mouth
-from persona.plugins.face.blend import BlendCache, level_bias
-from persona.plugins.face.texture import Aligned
-from persona.plugins.kinds import Pose, TexturePhotos
+from persona.plugins.face.blend import (BlendCache, BlendSums, BlendTotals, gaussian_pyramid, level_bias, seen_mean,
+                                        seen_sums)
+from persona.plugins.face.template import CANONICAL_HEIGHT as H, CANONICAL_WIDTH as W
+from persona.plugins.face.texture import Aligned, to_grey, warped_basis
+from persona.plugins.kinds import Pose, TextureBackend, TexturePhotos
 from persona.stores import media, storage
 from persona.stores.layout import OK, Collection, open_store
 from persona.stores.provenance import Provenance
@@ -54,9 +60,10 @@ def texture_backend(runner):
 
 
 def video_aligned(coll: Collection, ok: np.ndarray, backend, alignment: str | None) -> Aligned:
-    """The accepted photos ``ok`` of a collection aligned to its mean fiducials for the video-mode
-    cache: with the texture backend's own flow and misfit measures (``alignment`` "own"), or as the
-    align stage's collection flow warped them (anything else)."""
+    """The accepted photos ``ok`` of a collection, all in memory, aligned to its mean fiducials as
+    the video-mode cache aligns them (for benchmarks; the run does it a shard at a time,
+    :func:`warp_shard` and :func:`cache_shard`): with the texture backend's own flow and misfit
+    measures (``alignment`` "own"), or as the align stage's collection flow warped them."""
     if alignment == "own":
         target = coll.array("aligned/mean_fiducials")[...].astype(np.float64)
         return backend.params.aligned(texture_photos(coll, ok), target)
@@ -65,47 +72,173 @@ def video_aligned(coll: Collection, ok: np.ndarray, backend, alignment: str | No
 
 def run_texture(runner, coll: Collection, aligned: Provenance) -> dict[str, str]:
     """The video-mode cache of the aligned collection and its neutral texture; returns the
-    picture written (``texture_neutral``)."""
+    picture written (``texture_neutral``).
+
+    Every step is Dask tasks over shards of photos, so neither the client nor a worker holds the
+    collection: (1) each accepted photo warped to the mean fiducials (with the backend's own
+    alignment: TPS, kept for (2)), their mean where they see; (2) with the own alignment, the
+    rank-k basis of the warped photos (a randomised SVD, a pass over the shards per product);
+    (3) each photo flowed to its projection on it and its pyramids stored (``texture/weighted_k``,
+    ``detail_k``), with the sums over the shard that every blend needs of all photos; (4) the
+    totals of those, then the neutral texture (``texture/neutral``, written last: it marks the
+    step done)."""
+    import dask.array as da
+
     name, params, backend = texture_backend(runner)
     prov = Provenance.make(stage="texture", backend=name, backend_version=backend.version, params=params,
                            inputs={"align": aligned.key}, persona_version=runner.version)
     out = storage.join(runner.wf.output, f"{coll.path.replace('/', '_')}_texture_neutral.png")
     if coll.made_by("texture/neutral", prov) and storage.isfile(out):
         return {"texture_neutral": str(out)}
-    ok = np.flatnonzero(coll.state("align") == OK)
-    mean_fiducials = coll.array("aligned/mean_fiducials")[...].astype(np.float64)
-    try:
-        cache = backend.cache(video_aligned(coll, ok, backend, params.get("video_alignment")))
-    except NotImplementedError:
+    if type(backend).cache is TextureBackend.cache:
         log.warning("texture backend %s has no video mode: the drive shows the static average", name)
         coll.remove("texture/neutral")  # another backend's, from an earlier run
         return {}
-    row = np.full(coll.n, -1)
-    row[ok] = np.arange(len(ok))
-    for k in range(cache.levels):
-        y, x = ("y", "x") if k == 0 else (f"y_level{k}", f"x_level{k}")  # one size per name, as xarray needs
-        for kind, level, last in (("weighted", cache.weighted[k], "channel"), ("detail", cache.detail[k], "weight")):
-            array = coll.create(f"texture/{kind}_{k}", level.shape[1:], np.float32, ("photo", y, x, last), prov)
-            for start, stop in coll.shard_ranges():  # a shard at a time; rejected photos stay NaN
-                rows = row[start:stop]
-                block = np.full((stop - start, *level.shape[1:]), np.nan, np.float32)
-                block[rows >= 0] = level[rows[rows >= 0]]
-                array[start:stop] = block
-    neutral = backend.blend(cache, coll.array("aligned/fiducials")[:][ok], mean_fiducials)
-    coll.create_single("texture/neutral", neutral.round().astype(np.uint8), ("y", "x", "channel"), prov)
-    media.write_png(out, np.kron(neutral.round().astype(np.uint8), np.ones((2, 2, 1), np.uint8)))
+    coll.remove("texture/neutral")  # an earlier cache's: nothing may take the new one as done before (4)
+    own = params.get("video_alignment") == "own"
+    if own:  # the TPS-warped photos, for the basis: removed again below
+        coll.create("texture/warped_grey", (H, W), np.float32, ("photo", "y", "x"), prov)
+        coll.create("texture/warped_valid", (H, W), bool, ("photo", "y", "x"), prov)
+    sums = _in_order(runner.map_shards(coll, "tex. warp", warp_shard, name, params))
+    fill = seen_mean(sum(total for total, _ in sums), sum(count for _, count in sums))
+    basis = None
+    if own:
+        ok = np.flatnonzero(coll.state("align") == OK)
+        grey, valid = (da.from_zarr(coll.array(f"texture/warped_{kind}"), chunks=(coll.shard, H, W))[ok]
+                       for kind in ("grey", "valid"))
+        basis = warped_basis(grey, valid, fill, backend.params.rank, runner.executor.compute)
+    levels = backend.params.levels
+    for k, level in enumerate(gaussian_pyramid(np.zeros((H, W), np.float32), levels)):
+        coll.create(f"texture/weighted_{k}", (*level.shape, 3), np.float32, ("photo", *_level_dims(k), "channel"), prov)
+        coll.create(f"texture/detail_{k}", (*level.shape, 1), np.float32, ("photo", *_level_dims(k), "weight"), prov)
+    parts = _in_order(runner.map_shards(coll, "tex. cache", cache_shard, name, params, fill, basis))
+    totals = functools.reduce(operator.add, [part for part in parts if part is not None])
+    coll.remove("texture/warped_grey", "texture/warped_valid")
+    for k in range(levels):  # what every target's blend takes of all photos (small)
+        coll.create_single(f"texture/total_weighted_{k}", totals.weighted[k], (*_level_dims(k), "channel"), prov)
+        coll.create_single(f"texture/total_detail_{k}", totals.detail[k], (*_level_dims(k), "weight"), prov)
+        coll.create_single(f"texture/total_energy_{k}", totals.energy[k], _level_dims(k), prov)
+    target = coll.array("aligned/mean_fiducials")[...].astype(np.float64)
+    (neutral,) = runner.executor.run(stored_textures, [(runner.wf.store, coll.path, prov.key, name, params,
+                                                        target[None])])
+    neutral = neutral[0].round().astype(np.uint8)
+    # the neutral texture last: its provenance marks the step done
+    coll.create_single("texture/neutral", neutral, ("y", "x", "channel"), prov)
+    media.write_png(out, np.kron(neutral, np.ones((2, 2, 1), np.uint8)))
     return {"texture_neutral": str(out)}
 
 
-def load_cache(coll: Collection) -> tuple[BlendCache, np.ndarray]:
-    """The stored video-mode cache and the fiducials of its photos."""
-    ok = np.flatnonzero(coll.state("align") == OK)
+def _level_dims(k: int) -> tuple[str, str]:
+    """The dimension names of pyramid level k: one size per name, as xarray needs."""
+    return ("y", "x") if k == 0 else (f"y_level{k}", f"x_level{k}")
+
+
+def _in_order(results: dict[int, object]) -> list:
+    """Shards' results by their first photo, so that sums over them do not depend on which
+    task finished first."""
+    return [results[start] for start in sorted(results)]
+
+
+def _shard_photos(coll: Collection, start: int, stop: int) -> np.ndarray:
+    """The accepted photos of shard [start, stop), as indices into the collection."""
+    return start + np.flatnonzero(coll.state("align")[start:stop] == OK)
+
+
+def warp_shard(url: str, path: str, start: int, stop: int, name: str, params: dict):
+    """Step (1) of :func:`run_texture` for one shard: its accepted photos warped to the mean
+    fiducials (the own alignment: TPS, the grey and where each sees stored for the basis; else the
+    collection flow's photos); returns their sums for the collection's mean where they see."""
+    coll = Collection(open_store(url), path)
+    rows = _shard_photos(coll, start, stop)
+    if len(rows) == 0:
+        return 0.0, 0
+    backend = st.default_registry().get("texture", name)(params)
+    if params.get("video_alignment") == "own":
+        target = coll.array("aligned/mean_fiducials")[...].astype(np.float64)
+        warped, _ = backend.params.warped(texture_photos(coll, rows), target)
+        grey = np.zeros((stop - start, H, W), np.float32)
+        valid = np.zeros((stop - start, H, W), bool)
+        grey[rows - start], valid[rows - start] = to_grey(warped.rgb), warped.valid
+        coll.array("texture/warped_grey")[start:stop] = grey
+        coll.array("texture/warped_valid")[start:stop] = valid
+    else:
+        warped = Aligned(coll.rows("collection/rgb", rows).astype(np.float32), coll.rows("collection/mask", rows))
+    return seen_sums(warped.rgb, warped.valid)
+
+
+def cache_shard(url: str, path: str, start: int, stop: int, name: str, params: dict, fill: np.ndarray,
+                basis: np.ndarray | None) -> BlendTotals | None:
+    """Step (3) of :func:`run_texture` for one shard: its accepted photos aligned (the own
+    alignment: TPS again, then flowed on ``basis``) and their pyramids stored, rejected photos NaN;
+    returns the shard's :class:`BlendTotals` (None when it has no accepted photo)."""
+    coll = Collection(open_store(url), path)
+    rows = _shard_photos(coll, start, stop)
     levels = sum(1 for key in coll.group["texture"].array_keys() if key.startswith("weighted_"))
-    params = coll.provenance("texture/neutral").params
+    backend = st.default_registry().get("texture", name)(params)
+    cache = None
+    if len(rows) and basis is not None:
+        target = coll.array("aligned/mean_fiducials")[...].astype(np.float64)
+        photos = texture_photos(coll, rows)
+        cache = backend.cache(backend.params.flowed(photos, *backend.params.warped(photos, target), basis), fill)
+    elif len(rows):
+        cache = backend.cache(Aligned(coll.rows("collection/rgb", rows).astype(np.float32),
+                                      coll.rows("collection/mask", rows)), fill)
+    for k in range(levels):
+        for kind in ("weighted", "detail"):
+            array = coll.array(f"texture/{kind}_{k}")
+            block = np.full((stop - start, *array.shape[1:]), np.nan, np.float32)
+            if cache is not None:
+                block[rows - start] = getattr(cache, kind)[k]
+            array[start:stop] = block
+    return None if cache is None else cache.totals
+
+
+def load_cache(coll: Collection) -> tuple[BlendCache, np.ndarray]:
+    """The whole stored video-mode cache and the fiducials of its photos (for tests and benchmarks;
+    a drive reads it a shard at a time: :func:`frame_textures`)."""
+    ok = np.flatnonzero(coll.state("align") == OK)
+    levels = _levels(coll)
     weighted = [coll.rows(f"texture/weighted_{k}", ok) for k in range(levels)]
     detail = [coll.rows(f"texture/detail_{k}", ok) for k in range(levels)]
+    params = coll.provenance("texture/neutral").params
     cache = BlendCache(weighted, detail, level_bias(levels, params["beta"], params["tau"]))
     return cache, coll.array("aligned/fiducials")[:][ok].astype(np.float64)
+
+
+def _levels(coll: Collection) -> int:
+    return sum(1 for key in coll.group["texture"].array_keys() if key.startswith("weighted_"))
+
+
+def _totals(coll: Collection, params) -> BlendTotals:
+    """The stored sums over all photos of the cache (:class:`BlendTotals`), made with the texture
+    backend's ``params``."""
+    levels = _levels(coll)
+    return BlendTotals(*([coll.array(f"texture/total_{kind}_{k}")[...] for k in range(levels)]
+                         for kind in ("weighted", "detail", "energy")),
+                       level_bias(levels, params.beta, params.tau))
+
+
+#: bytes of B's texture cache a worker keeps in memory between a drive's tasks; a larger cache is
+#: read again, a shard of photos at a time, by each task (so a worker's memory stays bounded
+#: whatever the size of the collection)
+CACHE_BYTES = 1 << 30
+
+_shards: dict[tuple[str, int], tuple[list, list]] = {}
+
+
+def _cache_shard(coll: Collection, key: str, start: int, stop: int, rows: np.ndarray) -> tuple[list, list]:
+    """The cache levels (weighted, detail) of the photos ``rows`` of shard [start, stop), kept
+    between tasks while all kept shards fit in :data:`CACHE_BYTES` (the oldest dropped first)."""
+    if (key, start) not in _shards:
+        levels = _levels(coll)
+        _shards[(key, start)] = tuple([coll.array(f"texture/{kind}_{k}")[start:stop][rows - start]
+                                       for k in range(levels)] for kind in ("weighted", "detail"))
+        for old in [k for k in _shards if k[0] != key]:  # another puppet's or an earlier cache's
+            del _shards[old]
+        size = lambda part: sum(a.nbytes for arrays in part for a in arrays)
+        while len(_shards) > 1 and sum(size(part) for part in _shards.values()) > CACHE_BYTES:
+            del _shards[next(iter(_shards))]
+    return _shards[(key, start)]
 
 
 def run_frame_textures(runner, drive: Collection, puppet: Collection, retargeted: Provenance) -> Provenance:
@@ -127,21 +260,36 @@ def run_frame_textures(runner, drive: Collection, puppet: Collection, retargeted
             array[start:stop] = np.broadcast_to(mean, (stop - start, *mean.shape))
         drive.mark_done("texture/rgb", prov)
         return prov
-    runner.map_shards(drive, "texture", frame_textures, prov.key, puppet.path, *runner.wf.stage("texture"))
+    runner.map_shards(drive, "texture", frame_textures, puppet.path, *runner.wf.stage("texture"))
     drive.mark_done("texture/rgb", prov)  # after the last frame: a killed run leaves no key to trust
     return prov
 
 
-def frame_textures(url: str, path: str, start: int, stop: int, key: str, puppet: str, name: str,
-                   params: dict) -> None:
+def frame_textures(url: str, path: str, start: int, stop: int, puppet: str, name: str, params: dict) -> None:
     """One shard's task of :func:`run_frame_textures`: B's texture for frames [start, stop) with the
-    texture backend ``name``; the ``puppet`` collection's video-mode cache is read once per worker."""
-    root = open_store(url)
-    drive = Collection(root, path)
+    texture backend ``name``, from the ``puppet``'s stored cache (:func:`stored_textures`)."""
+    drive = Collection(open_store(url), path)
+    key = Collection(drive.root, puppet).provenance("texture/neutral").key  # shared by the puppet's drives
+    textures = stored_textures(url, puppet, key, name, params, drive.array("target")[start:stop])
+    drive.array("texture/rgb")[start:stop] = textures.round().astype(np.uint8)
+
+
+def stored_textures(url: str, path: str, key: str, name: str, params: dict, targets: np.ndarray) -> np.ndarray:
+    """B's textures (f, H, W, 3) float32 for targets (f, 49, 2) from the stored video-mode cache
+    (provenance ``key``) of the collection ``path``: the sums of Eq. 3 taken over it a shard of
+    photos at a time (a shard that no target weighs is not read), then finished with the totals."""
+    source = Collection(open_store(url, mode="r"), path)
     backend = st.default_registry().get("texture", name)(params)
-    cache, fiducials = st.per_process(key, lambda: load_cache(Collection(root, puppet)))
-    drive.array("texture/rgb")[start:stop] = np.stack([backend.blend(cache, fiducials, t).round().astype(np.uint8)
-                                                       for t in drive.array("target")[start:stop]])
+    ok = np.flatnonzero(source.state("align") == OK)
+    totals, fiducials = st.per_process(key, lambda: (_totals(source, backend.params),
+                                                     source.array("aligned/fiducials")[:][ok].astype(np.float64)))
+    weights = backend.expression(fiducials, targets)  # (targets, accepted photos)
+    sums = BlendSums.zeros(len(targets), totals)
+    for first, last in source.shard_ranges():
+        a, b = np.searchsorted(ok, [first, last])
+        if weights[:, a:b].any():
+            sums.add(*_cache_shard(source, key, first, last, ok[a:b]), weights[:, a:b])
+    return backend.finish(sums, totals, fiducials, targets)
 
 
 def run_mouth(runner, coll: Collection) -> Provenance:

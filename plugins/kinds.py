@@ -285,3 +285,13 @@ class TextureBackend(Backend):
         """The texture (H, W, 3) float32 for target fiducials (49, 2) from a :meth:`cache` of photos
         whose fiducials are ``fiducials`` (n, 49, 2)."""
         raise NotImplementedError
+
+    # A drive reads the stored cache a shard of photos at a time: the blend of Eq. 3 as weights per
+    # photo (expression), sums over the shards (persona.plugins.face.blend.BlendSums) and a last step.
+    def expression(self, fiducials: np.ndarray, targets: np.ndarray) -> np.ndarray:
+        """The weights (f, n) of the photos (fiducials (n, 49, 2)) for targets (f, 49, 2)."""
+        raise NotImplementedError
+
+    def finish(self, sums, totals, fiducials: np.ndarray, targets: np.ndarray) -> np.ndarray:
+        """The textures (f, H, W, 3) float32 from the weighted sums over every photo."""
+        raise NotImplementedError

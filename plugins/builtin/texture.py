@@ -19,7 +19,7 @@ from pydantic import Field, model_validator
 
 from ..base import Params
 from ..face import eyes, texture as align
-from ..face.blend import BlendCache, expression_weights
+from ..face.blend import BlendCache, BlendSums, BlendTotals, chosen, expression_weights
 from ..face.fiducials import mean_shape
 from ..face.template import CANONICAL_HEIGHT as H, CANONICAL_WIDTH as W
 from ..face.warp import tps_map
@@ -48,6 +48,16 @@ class _Alignment(_Weights):
         return align.align(photos, target, flow or self.flow.build(), tps_lambda=self.tps_lambda, rank=self.rank,
                            reference=reference)
 
+    # the same two steps for a collection held a shard at a time (the drive's cache)
+    def warped(self, photos, target) -> tuple[align.Aligned, np.ndarray]:
+        """Step 1 on some of the photos: TPS-warped to the target, and their maps."""
+        return align.tps_aligned(photos, target, tps_lambda=self.tps_lambda)
+
+    def flowed(self, photos, warped: align.Aligned, maps: np.ndarray, basis: np.ndarray) -> align.Aligned:
+        """Step 2 on the same photos: flowed to their projections on the basis of all of them
+        (align.warped_basis of every photo's step 1)."""
+        return align.flow_aligned(photos, warped, maps, basis, self.flow.build())
+
 
 def _weighted_mean(rgb: np.ndarray, weights: np.ndarray) -> Texture:
     """Σ_i w_i(x) rgb_i(x) / Σ_i w_i(x) with weights (n, H, W)."""
@@ -68,8 +78,9 @@ class MultiscaleTexture(TextureBackend):
                    "Laplacian pyramid with expression and detail weights (paper §5, Eq. 3)")
     default = True
     #: 2: the alignment confidence (stretch_scale, residual_scale); 3: its own flow (varref); 4: video mode
-    #: aligns the collection with that flow too (video_alignment); 5: restore_detail, close_eyes
-    version = "5"
+    #: aligns the collection with that flow too (video_alignment); 5: restore_detail, close_eyes; 6: the
+    #: video-mode cache's totals are stored with it (a drive reads the cache a shard at a time)
+    version = "6"
 
     class Params(_Alignment):
         levels: int = Field(5, ge=2, le=8, description="pyramid levels p (the paper does not say; 5 gives a "
@@ -133,34 +144,48 @@ class MultiscaleTexture(TextureBackend):
                 out = term if out is None else out * term
         return out
 
-    def cache(self, aligned: align.Aligned) -> BlendCache:
-        """The target-independent terms of Eq. 3 for an aligned collection (video mode)."""
+    def cache(self, aligned: align.Aligned, fill: np.ndarray | None = None) -> BlendCache:
+        """The target-independent terms of Eq. 3 for an aligned collection (video mode), or for a
+        shard of it with the collection's ``fill`` (BlendCache.build)."""
         p = self.params
         return BlendCache.build(aligned.rgb, aligned.valid, levels=p.levels, alpha=p.alpha, beta=p.beta,
                                 tau=p.tau, blur=p.detail_blur, floor=p.detail_floor,
-                                confidence=self.confidence(aligned))
+                                confidence=self.confidence(aligned), fill=fill)
 
-    def blend(self, cache: BlendCache, fiducials: np.ndarray, target: np.ndarray) -> np.ndarray:
-        """Video mode: the texture (H, W, 3) float32 for a target (49, 2), from a cache of photos
-        aligned to their mean fiducials, whose own fiducials (n, 49, 2) give the expression weights;
-        with ``close_eyes``, the eyes the target shuts drawn shut."""
-        texture = self._blend(cache, fiducials, target)
-        if self.params.close_eyes:  # the texture's geometry is B's neutral: the photos' mean fiducials
-            neutral = mean_shape(fiducials)
-            shut = eyes.closure(target, neutral, start=self.params.shut_from, end=self.params.shut_at)
-            texture = np.clip(eyes.close(texture, neutral, shut), 0, 255)
-        return texture
-
-    def _blend(self, cache: BlendCache, fiducials: np.ndarray, target: np.ndarray) -> np.ndarray:
-        """Eq. 3's blend of a cache for a target's expression weights, clipped to 0-255."""
+    def expression(self, fiducials: np.ndarray, targets: np.ndarray) -> np.ndarray:
+        """Video mode: the expression weights (f, n) of targets (f, 49, 2) over photos whose fiducials
+        are (n, 49, 2), those below ``skip`` of a target's largest set to 0 (blend.chosen)."""
         # without a uniform term only the ratios of the e_i matter: relative ones cannot all underflow
-        e = expression_weights(fiducials, target, self.params.sigma, relative=self.params.tau == 0)
-        return np.clip(cache.blend(e, skip=self.params.skip, restore=self.params.restore_detail), 0, 255)
+        return np.concatenate([chosen(expression_weights(fiducials, t, self.params.sigma, relative=self.params.tau == 0),
+                                      self.params.skip) for t in targets])
+
+    def finish(self, sums: BlendSums, totals: BlendTotals, fiducials: np.ndarray, targets: np.ndarray, *,
+               close_eyes: bool | None = None) -> np.ndarray:
+        """Video mode: the textures (f, H, W, 3) float32 in 0-255 of the targets (f, 49, 2) from the
+        sums over every photo (fiducials (n, 49, 2)) of their :meth:`expression` weights; with
+        ``close_eyes`` (default: the param), the eyes a target shuts drawn shut."""
+        textures = np.clip(sums.finish(totals, restore=self.params.restore_detail), 0, 255)
+        if self.params.close_eyes if close_eyes is None else close_eyes:
+            neutral = mean_shape(fiducials)  # the texture's geometry is B's neutral: the photos' mean fiducials
+            for texture, target in zip(textures, targets):
+                shut = eyes.closure(target, neutral, start=self.params.shut_from, end=self.params.shut_at)
+                texture[:] = np.clip(eyes.close(texture, neutral, shut), 0, 255)
+        return textures
+
+    def blend(self, cache: BlendCache, fiducials: np.ndarray, target: np.ndarray, *,
+              close_eyes: bool | None = None) -> np.ndarray:
+        """Video mode with the whole cache in memory: the texture (H, W, 3) float32 for a target
+        (49, 2), from a cache of photos aligned to their mean fiducials, whose own fiducials
+        (n, 49, 2) give the expression weights (:meth:`expression`, :meth:`finish`)."""
+        sums = BlendSums.zeros(1, cache.totals)
+        sums.add(cache.weighted, cache.detail, self.expression(fiducials, [target]))
+        return self.finish(sums, cache.totals, fiducials, [target], close_eyes=close_eyes)[0]
 
     def synthesize(self, photos, target, flow=None, reference=None):
         aligned = self.params.aligned(photos, target, flow, reference)
         # the photos are aligned to the target itself: its eyes are already as open as the target's
-        return Texture(self._blend(self.cache(aligned), photos.fiducials, target), aligned.valid.any(axis=0))
+        texture = self.blend(self.cache(aligned), photos.fiducials, target, close_eyes=False)
+        return Texture(texture, aligned.valid.any(axis=0))
 
 
 class StaticTexture(TextureBackend):

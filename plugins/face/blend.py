@@ -21,6 +21,7 @@ frame) costs only these products (the paper's puppetry mode, §6).
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import cv2
@@ -42,6 +43,17 @@ def expression_weights(fiducials: np.ndarray, target: np.ndarray, sigma: float, 
     d2 = np.shape(fiducials)[1] * mean_square_distance(fiducials, target)  # over the shared points, scaled to all
     d2[np.isnan(d2)] = np.inf  # no point in common
     return np.exp(-(d2 - (d2.min() if relative else 0.0)) / (2.0 * sigma ** 2))
+
+
+def seen_sums(images: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(Σ_i valid_i · image_i (H, W, C), Σ_i valid_i (H, W)) over photos (n, H, W, C): summed over
+    shards of a collection, :func:`seen_mean` of them is the collection's."""
+    return np.einsum("nhw,nhwc->hwc", valid.astype(np.float32), images), valid.sum(axis=0)
+
+
+def seen_mean(total: np.ndarray, count: np.ndarray) -> np.ndarray:
+    """The mean image of the photos where they see it (0 where none does), from :func:`seen_sums`."""
+    return total / np.maximum(count, 1)[..., None]
 
 
 def level_bias(levels: int, beta: float, tau: float) -> np.ndarray:
@@ -97,20 +109,116 @@ def detail_pyramid(grey: np.ndarray, valid: np.ndarray, levels: int, *, blur: fl
 
 @numba.njit(cache=True, nogil=True, fastmath=True)
 def _gemv_rows(stack, rows, weights, out):
-    """out = Σ_r weights[r] · stack[rows[r]] (a matrix-vector product over the chosen rows of a
-    (n, p) matrix, streaming each row once, without gathering them into a copy)."""
-    out[:] = 0
+    """out += Σ_r weights[r] · stack[rows[r]] (a matrix-vector product over the chosen rows of a
+    (n, p) matrix, streaming each row once, without gathering them into a copy). Adding into
+    ``out``, row after row, makes a sum over shards of rows equal to the sum over all of them."""
     for r in range(rows.shape[0]):
         row, w = stack[rows[r]], weights[r]
         for j in range(out.shape[0]):
             out[j] += w * row[j]
 
 
-def _product(stack: np.ndarray, rows: np.ndarray, weights: np.ndarray) -> np.ndarray:
-    """Σ_r weights_r stack[rows_r] for a (n, ...) float32 stack."""
-    out = np.empty(int(np.prod(stack.shape[1:])), np.float32)
-    _gemv_rows(stack.reshape(len(stack), -1), rows, weights, out)
-    return out.reshape(stack.shape[1:])
+def chosen(e: np.ndarray, skip: float) -> np.ndarray:
+    """Expression weights (f, n), one row per target, float32, with those below ``skip`` × their
+    row's largest set to 0: whatever their detail, their share of every level but the two coarsest
+    is below that, so they are left out of the sums (:class:`BlendSums`)."""
+    e = np.atleast_2d(np.asarray(e, np.float64))
+    top = e.max(axis=1, keepdims=True)
+    return np.where((e >= skip * top) & (top > 0), e, 0.0).astype(np.float32)
+
+
+@dataclass
+class BlendTotals:
+    """What Eq. 3 takes of every photo whatever the target, per level k: Σ_i P^i, Σ_i Q^i, and
+    Σ_i mean_c (P^i)² / Q^i (the numerator of the band energy one photo has, for ``restore``);
+    and the uniform term's τ l^-β per level. Small (one pyramid each): a blend over photos held
+    shard by shard needs only these of the others."""
+
+    weighted: list[np.ndarray]
+    detail: list[np.ndarray]
+    energy: list[np.ndarray]
+    bias: np.ndarray
+
+    @classmethod
+    def of(cls, weighted: list[np.ndarray], detail: list[np.ndarray], bias: np.ndarray) -> "BlendTotals":
+        energy = []
+        for p_k, q_k in zip(weighted, detail):
+            total = np.zeros(q_k.shape[1:3], np.float64)
+            for p, q in zip(p_k, q_k):
+                total += np.divide(np.mean(p ** 2, axis=-1), q[..., 0], out=np.zeros(q.shape[:2], np.float32),
+                                   where=q[..., 0] > 0)
+            energy.append(total)
+        return cls([p.sum(axis=0) for p in weighted], [q.sum(axis=0) for q in detail], energy, np.asarray(bias))
+
+    def __add__(self, other: "BlendTotals") -> "BlendTotals":
+        """The totals of two disjoint sets of photos together."""
+        return BlendTotals([a + b for a, b in zip(self.weighted, other.weighted)],
+                           [a + b for a, b in zip(self.detail, other.detail)],
+                           [a + b for a, b in zip(self.energy, other.energy)], self.bias)
+
+    @property
+    def levels(self) -> int:
+        return len(self.weighted)
+
+    def photo_energy(self, k: int) -> np.ndarray:
+        """(h_k, w_k) the band energy a photo has at level k about each pixel: the detail-weighted
+        mean over the photos of their band's squared value (mean over channels), smoothed over 2 px."""
+        den = self.detail[k][..., 0]
+        energy = np.divide(self.energy[k], den, out=np.zeros_like(self.energy[k]), where=den > 0)
+        return cv2.GaussianBlur(energy.astype(np.float32), (0, 0), 2.0)
+
+
+@dataclass
+class BlendSums:
+    """Eq. 3's target-dependent sums for f targets, per level k: ``num[k]`` (f, h_k, w_k, C) =
+    Σ_i e_i P^i and ``den[k]`` (f, h_k, w_k, 1) = Σ_i e_i Q^i. Photos can be added a shard at a
+    time (:meth:`add`); :meth:`finish` makes the blended images."""
+
+    num: list[np.ndarray]
+    den: list[np.ndarray]
+
+    @classmethod
+    def zeros(cls, targets: int, totals: BlendTotals) -> "BlendSums":
+        return cls([np.zeros((targets, *p.shape), np.float32) for p in totals.weighted],
+                   [np.zeros((targets, *q.shape), np.float32) for q in totals.detail])
+
+    def add(self, weighted: list[np.ndarray], detail: list[np.ndarray], e: np.ndarray) -> None:
+        """Add photos: their cache levels (m, h_k, w_k, ·) and their :func:`chosen` weights (f, m)."""
+        for t, row in enumerate(np.asarray(e, np.float32)):
+            rows = np.flatnonzero(row > 0)
+            if len(rows) == 0:
+                continue
+            for k in range(len(self.num)):
+                for stack, out in ((weighted[k], self.num[k][t]), (detail[k], self.den[k][t])):
+                    _gemv_rows(stack.reshape(len(stack), -1), rows, row[rows], out.reshape(-1))
+
+    def finish(self, totals: BlendTotals, *, restore: float = 1.0) -> np.ndarray:
+        """The blended images (f, H, W, C): per level (num + c Σ P) / (den + c Σ Q), Σ over all
+        photos' totals; the coarsest level (c infinite) is the totals' own ratio.
+
+        ``restore`` > 1 (not in the paper): a weighted mean of photos whose fine detail does not
+        coincide (skin, pores, hair) has less of it than any one photo; each band but the two
+        coarsest is scaled back, pixel by pixel, towards the energy a photo has there
+        (:meth:`BlendTotals.photo_energy`; the blend's own smoothed over 2 px likewise), by a
+        factor between 1 and ``restore``."""
+        images = []
+        for t in range(len(self.num[0])):
+            pyramid = []
+            for k in range(totals.levels):
+                c = totals.bias[k]
+                if np.isinf(c):  # l = 0: uniform, the expression weight drops out
+                    num, den = totals.weighted[k], totals.detail[k]
+                else:
+                    num = self.num[k][t] + np.float32(c) * totals.weighted[k]
+                    den = self.den[k][t] + np.float32(c) * totals.detail[k]
+                band = num / np.where(den > 0, den, np.inf)  # 0 where no photo sees the pixel
+                if restore > 1 and k < totals.levels - 2:
+                    have = cv2.GaussianBlur(np.mean(band ** 2, axis=-1), (0, 0), 2.0)
+                    gain = np.sqrt(np.divide(totals.photo_energy(k), have, out=np.ones_like(have), where=have > 0))
+                    band = band * np.clip(gain, 1.0, restore)[..., None]
+                pyramid.append(band)
+            images.append(collapse(pyramid))
+        return np.stack(images)
 
 
 @dataclass
@@ -126,41 +234,28 @@ class BlendCache:
     detail: list[np.ndarray]
     bias: np.ndarray
 
-    def __post_init__(self):
-        # the uniform term's sums over all photos, shared by every target
-        self._weighted_sum = [p.sum(axis=0) for p in self.weighted]
-        self._detail_sum = [q.sum(axis=0) for q in self.detail]
-        self._energy = {}  # photo_energy's, per level
-
-    def photo_energy(self, k: int) -> np.ndarray:
-        """(h_k, w_k) the band energy a photo has at level k about each pixel: the detail-weighted
-        mean over the photos of their band's squared value (mean over channels), i.e.
-        Σ_i P_i² / Q_i / Σ_i Q_i, smoothed over 2 px. Computed on first use."""
-        if k not in self._energy:
-            total = np.zeros(self.detail[k].shape[1:3], np.float64)
-            for p, q in zip(self.weighted[k], self.detail[k]):
-                total += np.divide(np.mean(p ** 2, axis=-1), q[..., 0], out=np.zeros(q.shape[:2], np.float32),
-                                   where=q[..., 0] > 0)
-            den = self._detail_sum[k][..., 0]
-            energy = np.divide(total, den, out=np.zeros_like(total), where=den > 0).astype(np.float32)
-            self._energy[k] = cv2.GaussianBlur(energy, (0, 0), 2.0)
-        return self._energy[k]
+    @functools.cached_property
+    def totals(self) -> BlendTotals:
+        """The sums over all photos shared by every target."""
+        return BlendTotals.of(self.weighted, self.detail, self.bias)
 
     @classmethod
     def build(cls, images: np.ndarray, valid: np.ndarray, *, levels: int, alpha: float, beta: float,
               tau: float, blur: float = 1.0, floor: float = 1e-6, margin: int = 2,
-              confidence: np.ndarray | None = None) -> "BlendCache":
+              confidence: np.ndarray | None = None, fill: np.ndarray | None = None) -> "BlendCache":
         """images: (n, H, W, C) float aligned photos; valid: (n, H, W) bool; confidence: None or
         (n, H, W) in [0, 1], each photo's local alignment confidence, a factor of its detail
         response L^i (so of its weight at every level): where a photo failed to register
         (a tear, a misplaced feature) it cannot dominate the fine levels however sharp it is.
 
-        A photo's unseen pixels are filled with the mean of the photos that see them before its
-        pyramid is built, so its bands carry no edge where its view ends; its weight there is
-        zero, and ``margin`` px inside that edge too (resampling blurs the last pixels)."""
+        A photo's unseen pixels are filled with ``fill`` (H, W, C), by default the mean of the photos
+        that see them (:func:`seen_mean`), before its pyramid is built, so its bands carry no edge
+        where its view ends; its weight there is zero, and ``margin`` px inside that edge too
+        (resampling blurs the last pixels). A cache built a shard of photos at a time is given the
+        fill of them all."""
         n = len(images)
-        seen = valid.sum(axis=0)
-        fill = np.einsum("nhw,nhwc->hwc", valid.astype(np.float32), images) / np.maximum(seen, 1)[..., None]
+        if fill is None:
+            fill = seen_mean(*seen_sums(images, valid))
         kernel = np.ones((2 * margin + 1, 2 * margin + 1), np.uint8)
         weighted, detail = [], []
         for i in range(n):
@@ -182,35 +277,12 @@ class BlendCache:
         return len(self.weighted)
 
     def blend(self, e: np.ndarray, *, skip: float = 1e-6, restore: float = 1.0) -> np.ndarray:
-        """The blended image (H, W, C) for expression weights e (n,).
-
-        Each level is one matrix-vector product over the photos, compiled so that photos whose
-        e is below ``skip`` × max(e) are skipped without copying the others: whatever their
-        detail, their share of every level but the two coarsest is below that.
-
-        ``restore`` > 1 (not in the paper): a weighted mean of photos whose fine detail does not
-        coincide (skin, pores, hair) has less of it than any one photo; each band but the two
-        coarsest is scaled back, pixel by pixel, towards the energy a photo has there
-        (:meth:`photo_energy`; the blend's own smoothed over 2 px likewise), by a factor between 1 and
-        ``restore``."""
-        e = np.asarray(e, np.float64)
-        rows = np.flatnonzero(e >= skip * e.max()) if e.max() > 0 else np.zeros(0, np.int64)
-        ek = e[rows].astype(np.float32)
-        pyramid = []
-        for k in range(self.levels):
-            c = self.bias[k]
-            if np.isinf(c):  # l = 0: uniform, the expression weight drops out
-                num, den = self._weighted_sum[k], self._detail_sum[k]
-            else:
-                num = _product(self.weighted[k], rows, ek) + np.float32(c) * self._weighted_sum[k]
-                den = _product(self.detail[k], rows, ek) + np.float32(c) * self._detail_sum[k]
-            band = num / np.where(den > 0, den, np.inf)  # 0 where no photo sees the pixel
-            if restore > 1 and k < self.levels - 2:
-                have = cv2.GaussianBlur(np.mean(band ** 2, axis=-1), (0, 0), 2.0)
-                gain = np.sqrt(np.divide(self.photo_energy(k), have, out=np.ones_like(have), where=have > 0))
-                band = band * np.clip(gain, 1.0, restore)[..., None]
-            pyramid.append(band)
-        return collapse(pyramid)
+        """The blended image (H, W, C) for expression weights e (n,): the photos whose e is below
+        ``skip`` × max(e) are left out of the sums (:func:`chosen`), ``restore`` as in
+        :meth:`BlendSums.finish`."""
+        sums = BlendSums.zeros(1, self.totals)
+        sums.add(self.weighted, self.detail, chosen(e, skip))
+        return sums.finish(self.totals, restore=restore)[0]
 
     def weights(self, e: np.ndarray) -> list[np.ndarray]:
         """The normalised W̃^i_l per level, (n, h_k, w_k): for tests and pictures."""

@@ -3,8 +3,8 @@
 Lambertian faces under first-order spherical-harmonic light span 4 dimensions (an
 ambient and three directional components), so the aligned photos of one person lie
 near a rank-4 subspace. The mean is not subtracted: it lies in that span. The basis
-itself is computed out of core by the DAG (a randomised SVD over shards); here are the
-per-photo operations on it.
+itself is computed out of core (:func:`streamed_svd`, a randomised SVD whose every pass streams
+the shards once); here are that and the per-photo operations on it.
 """
 
 from __future__ import annotations
@@ -34,3 +34,22 @@ def project(image: np.ndarray, basis: np.ndarray, weights: np.ndarray | None = N
         coef = np.linalg.lstsq((b * w).T, x * w, rcond=None)[0]
     return (coef @ b).reshape(image.shape)
 
+
+def streamed_svd(rows, rank: int, compute, *, oversample: int = 10, power_iterations: int = 2,
+                 seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Top ``rank`` singular values and right singular vectors (rank, p) of a tall dask array.
+
+    A randomised SVD (Halko et al. 2011) in which every product with ``rows`` is its own
+    computation: each pass streams the shards once and keeps only small (n, l) or (p, l)
+    results, so memory does not grow with the number of rows (dask's ``svd_compressed``
+    computes all passes in one graph and holds every shard between them).
+    """
+    p = rows.shape[1]
+    omega = np.random.default_rng(seed).standard_normal((p, rank + oversample)).astype(np.float32)
+    q = np.linalg.qr(compute(rows @ omega)[0])[0]
+    for _ in range(power_iterations):
+        z = np.linalg.qr(compute(rows.T @ q.astype(np.float32))[0])[0]
+        q = np.linalg.qr(compute(rows @ z.astype(np.float32))[0])[0]
+    projected = compute(rows.T @ q.astype(np.float32))[0].T  # Qᵀ A, (l, p)
+    _, singular, vt = np.linalg.svd(projected.astype(np.float64), full_matrices=False)
+    return singular[:rank], vt[:rank]

@@ -34,7 +34,8 @@ import cv2
 import numpy as np
 
 from ..kinds import FlowBackend, TexturePhotos
-from .subspace import project
+from .blend import seen_mean, seen_sums
+from .subspace import project, streamed_svd
 from .template import CANONICAL_HEIGHT as H, CANONICAL_WIDTH as W
 from .warp import compose, tps_map
 
@@ -65,7 +66,8 @@ def _sample(photo: np.ndarray, fmap: np.ndarray) -> np.ndarray:
     return cv2.remap(photo, fmap[..., 0], fmap[..., 1], cv2.INTER_LINEAR).astype(np.float32)
 
 
-def _grey(rgb: np.ndarray) -> np.ndarray:
+def to_grey(rgb: np.ndarray) -> np.ndarray:
+    """Rec. 601 grey in [0, 1] of RGB in [0, 255], (..., 3) -> (...)."""
     return (rgb @ np.float32([0.299, 0.587, 0.114])) / 255
 
 
@@ -123,14 +125,22 @@ def align(photos: TexturePhotos, target: np.ndarray, flow: FlowBackend, *, tps_l
 
 def _align(photos, target, flow, tps_lambda, rank, reference) -> Aligned:
     warped, maps = tps_aligned(photos, target, tps_lambda=tps_lambda)
-    grey = _grey(warped.rgb)
-    basis = _basis(grey, warped.valid, rank)
-    grid = _grid()
+    basis = warped_basis(to_grey(warped.rgb), warped.valid, seen_mean(*seen_sums(warped.rgb, warped.valid)), rank)
     shift = None
     if reference is not None:
-        ref = _grey(np.asarray(reference, np.float32))
+        ref = to_grey(np.asarray(reference, np.float32))
         seen = ref > 0
-        shift = grid + flow.flow(ref, np.clip(project(ref, basis, seen), 0, 1).astype(np.float32), seen)
+        shift = _grid() + flow.flow(ref, np.clip(project(ref, basis, seen), 0, 1).astype(np.float32), seen)
+    return flow_aligned(photos, warped, maps, basis, flow, shift=shift)
+
+
+def flow_aligned(photos: TexturePhotos, warped: Aligned, maps: np.ndarray, basis: np.ndarray, flow: FlowBackend, *,
+                 shift: np.ndarray | None = None) -> Aligned:
+    """Step 2 for every photo: the TPS-warped photos (:func:`tps_aligned`: ``warped`` and their
+    ``maps``) flowed to their own projections on ``basis`` (k, H, W), the raw photo sampled once
+    through both, with the misfit measures; ``shift`` the reference mode's grid (or None)."""
+    grey = to_grey(warped.rgb)
+    grid = _grid()
     rgb = np.empty_like(warped.rgb)
     valid = np.empty_like(warped.valid)
     stretch = np.empty(valid.shape, np.float32)
@@ -147,23 +157,17 @@ def _align(photos, target, flow, tps_lambda, rank, reference) -> Aligned:
             projection = compose(projection, shift)
         rgb[i] = _sample(photos.photos[i], compose(maps[i], moved))
         valid[i] = compose(seen.astype(np.float32), moved) > 0.99
-        residual[i] = (bandpass(_grey(rgb[i])) - bandpass(projection)) ** 2
+        residual[i] = (bandpass(to_grey(rgb[i])) - bandpass(projection)) ** 2
         for m in (stretch, residual):
             m[i] = cv2.GaussianBlur(m[i], (0, 0), MISFIT_BLUR)
     rgb[~valid] = 0
     return Aligned(rgb, valid, stretch, residual)
 
 
-def _basis(grey: np.ndarray, valid: np.ndarray, rank: int) -> np.ndarray:
-    """Rank-k basis (k, H, W) of the TPS-warped grey photos; unseen pixels take the mean of
-    the photos that see them (they carry no light of their own). Through the n x n Gram matrix:
-    n² p work, fine for the few hundred photos of one target."""
-    n = len(grey)
-    seen = valid.sum(axis=0)
-    mean = np.where(seen > 0, (grey * valid).sum(axis=0) / np.maximum(seen, 1), 0)
-    rows = np.where(valid, grey, mean).reshape(n, -1).astype(np.float64)
-    evals, evecs = np.linalg.eigh(rows @ rows.T)
-    top = evecs[:, np.argsort(evals)[::-1][:rank]]
-    basis = top.T @ rows
-    basis /= np.linalg.norm(basis, axis=1, keepdims=True)
-    return basis.reshape(rank, H, W).astype(np.float32)
+def warped_basis(grey, valid, fill: np.ndarray, rank: int, compute=lambda *arrays: arrays) -> np.ndarray:
+    """Rank-k basis (k, H, W) of TPS-warped grey photos (n, H, W), NumPy or Dask arrays; unseen
+    pixels take the grey of ``fill`` (H, W, 3), the collection's mean where it sees (they carry no
+    light of their own). A randomised SVD (subspace.streamed_svd) whose products ``compute`` makes:
+    on Dask arrays a pass over the shards each."""
+    rows = np.where(valid, grey, to_grey(np.asarray(fill, np.float32))).reshape(len(grey), -1)
+    return streamed_svd(rows, rank, compute)[1].reshape(rank, H, W).astype(np.float32)

@@ -280,6 +280,45 @@ def test_3d_run_after_a_2d_run_renders_again(drive_run):
     assert three_d["expression"] != two_d["expression"]
 
 
+def test_the_texture_cache_made_a_shard_at_a_time_is_the_whole_collections(drive_run, monkeypatch):
+    """The run builds B's texture cache in tasks over shards of 4 photos (each step's sums, the
+    basis by a randomised SVD over the shards); done on all 10 photos at once in memory with the
+    same steps, the pyramids agree to 1e-3 of their range and the neutral texture to 1 level of 255.
+    A drive's textures read the cache a shard at a time: with no room to keep any shard between
+    tasks they are the same to the bit."""
+    from persona.dag import texture as texture_module
+    from persona.plugins.face.blend import seen_mean, seen_sums
+    from persona.plugins.face.texture import to_grey, warped_basis
+    from persona.stores.layout import OK, Collection, open_store
+
+    folder, path, _ = drive_run
+    root = open_store(str(folder / "run.zarr"), mode="r")
+    puppet, drive = Collection(root, "puppet"), Collection(root, "drive")
+    assert puppet.shard == 4 and not puppet.has("texture/warped_grey")  # the steps' own arrays are gone
+    backend = texture_module.texture_backend(type("R", (), {"wf": load_workflow(path)})())[2]
+    ok = np.flatnonzero(puppet.state("align") == OK)
+    photos = texture_module.texture_photos(puppet, ok)
+    target = puppet.array("aligned/mean_fiducials")[...].astype(np.float64)
+    warped, maps = backend.params.warped(photos, target)
+    fill = seen_mean(*seen_sums(warped.rgb, warped.valid))
+    basis = warped_basis(to_grey(warped.rgb), warped.valid, fill, backend.params.rank)
+    whole = backend.cache(backend.params.flowed(photos, warped, maps, basis), fill)
+    for k in range(whole.levels):
+        stored = puppet.rows(f"texture/weighted_{k}", ok)
+        assert np.abs(stored - whole.weighted[k]).max() < 1e-3 * np.ptp(whole.weighted[k]), k
+    neutral = backend.blend(whole, photos.fiducials, target)
+    assert np.abs(puppet.array("texture/neutral")[...].astype(float) - neutral).max() <= 1.0
+
+    monkeypatch.setattr(texture_module, "CACHE_BYTES", 1)  # every task reads every shard it needs
+    texture_module._shards.clear()
+    name, params = load_workflow(path).stage("texture")
+    key = puppet.provenance("texture/neutral").key
+    again = texture_module.stored_textures(str(folder / "run.zarr"), "puppet", key, name, params,
+                                           drive.array("target")[:8])
+    np.testing.assert_array_equal(again.round().astype(np.uint8), drive.array("texture/rgb")[:8])
+    assert len(texture_module._shards) == 1
+
+
 def test_texture_backend_without_video_mode_falls_back_to_the_static_average(drive_run):
     from persona.stores.layout import Collection, open_store
 

@@ -2,7 +2,7 @@ import dask
 import dask.array as da
 import numpy as np
 
-from persona.dag.shape import streamed_svd
+from persona.plugins.face.subspace import streamed_svd
 
 
 def sync_compute(*arrays):
