@@ -17,7 +17,7 @@ from persona.plugins.base import Rejected
 from persona.plugins.face.subspace import streamed_svd
 from persona.plugins.face.template import CANONICAL_HEIGHT as H, CANONICAL_WIDTH as W
 from persona.stores import storage
-from persona.stores.layout import OK, Collection
+from persona.stores.layout import OK, Collection, open_store
 from persona.stores.provenance import Provenance
 
 from . import stages as st
@@ -68,10 +68,9 @@ def run_alignment(runner, coll: Collection) -> Provenance:
 
 def run_shape(runner, coll: Collection, aligned: Provenance) -> dict[str, str]:
     """Photometric stereo over the aligned collection -> normals, albedo, lighting, depth;
-    the textured mesh (PLY, OBJ) and shaded previews into the output folder."""
-    from persona.plugins.builtin.shape import as_grey
-    from persona.plugins.face.template import generic_template
-
+    the textured mesh (PLY, OBJ) and shaded previews into the output folder. The collection's
+    mean (the mesh's texture) is a sum over shards; the rest is one task on a worker
+    (:func:`photometric_stereo`), which holds the collection's grey faces."""
     shape_name, shape_params = runner.wf.stage("shape")
     integrate_name, integrate_params = runner.wf.stage("integrate")
     registry = st.default_registry()
@@ -89,29 +88,45 @@ def run_shape(runner, coll: Collection, aligned: Provenance) -> dict[str, str]:
     parts = list(runner.executor.run(st.aligned_sum, tasks))
     count = sum(p["count"] for p in parts)
     texture = (sum(p["sum"] for p in parts) / np.maximum(count, 1)[..., None]).clip(0, 255).astype(np.uint8)
+    list(runner.executor.run(photometric_stereo, [(runner.wf.store, coll.path, runner.wf.output, texture,
+                                                   count >= 0.3 * ok.sum(), prov, shape_name, shape_params,
+                                                   integrate_name, integrate_params)]))
+    return {k: str(v) for k, v in files.items()}
+
+
+def photometric_stereo(url: str, path: str, output: str, texture: np.ndarray, seen: np.ndarray, prov: Provenance,
+                       shape_name: str, shape_params: dict, integrate_name: str, integrate_params: dict) -> None:
+    """:func:`run_shape`'s task on a worker: the shape backend over the aligned collection (its
+    accepted photos, grey), on the template's mask where at least 30 % of them see (``seen``), then
+    the integrate backend; the mesh files into ``output`` and the arrays, ``shape/depth`` last."""
+    from persona.plugins.builtin.shape import as_grey
+    from persona.plugins.face.template import generic_template
+
+    coll = Collection(open_store(url), path)
+    registry = st.default_registry()
+    ok = coll.state("align") == OK
     template = generic_template()
-    mask = template.mask & (count >= 0.3 * ok.sum())
-    images, seen = [], []
+    mask = template.mask & seen
+    images, visible = [], []
     for start, stop in coll.shard_ranges():  # the aligned collection, grey, float32: n x H x W
         keep = ok[start:stop]
         if keep.any():
             images.append(as_grey(coll.array("collection/rgb")[start:stop][keep].astype(np.float32) / 255))
-            seen.append(coll.array("collection/mask")[start:stop][keep])
+            visible.append(coll.array("collection/mask")[start:stop][keep])
     result = registry.get("shape", shape_name)(shape_params).reconstruct(
-        np.concatenate(images), mask, np.concatenate(seen), template.normals, template.depth)
+        np.concatenate(images), mask, np.concatenate(visible), template.normals, template.depth)
     mask &= np.isfinite(result.normals).all(axis=-1)  # pixels seen by too few photos have no normal
     depth = registry.get("integrate", integrate_name)(integrate_params).integrate(
         result.normals, mask, reference=template.depth)
     lighting = np.full((coll.n, result.lighting.shape[1]), np.nan)
     lighting[ok] = result.lighting
-    export(coll, runner.wf.output, depth, mask, texture)
+    export(coll, output, depth, mask, texture)
     # shape/depth last: its provenance marks the step done (files above, arrays it depends on before it)
     for name, value, dims in (("shape/normals", result.normals, ("y", "x", "xyz")),
                               ("shape/albedo", result.albedo, ("y", "x")), ("shape/mask", mask, ("y", "x")),
                               ("shape/texture", texture, ("y", "x", "channel")),
                               ("shape/lighting", lighting, ("photo", "sh")), ("shape/depth", depth, ("y", "x"))):
         coll.create_single(name, np.asarray(value), dims, prov)
-    return {k: str(v) for k, v in files.items()}
 
 
 def mesh_name(coll: Collection) -> str:

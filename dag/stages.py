@@ -87,7 +87,7 @@ STEPS = {step.name: step for step in (
     Step("align", ("puppet", "driver"), ("align", "flow"), "the appearance subspace, then each photo's flow to the "
          "mean face", "the client (subspace), then tasks over shards"),
     Step("shape", ("puppet", "driver"), ("shape", "integrate"), "depth, albedo and meshes by photometric stereo",
-         "the client"),
+         "tasks over shards (the mean), then one task (photometric stereo over the whole collection)"),
     Step("texture", ("puppet",), ("texture",), "the expression-dependent texture's cache of aligned photos",
          "tasks over shards (warp, basis by products over them, cache), then one task (the neutral texture)"),
     Step("retarget", ("drive",), ("motion",), "the driver's smoothed poses and B's target fiducials", "the client"),
