@@ -511,6 +511,24 @@ class Runner:
                 bar.update(stop - start)
         return results
 
+    def fold_shards(self, coll: Collection, label: str, fn, combine, *args):
+        """:meth:`map_shards`, the shards' results (None: nothing to add) folded with
+        ``combine(a, b)`` in the order of the shards as they arrive: only the results that come
+        before their turn are held, and the fold is the same to the bit whichever task ends first."""
+        tasks = [(fn, self.wf.store, coll.path, s, e, *args) for s, e in coll.shard_ranges()]
+        starts = [s for s, _ in coll.shard_ranges()]
+        early, total, turn = {}, None, 0
+        with self.progress_bar(f"{coll.path:>13} {label:<10}", coll.n, item(coll.path)) as bar:
+            for start, stop, result in self.executor.run(st.on_shard, tasks):
+                early[start] = result
+                bar.update(stop - start)
+                while turn < len(starts) and starts[turn] in early:
+                    result = early.pop(starts[turn])
+                    turn += 1
+                    if result is not None:
+                        total = result if total is None else combine(total, result)
+        return total
+
     def _run(self, coll, steps, tasks, fn):
         names = [name for name, _, _ in steps]
         done = {name: int((coll.state(name) != PENDING).sum()) for name in names}
@@ -547,11 +565,9 @@ class Runner:
         ok = st.accepted(coll)
         if not ok.any():
             return None
-        tasks = [(self.wf.store, coll.path, s, e) for s, e in coll.shard_ranges() if ok[s:e].any()]
-        parts = list(self.executor.run(st.aligned_sum, tasks))
-        total = sum(p["sum"] for p in parts)
-        count = sum(p["count"] for p in parts)
-        mean = (total / np.maximum(count, 1)[..., None]).astype(np.float32)
+        sums = self.fold_shards(coll, "mean face", st.aligned_sum, st.add_sums)
+        count = sums["count"]
+        mean = (sums["sum"] / np.maximum(count, 1)[..., None]).astype(np.float32)
         prov = Provenance.make(stage="mean", backend="-", backend_version="1", params={},
                                inputs={"screen": coll.provenance("status/screen/state").key},
                                persona_version=self.version)

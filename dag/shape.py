@@ -84,10 +84,9 @@ def run_shape(runner, coll: Collection, aligned: Provenance) -> dict[str, str]:
             export(coll, runner.wf.output, *(coll.array(name)[...] for name in ("shape/depth", "shape/mask", "shape/texture")))
         return {k: str(v) for k, v in files.items()}
     ok = coll.state("align") == OK
-    tasks = [(runner.wf.store, coll.path, s, e, "collection", "align") for s, e in coll.shard_ranges() if ok[s:e].any()]
-    parts = list(runner.executor.run(st.aligned_sum, tasks))
-    count = sum(p["count"] for p in parts)
-    texture = (sum(p["sum"] for p in parts) / np.maximum(count, 1)[..., None]).clip(0, 255).astype(np.uint8)
+    sums = runner.fold_shards(coll, "mean", st.aligned_sum, st.add_sums, "collection", "align")
+    count = sums["count"]
+    texture = (sums["sum"] / np.maximum(count, 1)[..., None]).clip(0, 255).astype(np.uint8)
     (depth, mask), = runner.executor.run(photometric_stereo, [(runner.wf.store, coll.path, texture,
                                                               count >= 0.3 * ok.sum(), prov, shape_name, shape_params,
                                                               integrate_name, integrate_params)])
@@ -102,24 +101,28 @@ def photometric_stereo(url: str, path: str, texture: np.ndarray, seen: np.ndarra
                        shape_name: str, shape_params: dict, integrate_name: str,
                        integrate_params: dict) -> tuple[np.ndarray, np.ndarray]:
     """:func:`run_shape`'s task on a worker: the shape backend over the aligned collection (its
-    accepted photos, grey), on the template's mask where at least 30 % of them see (``seen``), then
-    the integrate backend. Stores every array but ``shape/depth`` and returns (depth, mask)."""
+    accepted photos, grey, or those of them it takes: ``images_for``), on the template's mask where at
+    least 30 % of them see (``seen``), then the integrate backend. Stores every array but
+    ``shape/depth`` and returns (depth, mask)."""
     from persona.plugins.builtin.shape import as_grey
     from persona.plugins.face.template import generic_template
 
     coll = Collection(open_store(url), path)
     registry = st.default_registry()
-    ok = coll.state("align") == OK
+    backend = registry.get("shape", shape_name)(shape_params)
+    accepted = np.flatnonzero(coll.state("align") == OK)
+    ok = np.zeros(coll.n, bool)
+    ok[accepted[backend.images_for(len(accepted))]] = True  # all, or as many as the backend takes
     template = generic_template()
     mask = template.mask & seen
     images, visible = [], []
-    for start, stop in coll.shard_ranges():  # the aligned collection, grey, float32: n x H x W
+    for start, stop in coll.shard_ranges():  # the aligned collection, grey: n x H x W
         keep = ok[start:stop]
         if keep.any():
             images.append(as_grey(coll.array("collection/rgb")[start:stop][keep].astype(np.float32) / 255))
             visible.append(coll.array("collection/mask")[start:stop][keep])
-    result = registry.get("shape", shape_name)(shape_params).reconstruct(
-        np.concatenate(images), mask, np.concatenate(visible), template.normals, template.depth)
+    result = backend.reconstruct(np.concatenate(images), mask, np.concatenate(visible), template.normals,
+                                 template.depth)
     mask &= np.isfinite(result.normals).all(axis=-1)  # pixels seen by too few photos have no normal
     depth = registry.get("integrate", integrate_name)(integrate_params).integrate(
         result.normals, mask, reference=template.depth)

@@ -446,6 +446,11 @@ def aligned_sum(url: str, path: str, start: int, stop: int, group: str = "aligne
             "count": mask.sum(axis=0, dtype=np.int64)}
 
 
+def add_sums(a: dict, b: dict) -> dict:
+    """Two shards' :func:`aligned_sum` together."""
+    return {"sum": a["sum"] + b["sum"], "count": a["count"] + b["count"]}
+
+
 def ingest_video(url: str, path: str, params: dict) -> dict:
     """Decode the frames of a video collection in one sequential pass, shard by shard.
 

@@ -18,7 +18,6 @@ written last).
 
 from __future__ import annotations
 
-import functools
 import logging
 import operator
 
@@ -99,8 +98,8 @@ def run_texture(runner, coll: Collection, aligned: Provenance) -> dict[str, str]
     if own:  # the TPS-warped photos, for the basis: removed again below
         coll.create("texture/warped_grey", (H, W), np.float32, ("photo", "y", "x"), prov)
         coll.create("texture/warped_valid", (H, W), bool, ("photo", "y", "x"), prov)
-    sums = _in_order(runner.map_shards(coll, "tex. warp", warp_shard, name, params))
-    fill = seen_mean(sum(total for total, _ in sums), sum(count for _, count in sums))
+    fill = seen_mean(*runner.fold_shards(coll, "tex. warp", warp_shard, lambda a, b: (a[0] + b[0], a[1] + b[1]),
+                                         name, params))
     basis = None
     if own:
         ok = np.flatnonzero(coll.state("align") == OK)
@@ -111,8 +110,7 @@ def run_texture(runner, coll: Collection, aligned: Provenance) -> dict[str, str]
     for k, level in enumerate(gaussian_pyramid(np.zeros((H, W), np.float32), levels)):
         coll.create(f"texture/weighted_{k}", (*level.shape, 3), np.float32, ("photo", *_level_dims(k), "channel"), prov)
         coll.create(f"texture/detail_{k}", (*level.shape, 1), np.float32, ("photo", *_level_dims(k), "weight"), prov)
-    parts = _in_order(runner.map_shards(coll, "tex. cache", cache_shard, name, params, fill, basis))
-    totals = functools.reduce(operator.add, [part for part in parts if part is not None])
+    totals = runner.fold_shards(coll, "tex. cache", cache_shard, operator.add, name, params, fill, basis)
     coll.remove("texture/warped_grey", "texture/warped_valid")
     for k in range(levels):  # what every target's blend takes of all photos (small)
         coll.create_single(f"texture/total_weighted_{k}", totals.weighted[k], (*_level_dims(k), "channel"), prov)
@@ -133,12 +131,6 @@ def _level_dims(k: int) -> tuple[str, str]:
     return ("y", "x") if k == 0 else (f"y_level{k}", f"x_level{k}")
 
 
-def _in_order(results: dict[int, object]) -> list:
-    """Shards' results by their first photo, so that sums over them do not depend on which
-    task finished first."""
-    return [results[start] for start in sorted(results)]
-
-
 def _shard_photos(coll: Collection, start: int, stop: int) -> np.ndarray:
     """The accepted photos of shard [start, stop), as indices into the collection."""
     return start + np.flatnonzero(coll.state("align")[start:stop] == OK)
@@ -151,7 +143,7 @@ def warp_shard(url: str, path: str, start: int, stop: int, name: str, params: di
     coll = Collection(open_store(url), path)
     rows = _shard_photos(coll, start, stop)
     if len(rows) == 0:
-        return 0.0, 0
+        return None
     backend = st.default_registry().get("texture", name)(params)
     if params.get("video_alignment") == "own":
         target = coll.array("aligned/mean_fiducials")[...].astype(np.float64)

@@ -187,6 +187,11 @@ class ShapeBackend(Backend):
         template_normals: (H, W, 3); template_depth: (H, W)."""
         raise NotImplementedError
 
+    def images_for(self, n: int) -> np.ndarray:
+        """Which of a collection's n aligned photos :meth:`reconstruct` is given (ascending
+        indices; its memory grows with their number): all of them unless a backend says otherwise."""
+        return np.arange(n)
+
 
 class IntegrateBackend(Backend):
     """Kind ``integrate``: depth from a normal field (ALGORITHMS §8.3)."""

@@ -319,6 +319,19 @@ def test_the_texture_cache_made_a_shard_at_a_time_is_the_whole_collections(drive
     assert len(texture_module._shards) == 1
 
 
+def test_a_shape_from_fewer_photos_than_the_collection_reads_only_those(drive_run):
+    """With ``max_images`` 8 of the 10 photos, the shape's task reads 8 (the others get no lights),
+    and the run goes on; back at the default, all 10 again."""
+    from persona.stores.layout import Collection, open_store
+
+    folder, path, _ = drive_run
+    lights = lambda: Collection(open_store(str(folder / "run.zarr"), mode="r"), "puppet").array("shape/lighting")[:]
+    assert cli(["run", str(path), "--scheduler", "sync", "--quiet", "--set", "stages.shape.params.max_images=8"]) == 0
+    assert np.isfinite(lights()).all(axis=1).sum() == 8
+    assert cli(["run", str(path), "--scheduler", "sync", "--quiet"]) == 0
+    assert np.isfinite(lights()).all(axis=1).sum() == 10
+
+
 def test_texture_backend_without_video_mode_falls_back_to_the_static_average(drive_run):
     from persona.stores.layout import Collection, open_store
 

@@ -346,3 +346,14 @@ def test_ps_robust_weights_ignore_highlights(ps_set):
         errors[robust] = angular_error_deg(r.normals[use], d["normals"][use]).mean()
     assert errors[0.0] > 1.8  # measured 2.01°: the blobs do hurt plain least squares
     assert errors[1.5] < 0.8 * errors[0.0]  # measured 1.49° (clean images: 1.18°)
+
+
+def test_a_large_collection_gives_photometric_stereo_max_images_evenly_spaced():
+    """At most ``max_images`` photos are read (the fit's memory grows with them): evenly spaced over
+    the collection, first and last included; a smaller collection, or 0, gives every photo."""
+    ps = TemplatePhotometricStereo({"max_images": 600})
+    chosen = ps.images_for(2000)
+    assert len(chosen) == 600 and chosen[0] == 0 and chosen[-1] == 1999
+    assert np.ptp(np.diff(chosen)) <= 1  # gaps of 3 or 4 photos, nowhere a hole
+    np.testing.assert_array_equal(ps.images_for(530), np.arange(530))
+    np.testing.assert_array_equal(TemplatePhotometricStereo({"max_images": 0}).images_for(5000), np.arange(5000))
