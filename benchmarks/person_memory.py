@@ -18,7 +18,6 @@ import argparse
 import subprocess
 import sys
 import tempfile
-import threading
 import time
 from contextlib import contextmanager
 from pathlib import Path
@@ -27,15 +26,15 @@ import cv2
 import psutil
 import yaml
 
-from ingest_throughput import SHARED
+from ingest_throughput import SHARED, PeakMemory
 
 
-class Sampler:
+class Sampler(PeakMemory):
     """The client's and the largest worker's resident memory, peaks per named phase."""
 
     def __init__(self, interval: float = 0.05):
-        self.interval, self.phase, self.peaks = interval, None, {}
-        self._stop = threading.Event()
+        super().__init__(interval)
+        self.phase, self.peaks = None, {}
 
     def _run(self):
         me = psutil.Process()
@@ -62,16 +61,6 @@ class Sampler:
             times[phase] = time.perf_counter() - t0
             time.sleep(2 * self.interval)
             self.phase = None
-
-    def __enter__(self):
-        self._thread = threading.Thread(target=self._run, daemon=True)
-        self._thread.start()
-        return self
-
-    def __exit__(self, *exc):
-        self._stop.set()
-        self._thread.join()
-
 
 def distinct_photos(size: int, folder: Path) -> Path:
     """``size`` distinct JPEGs from george_w_bush: copy k of each photo scaled by 1 + 0.02 k."""
