@@ -66,7 +66,12 @@ def video_aligned(coll: Collection, ok: np.ndarray, backend, alignment: str | No
     if alignment == "own":
         target = coll.array("aligned/mean_fiducials")[...].astype(np.float64)
         return backend.params.aligned(texture_photos(coll, ok), target)
-    return Aligned(coll.rows("collection/rgb", ok).astype(np.float32), coll.rows("collection/mask", ok))
+    return collection_aligned(coll, ok)
+
+
+def collection_aligned(coll: Collection, rows: np.ndarray) -> Aligned:
+    """The photos ``rows`` as the align stage's collection flow warped them to the mean fiducials."""
+    return Aligned(coll.rows("collection/rgb", rows).astype(np.float32), coll.rows("collection/mask", rows))
 
 
 def run_texture(runner, coll: Collection, aligned: Provenance) -> dict[str, str]:
@@ -154,7 +159,7 @@ def warp_shard(url: str, path: str, start: int, stop: int, name: str, params: di
         coll.array("texture/warped_grey")[start:stop] = grey
         coll.array("texture/warped_valid")[start:stop] = valid
     else:
-        warped = Aligned(coll.rows("collection/rgb", rows).astype(np.float32), coll.rows("collection/mask", rows))
+        warped = collection_aligned(coll, rows)
     return seen_sums(warped.rgb, warped.valid)
 
 
@@ -165,7 +170,6 @@ def cache_shard(url: str, path: str, start: int, stop: int, name: str, params: d
     returns the shard's :class:`BlendTotals` (None when it has no accepted photo)."""
     coll = Collection(open_store(url), path)
     rows = _shard_photos(coll, start, stop)
-    levels = sum(1 for key in coll.group["texture"].array_keys() if key.startswith("weighted_"))
     backend = st.default_registry().get("texture", name)(params)
     cache = None
     if len(rows) and basis is not None:
@@ -173,9 +177,8 @@ def cache_shard(url: str, path: str, start: int, stop: int, name: str, params: d
         photos = texture_photos(coll, rows)
         cache = backend.cache(backend.params.flowed(photos, *backend.params.warped(photos, target), basis), fill)
     elif len(rows):
-        cache = backend.cache(Aligned(coll.rows("collection/rgb", rows).astype(np.float32),
-                                      coll.rows("collection/mask", rows)), fill)
-    for k in range(levels):
+        cache = backend.cache(collection_aligned(coll, rows), fill)
+    for k in range(_levels(coll)):
         for kind in ("weighted", "detail"):
             array = coll.array(f"texture/{kind}_{k}")
             block = np.full((stop - start, *array.shape[1:]), np.nan, np.float32)
@@ -218,7 +221,7 @@ CACHE_BYTES = 1 << 30
 _shards: dict[tuple[str, int], tuple[list, list]] = {}
 
 
-def _cache_shard(coll: Collection, key: str, start: int, stop: int, rows: np.ndarray) -> tuple[list, list]:
+def _read_shard(coll: Collection, key: str, start: int, stop: int, rows: np.ndarray) -> tuple[list, list]:
     """The cache levels (weighted, detail) of the photos ``rows`` of shard [start, stop), kept
     between tasks while all kept shards fit in :data:`CACHE_BYTES` (the oldest dropped first)."""
     if (key, start) not in _shards:
@@ -280,7 +283,7 @@ def stored_textures(url: str, path: str, key: str, name: str, params: dict, targ
     for first, last in source.shard_ranges():
         a, b = np.searchsorted(ok, [first, last])
         if weights[:, a:b].any():
-            sums.add(*_cache_shard(source, key, first, last, ok[a:b]), weights[:, a:b])
+            sums.add(*_read_shard(source, key, first, last, ok[a:b]), weights[:, a:b])
     return backend.finish(sums, totals, fiducials, targets)
 
 
