@@ -503,31 +503,30 @@ class Runner:
         """``fn(store, path, start, stop, *args)`` on every shard of ``coll`` as tasks on the cluster
         (:func:`persona.dag.stages.on_shard`), with a progress bar; returns each shard's result by
         its first frame."""
-        tasks = [(fn, self.wf.store, coll.path, s, e, *args) for s, e in coll.shard_ranges()]
-        results = {}
-        with self.progress_bar(f"{coll.path:>13} {label:<10}", coll.n, item(coll.path)) as bar:
-            for start, stop, result in self.executor.run(st.on_shard, tasks):
-                results[start] = result
-                bar.update(stop - start)
-        return results
+        return {start: result for start, result in self._shard_results(coll, label, fn, *args)}
 
     def fold_shards(self, coll: Collection, label: str, fn, combine, *args):
         """:meth:`map_shards`, the shards' results (None: nothing to add) folded with
         ``combine(a, b)`` in the order of the shards as they arrive: only the results that come
         before their turn are held, and the fold is the same to the bit whichever task ends first."""
-        tasks = [(fn, self.wf.store, coll.path, s, e, *args) for s, e in coll.shard_ranges()]
         starts = [s for s, _ in coll.shard_ranges()]
         early, total, turn = {}, None, 0
+        for start, result in self._shard_results(coll, label, fn, *args):
+            early[start] = result
+            while turn < len(starts) and starts[turn] in early:
+                result = early.pop(starts[turn])
+                turn += 1
+                if result is not None:
+                    total = result if total is None else combine(total, result)
+        return total
+
+    def _shard_results(self, coll: Collection, label: str, fn, *args):
+        """(first frame, result) of each shard's task as it ends, with a progress bar."""
+        tasks = [(fn, self.wf.store, coll.path, s, e, *args) for s, e in coll.shard_ranges()]
         with self.progress_bar(f"{coll.path:>13} {label:<10}", coll.n, item(coll.path)) as bar:
             for start, stop, result in self.executor.run(st.on_shard, tasks):
-                early[start] = result
                 bar.update(stop - start)
-                while turn < len(starts) and starts[turn] in early:
-                    result = early.pop(starts[turn])
-                    turn += 1
-                    if result is not None:
-                        total = result if total is None else combine(total, result)
-        return total
+                yield start, result
 
     def _run(self, coll, steps, tasks, fn):
         names = [name for name, _, _ in steps]

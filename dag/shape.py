@@ -87,23 +87,24 @@ def run_shape(runner, coll: Collection, aligned: Provenance) -> dict[str, str]:
     sums = runner.fold_shards(coll, "mean", st.aligned_sum, st.add_sums, "collection", "align")
     count = sums["count"]
     texture = (sums["sum"] / np.maximum(count, 1)[..., None]).clip(0, 255).astype(np.uint8)
-    (depth, mask), = runner.executor.run(photometric_stereo, [(runner.wf.store, coll.path, texture,
-                                                              count >= 0.3 * ok.sum(), prov, shape_name, shape_params,
-                                                              integrate_name, integrate_params)])
+    (depth, mask), = runner.executor.run(photometric_stereo, [(runner.wf.store, coll.path, count >= 0.3 * ok.sum(),
+                                                              prov, shape_name, shape_params, integrate_name,
+                                                              integrate_params)])
     # the mesh files here: pymeshlab, which cleans them, corrupts the heap of a worker (its task thread)
     export(coll, runner.wf.output, depth, mask, texture)
+    coll.create_single("shape/texture", texture, ("y", "x", "channel"), prov)
     # shape/depth last: its provenance marks the step done (files above, arrays it depends on before it)
     coll.create_single("shape/depth", depth, ("y", "x"), prov)
     return {k: str(v) for k, v in files.items()}
 
 
-def photometric_stereo(url: str, path: str, texture: np.ndarray, seen: np.ndarray, prov: Provenance,
+def photometric_stereo(url: str, path: str, seen: np.ndarray, prov: Provenance,
                        shape_name: str, shape_params: dict, integrate_name: str,
                        integrate_params: dict) -> tuple[np.ndarray, np.ndarray]:
     """:func:`run_shape`'s task on a worker: the shape backend over the aligned collection (its
     accepted photos, grey, or those of them it takes: ``images_for``), on the template's mask where at
-    least 30 % of them see (``seen``), then the integrate backend. Stores every array but
-    ``shape/depth`` and returns (depth, mask)."""
+    least 30 % of them see (``seen``), then the integrate backend. Stores normals, albedo, mask and
+    lights, and returns (depth, mask)."""
     from persona.plugins.builtin.shape import as_grey
     from persona.plugins.face.template import generic_template
 
@@ -130,7 +131,6 @@ def photometric_stereo(url: str, path: str, texture: np.ndarray, seen: np.ndarra
     lighting[ok] = result.lighting
     for name, value, dims in (("shape/normals", result.normals, ("y", "x", "xyz")),
                               ("shape/albedo", result.albedo, ("y", "x")), ("shape/mask", mask, ("y", "x")),
-                              ("shape/texture", texture, ("y", "x", "channel")),
                               ("shape/lighting", lighting, ("photo", "sh"))):
         coll.create_single(name, np.asarray(value), dims, prov)
     return np.asarray(depth), mask

@@ -435,11 +435,15 @@ def _summary(state: np.ndarray, seconds: float, skipped: bool = False) -> dict:
             "seconds": seconds, "skipped": skipped}
 
 
-def aligned_sum(url: str, path: str, start: int, stop: int, group: str = "aligned", stage: str = "screen") -> dict:
+def aligned_sum(url: str, path: str, start: int, stop: int, group: str = "aligned",
+                stage: str = "screen") -> dict | None:
     """Sum of the accepted faces ``group``/rgb of photos [start, stop), weighted by visibility,
-    and the per-pixel count: one shard's part of a mean face."""
+    and the per-pixel count: one shard's part of a mean face (None, nothing read, when the shard
+    has no accepted photo)."""
     coll = Collection(open_store(url, mode="r"), path)
     ok = coll.array(f"status/{stage}/state")[start:stop] == OK
+    if not ok.any():
+        return None
     mask = coll.array(f"{group}/mask")[start:stop] & ok[:, None, None]
     rgb = coll.array(f"{group}/rgb")[start:stop]
     return {"sum": np.einsum("nyxc,nyx->yxc", rgb, mask, dtype=np.float64),
