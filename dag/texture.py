@@ -265,26 +265,32 @@ def frame_textures(url: str, path: str, start: int, stop: int, puppet: str, name
     texture backend ``name``, from the ``puppet``'s stored cache (:func:`stored_textures`)."""
     drive = Collection(open_store(url), path)
     key = Collection(drive.root, puppet).provenance("texture/neutral").key  # shared by the puppet's drives
-    textures = stored_textures(url, puppet, key, name, params, drive.array("target")[start:stop])
+    textures = stored_textures(url, puppet, key, name, params, drive.array("target"), start, stop)
     drive.array("texture/rgb")[start:stop] = textures.round().astype(np.uint8)
 
 
-def stored_textures(url: str, path: str, key: str, name: str, params: dict, targets: np.ndarray) -> np.ndarray:
-    """B's textures (f, H, W, 3) float32 for targets (f, 49, 2) from the stored video-mode cache
-    (provenance ``key``) of the collection ``path``: the sums of Eq. 3 taken over it a shard of
-    photos at a time (a shard that no target weighs is not read), then finished with the totals."""
+def stored_textures(url: str, path: str, key: str, name: str, params: dict, targets, start: int = 0,
+                    stop: int | None = None) -> np.ndarray:
+    """B's textures (f, H, W, 3) float32 for the frames [start, stop) of consecutive frames' ``targets``
+    (T, 49, 2; an array read only about those frames) from the stored video-mode cache (provenance ``key``)
+    of the collection ``path``: the sums of Eq. 3 taken over it a shard of photos at a time (a shard that no
+    target weighs is not read), then finished with the totals."""
     source = Collection(open_store(url, mode="r"), path)
     backend = st.default_registry().get("texture", name)(params)
+    stop = targets.shape[0] if stop is None else stop
+    first, last = max(start - backend.time_radius, 0), min(stop + backend.time_radius, targets.shape[0])
+    around = np.asarray(targets[first:last], np.float64)  # the frames whose targets the weights take in
     ok = np.flatnonzero(source.state("align") == OK)
     totals, fiducials = st.per_process(key, lambda: (_totals(source, backend.params),
                                                      source.array("aligned/fiducials")[:][ok].astype(np.float64)))
-    weights = backend.expression(fiducials, targets)  # (targets, accepted photos)
-    sums = BlendSums.zeros(len(targets), totals)
-    for first, last in source.shard_ranges():
-        a, b = np.searchsorted(ok, [first, last])
+    keep = slice(start - first, stop - first)
+    weights = backend.expression(fiducials, around, keep)  # (targets, accepted photos)
+    sums = BlendSums.zeros(len(weights), totals)
+    for begin, end in source.shard_ranges():
+        a, b = np.searchsorted(ok, [begin, end])
         if weights[:, a:b].any():
-            sums.add(*_read_shard(source, key, first, last, ok[a:b]), weights[:, a:b])
-    return backend.finish(sums, totals, fiducials, targets)
+            sums.add(*_read_shard(source, key, begin, end, ok[a:b]), weights[:, a:b])
+    return backend.finish(sums, totals, fiducials, around[keep])
 
 
 def run_mouth(runner, coll: Collection) -> Provenance:

@@ -20,6 +20,7 @@ from pydantic import Field, model_validator
 from ..base import Params
 from ..face import eyes, texture as align
 from ..face.blend import BlendCache, BlendSums, BlendTotals, chosen, expression_weights
+from ..face.dynamics import smooth_in_time
 from ..face.fiducials import mean_shape
 from ..face.template import CANONICAL_HEIGHT as H, CANONICAL_WIDTH as W
 from ..face.warp import tps_map
@@ -79,8 +80,8 @@ class MultiscaleTexture(TextureBackend):
     default = True
     #: 2: the alignment confidence (stretch_scale, residual_scale); 3: its own flow (varref); 4: video mode
     #: aligns the collection with that flow too (video_alignment); 5: restore_detail, close_eyes; 6: the
-    #: video-mode cache's totals are stored with it (a drive reads the cache a shard at a time)
-    version = "6"
+    #: video-mode cache's totals are stored with it (a drive reads the cache a shard at a time); 7: time_sigma
+    version = "7"
 
     class Params(_Alignment):
         levels: int = Field(5, ge=2, le=8, description="pyramid levels p (the paper does not say; 5 gives a "
@@ -108,6 +109,11 @@ class MultiscaleTexture(TextureBackend):
                                       "them: skin, pores, creases); 1 = none, the paper's blend. Not in the paper: "
                                       "at 2, detail 0.40 -> 0.61 of B's photos on Powell, but brows and jitter lose "
                                       "on several drives, so it is off by default (docs/texture.md)")
+        time_sigma: float = Field(1.5, ge=0, le=10, description="video mode: σ (frames) of a Gaussian over time "
+                                  "taken of each photo's expression weight, so that the photos a frame's texture is "
+                                  "made of change from frame to frame gradually rather than at once. Not in the "
+                                  "paper (0: each frame's own weights, the paper's): 1.5 halves the texture's change "
+                                  "from frame to frame with the expression figures unchanged (docs/texture.md)")
         close_eyes: bool = Field(True, description="when the target shuts an eye (its lids less than "
                                  "`shut_from` as far apart as at B's neutral), draw that eye's opening over with the "
                                  "skin around it, fully at `shut_at`: B's photos rarely show shut eyes, and a mesh "
@@ -152,12 +158,21 @@ class MultiscaleTexture(TextureBackend):
                                 tau=p.tau, blur=p.detail_blur, floor=p.detail_floor,
                                 confidence=self.confidence(aligned), fill=fill)
 
-    def expression(self, fiducials: np.ndarray, targets: np.ndarray) -> np.ndarray:
-        """Video mode: the expression weights (f, n) of targets (f, 49, 2) over photos whose fiducials
-        are (n, 49, 2), those below ``skip`` of a target's largest set to 0 (blend.chosen)."""
+    @property
+    def time_radius(self) -> int:
+        """Video mode: how many frames on each side a frame's expression weights take in (``time_sigma``)."""
+        return int(np.ceil(3 * self.params.time_sigma))
+
+    def expression(self, fiducials: np.ndarray, targets: np.ndarray, keep: slice = slice(None)) -> np.ndarray:
+        """Video mode: the expression weights (f, n) of the targets ``keep`` of consecutive frames' targets
+        (T, 49, 2), over photos whose fiducials are (n, 49, 2): each photo's weight Gaussian-averaged over
+        the frames around (``time_sigma``; the targets should reach :attr:`time_radius` frames beyond
+        ``keep`` where the video does), those below ``skip`` of a frame's largest then set to 0
+        (blend.chosen)."""
+        p = self.params
         # without a uniform term only the ratios of the e_i matter: relative ones cannot all underflow
-        return np.concatenate([chosen(expression_weights(fiducials, t, self.params.sigma, relative=self.params.tau == 0),
-                                      self.params.skip) for t in targets])
+        e = np.stack([expression_weights(fiducials, t, p.sigma, relative=p.tau == 0) for t in targets])
+        return chosen(smooth_in_time(e, p.time_sigma)[keep], p.skip)
 
     def finish(self, sums: BlendSums, totals: BlendTotals, fiducials: np.ndarray, targets: np.ndarray, *,
                close_eyes: bool | None = None) -> np.ndarray:

@@ -158,3 +158,24 @@ def test_local_misregistration_loses_its_weight(crease_set):
     weighted = ours.cache(aligned).weights(e)
     assert weighted[0][0][region].mean() < 0.5 * trusting[0][0][region].mean()
     assert ours.confidence(align.rigid(photos)) is None  # no flow, no misfit: Eq. 3 unchanged
+
+
+def test_weights_smoothed_in_time_change_gradually_and_a_shard_with_its_margin_gets_the_whole_videos():
+    """time_sigma: a target that jumps from neutral to smiling at frame 10 gives per-frame weights that
+    jump (the paper's), and Gaussian-smoothed ones (σ 2 frames) that move a photo's weight by at most
+    a fifth of the jump a frame; frames [8, 13) computed from the targets 6 frames around (the
+    backend's time_radius) get the weights of the whole video."""
+    rng = np.random.default_rng(3)
+    fiducials = generic_template().fiducials3d[None, :, :2] + rng.normal(0, 2, (12, 49, 2))
+    smiling = fiducials[0] + rng.normal(0, 4, (49, 2))
+    targets = np.stack([fiducials[0]] * 10 + [smiling] * 10)
+    paper = MultiscaleTexture({"skip": 0, "time_sigma": 0})
+    smooth = MultiscaleTexture({"skip": 0, "time_sigma": 2})
+    assert paper.time_radius == 0 and smooth.time_radius == 6
+    jump = np.abs(np.diff(paper.expression(fiducials, targets), axis=0)).max(axis=0)
+    steps = np.abs(np.diff(smooth.expression(fiducials, targets), axis=0)).max(axis=0)
+    assert np.all(steps <= 0.2 * jump + 1e-6) and jump.max() > 0.3, (steps, jump)
+    whole = smooth.expression(fiducials, targets)
+    r = smooth.time_radius
+    part = smooth.expression(fiducials, targets[8 - r:13 + r], slice(r, r + 5))
+    np.testing.assert_allclose(part, whole[8:13], rtol=1e-6)
