@@ -79,10 +79,29 @@ def widest(landmarks68: np.ndarray, count: int, min_gap: float) -> np.ndarray:
     return order[gap[order] >= min_gap][:count]
 
 
+#: sub-pixels a side with which :func:`_area` measures a triangle's cover of each pixel
+SUPERSAMPLE = 4
+
+
+def _area(triangle: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """(h, w) float32 in [0, 1]: the share of each pixel (centres at integer coordinates) that the
+    ``triangle`` (3, 2) covers, counted on a grid of SUPERSAMPLE² sub-pixels."""
+    n = SUPERSAMPLE
+    fine = np.zeros((shape[0] * n, shape[1] * n), np.uint8)
+    corners = (np.asarray(triangle, np.float64) + 0.5) * n - 0.5  # pixel edges onto sub-pixel edges
+    cv2.fillConvexPoly(fine, np.round(corners * 16).astype(np.int32), 255, cv2.LINE_8, shift=4)
+    return cv2.resize(fine, (shape[1], shape[0]), interpolation=cv2.INTER_AREA).astype(np.float32) / 255
+
+
 def draw(out: np.ndarray, face: np.ndarray, image: np.ndarray, curves: np.ndarray) -> None:
     """Draw the interior ``image`` into the frame ``out`` (h, w, 3) uint8, in place, between the
-    frame's inner-lip ``curves`` (2, 5, 2), where the rendered ``face`` mask (h, w) float is; the
-    gap's edge is softened over a pixel."""
+    frame's inner-lip ``curves`` (2, 5, 2), where the rendered ``face`` mask (h, w) float is.
+
+    Quad by quad between the curves' nodes, the image is first averaged down (area resampling) to
+    the quad's own height and the mouth's length in pixels, so that a gap a pixel or two tall shows
+    the interior's mean colour along it rather than whichever of its rows (teeth, cavity) the
+    sampling happens to hit; each quad covers a pixel by the share of its area inside (:func:`_area`),
+    which also makes the gap's soft edge."""
     h, w = out.shape[:2]
     curves = np.asarray(curves, np.float64)
     if not np.all(np.isfinite(curves)):
@@ -95,28 +114,34 @@ def draw(out: np.ndarray, face: np.ndarray, image: np.ndarray, curves: np.ndarra
         return
     rows, cols = image.shape[:2]
     nodes = curves.shape[1]
-    src_x = np.linspace(0, cols - 1, nodes)
+    length = np.linalg.norm(np.diff(curves, axis=1), axis=2).max(axis=0).sum()  # along the mouth, px
+    cols_px = int(np.clip(np.ceil(length), 2, cols))
     paint = np.zeros((y1 - y0, x1 - x0, 3), np.float32)
     cover = np.zeros((y1 - y0, x1 - x0), np.float32)
     offset = np.array([x0, y0], np.float64)
     for k in range(nodes - 1):
+        height = np.linalg.norm(curves[1, k:k + 2] - curves[0, k:k + 2], axis=1).mean()
+        rows_px = int(np.clip(np.ceil(height), 1, rows))
+        small = image if (rows_px, cols_px) == (rows, cols) else cv2.resize(image, (cols_px, rows_px),
+                                                                            interpolation=cv2.INTER_AREA)
+        left, right = k * (cols_px - 1) / (nodes - 1), (k + 1) * (cols_px - 1) / (nodes - 1)
+        top, bottom = -0.5, rows_px - 0.5  # the image's pixel edges onto the lips
         quad_dst = np.array([curves[0, k], curves[0, k + 1], curves[1, k + 1], curves[1, k]]) - offset
-        quad_src = np.array([[src_x[k], 0], [src_x[k + 1], 0], [src_x[k + 1], rows - 1], [src_x[k], rows - 1]])
+        quad_src = np.array([[left, top], [right, top], [right, bottom], [left, bottom]])
         for tri in ((0, 1, 2), (0, 2, 3)):
             dst, src = quad_dst[list(tri)], quad_src[list(tri)]
             (ax, ay), (bx, by) = dst[1] - dst[0], dst[2] - dst[0]
-            if abs(ax * by - ay * bx) < 0.5:  # under a quarter pixel of area
+            if abs(ax * by - ay * bx) < 1e-3:  # no area: closed lips
                 continue
             matrix = cv2.getAffineTransform(src.astype(np.float32), dst.astype(np.float32))
-            warped = cv2.warpAffine(image, matrix, (x1 - x0, y1 - y0), flags=cv2.INTER_LINEAR,
+            warped = cv2.warpAffine(small, matrix, (x1 - x0, y1 - y0), flags=cv2.INTER_LINEAR,
                                     borderMode=cv2.BORDER_REPLICATE)
-            inside = np.zeros((y1 - y0, x1 - x0), np.uint8)
-            cv2.fillConvexPoly(inside, np.round(dst * 16).astype(np.int32), 1, cv2.LINE_AA, shift=4)
-            take = (inside > 0) & (cover == 0)
-            paint[take] = warped[take]
-            cover[take] = 1
+            new = np.minimum(_area(dst, cover.shape), 1 - cover)
+            paint += warped * new[..., None]
+            cover += new
     if not cover.any():
         return
-    alpha = cv2.GaussianBlur(cover, (0, 0), 0.6) * cover * face[y0:y1, x0:x1]
+    colour = paint / np.maximum(cover, 1e-6)[..., None]
+    alpha = (cover * face[y0:y1, x0:x1])[..., None]
     region = out[y0:y1, x0:x1].astype(np.float32)
-    out[y0:y1, x0:x1] = np.clip(paint * alpha[..., None] + region * (1 - alpha[..., None]), 0, 255).round().astype(np.uint8)
+    out[y0:y1, x0:x1] = np.clip(colour * alpha + region * (1 - alpha), 0, 255).round().astype(np.uint8)
