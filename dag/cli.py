@@ -346,7 +346,14 @@ def _cmd_inspect(args) -> int:
             print(f"        ... and {len(rejected) - 20} more (--json lists all)")
         if c["attrs"]:
             print("  " + ", ".join(f"{k}: {v}" for k, v in c["attrs"].items()))
-        for name, a in c["arrays"].items():
+        if c["used_by"]:
+            print(f"  used by: {', '.join(c['used_by'])}")
+        print("  built: " + (", ".join(f"{stage} ({b['backend']})" if b["backend"] != "-" else stage
+                                       for stage, b in c["built"].items()) or "nothing yet"))
+        if c["unfinished"]:
+            print(f"  unfinished (a run stopped while making them; the next run makes them again): "
+                  f"{', '.join(c['unfinished'])}")
+        for name, a in c["arrays"].items() if args.arrays else ():
             dims = ", ".join(f"{d}={s}" for d, s in zip(a["dims"], a["shape"]))
             print(f"    {name:<24} {a['dtype']:<10} ({dims})")
     return 0
@@ -473,13 +480,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true", help="print one JSON list, with each backend's params schema")
     p.set_defaults(func=_cmd_plugins)
 
-    p = command("inspect", "summarise a store: arrays, accepted and rejected photos; with --verify, check "
-                "every chunk", "persona inspect runs/bush_obama.zarr")
+    p = command("inspect", "summarise a store: each person, video and drive, its accepted and rejected photos, "
+                "the stages that built it and the drives that use it; with --verify, check every chunk",
+                "persona inspect runs/bush_obama.zarr")
     p.add_argument("store", help="the run's Zarr store (the workflow's store:)")
     p.add_argument("--verify", action="store_true", help="read every chunk of every array and check its checksum; "
                    "list what is missing or damaged (array, shard, photos) and the stages a run would "
                    "recompute; exit 1 when there is any")
-    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.add_argument("--arrays", action="store_true", help="also list every array: name, dtype, dimensions")
+    p.add_argument("--json", action="store_true", help="print one JSON object (arrays included)")
     p.set_defaults(func=_cmd_inspect)
     return parser
 

@@ -285,7 +285,8 @@ def first_rejection(collection: Collection, stages: list[str]) -> tuple[np.ndarr
 
 
 def summarize(url: str) -> dict:
-    """What ``persona inspect`` shows: groups, arrays, shapes, and photo counts by outcome."""
+    """What ``persona inspect`` shows: each collection's photo counts by outcome, the stages that
+    built its arrays (and arrays left unfinished), its arrays, and for a person the drives that use it."""
     root = open_store(url, mode="r")
     out: dict[str, Any] = {"store": str(url), "collections": {}}
     for c in collections(root):
@@ -294,12 +295,17 @@ def summarize(url: str) -> dict:
         by_reason: dict[str, int] = {}
         for i in np.flatnonzero(final == REJECTED):
             by_reason[why[i]] = by_reason.get(why[i], 0) + 1
-        arrays = {}
+        arrays, built, unfinished = {}, {}, []
 
         def walk(group: zarr.Group, prefix: str):
             for name, arr in sorted(group.arrays()):
                 arrays[prefix + name] = {"shape": list(arr.shape), "dtype": str(arr.dtype),
                                          "dims": list(arr.metadata.dimension_names or ())}
+                made = arr.attrs.get("provenance")
+                if not made:
+                    unfinished.append(prefix + name)
+                elif made["stage"] not in built or made["created"] < built[made["stage"]]["created"]:
+                    built[made["stage"]] = {k: made[k] for k in ("backend", "key", "created")}
             for name, child in sorted(group.groups()):
                 if "n_photos" not in child.attrs:
                     walk(child, f"{prefix}{name}/")
@@ -317,7 +323,13 @@ def summarize(url: str) -> dict:
             "rejected_by_reason": dict(sorted(by_reason.items(), key=lambda kv: -kv[1])),
             "rejections": {str(root[c.path]["photos/ids"][i]): why[i] for i in np.flatnonzero(final == REJECTED)},
             "stages": per_stage,
+            # by stage in the order they ran, from the provenance of the arrays each made
+            "built": dict(sorted(built.items(), key=lambda kv: kv[1]["created"])),
+            "unfinished": unfinished,  # arrays created but not marked done: a run stopped while making them
             "arrays": arrays,
             "attrs": {k: v for k, v in c.attrs.items() if k in ("source", "fps", "canvas", "video", "cast")},
         }
+    for path, c in out["collections"].items():  # a person or a video is built once for every drive it is in
+        c["used_by"] = sorted(drive for drive, d in out["collections"].items()
+                              if path in d["attrs"].get("cast", {}).values())
     return out

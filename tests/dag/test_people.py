@@ -2,17 +2,20 @@
 
 import contextlib
 import io
+import shutil
 
 import numpy as np
 import pytest
 import yaml
+import zarr
 
+from persona.dag.cli import main as cli
 from persona.dag.demo import make_demo_data, write_collection
 from persona.dag.runner import run_workflow
 from persona.dag.workflow import WorkflowError, load_workflow, parse_workflow
 from persona.plugins.face import synthetic
 from persona.stores import media
-from persona.stores.layout import Cast, Collection, open_store
+from persona.stores.layout import Cast, Collection, open_store, summarize
 
 SETTINGS = {"photos_per_shard": 4, "stages": {"pose": {"params": {"focal_factor": 2.0}}}}
 
@@ -67,6 +70,33 @@ def test_each_person_and_the_video_are_built_once(people_run):
     assert textures == ["people/bea", "people/cy"]  # puppets only: al only drives
     ingests = [r for r in report["stages"] if r["stage"] == "ingest" and r["collection"] == "videos/driver"]
     assert len(ingests) == 1 and ingests[0]["n_done"] == 12
+
+
+def test_inspect_shows_what_built_each_person_and_which_drives_use_it(people_run, tmp_path, capsys):
+    """`persona inspect`: each person and video names the drives that use it, and every collection
+    the stages that built it, in the order they ran; an array a run left unfinished is named."""
+    folder, _, _, _ = people_run
+    found = summarize(str(folder / "people.zarr"))["collections"]
+    assert {"drives/bea_al_driver", "drives/cy_al_driver"} <= set(found["people/al"]["used_by"])
+    assert {"drives/bea_al_driver", "drives/cy_al_driver"} <= set(found["videos/driver"]["used_by"])
+    assert found["people/bea"]["used_by"][0] == "drives/bea_al_driver" and found["drives/bea_al_driver"]["used_by"] == []
+    bea, al = list(found["people/bea"]["built"]), list(found["people/al"]["built"])
+    assert bea[:5] == ["ingest", "landmarks", "pose", "frontalize", "screen"] and {"shape", "texture"} <= set(bea)
+    assert "texture" not in al  # al only drives
+    drive = list(found["drives/bea_al_driver"]["built"])
+    assert drive[0] == "retarget" and drive[-1] == "composite" and "render3d" in drive
+    assert all(not c["unfinished"] for c in found.values())
+    capsys.readouterr()
+    assert cli(["inspect", str(folder / "people.zarr")]) == 0
+    shown = capsys.readouterr().out
+    assert "used by: drives/bea_al_driver" in shown and "built: ingest, landmarks (" in shown
+    assert "aligned/rgb" not in shown  # the arrays only with --arrays
+    assert cli(["inspect", "--arrays", str(folder / "people.zarr")]) == 0 and "aligned/rgb" in capsys.readouterr().out
+
+    copy = tmp_path / "people.zarr"  # a run killed while it wrote the frame textures
+    shutil.copytree(folder / "people.zarr", copy)
+    zarr.open_array(copy / "drives/bea_al_driver/texture/rgb", mode="r+").attrs.pop("provenance")
+    assert summarize(str(copy))["collections"]["drives/bea_al_driver"]["unfinished"] == ["texture/rgb"]
 
 
 def test_a_drive_of_format_2_is_the_drive_of_format_1(people_run):
