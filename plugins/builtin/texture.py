@@ -109,11 +109,12 @@ class MultiscaleTexture(TextureBackend):
                                       "them: skin, pores, creases); 1 = none, the paper's blend. Not in the paper: "
                                       "at 2, detail 0.40 -> 0.61 of B's photos on Powell, but brows and jitter lose "
                                       "on several drives, so it is off by default (docs/texture.md)")
-        time_sigma: float = Field(1.5, ge=0, le=10, description="video mode: σ (frames) of a Gaussian over time "
+        time_sigma: float = Field(0.0, ge=0, le=10, description="video mode: σ (frames) of a Gaussian over time "
                                   "taken of each photo's expression weight, so that the photos a frame's texture is "
                                   "made of change from frame to frame gradually rather than at once. Not in the "
-                                  "paper (0: each frame's own weights, the paper's): 1.5 halves the texture's change "
-                                  "from frame to frame with the expression figures unchanged (docs/texture.md)")
+                                  "paper (0, the default: each frame's own weights, the paper's); 1.5 halves the "
+                                  "texture's change from frame to frame on the cross-identity drives, but lowers the "
+                                  "self-reenactment's mouth gain, whose teeth come from the texture (docs/texture.md)")
         close_eyes: bool = Field(True, description="when the target shuts an eye (its lids less than "
                                  "`shut_from` as far apart as at B's neutral), draw that eye's opening over with the "
                                  "skin around it, fully at `shut_at`: B's photos rarely show shut eyes, and a mesh "
