@@ -58,34 +58,31 @@ def _free_space(path) -> str:
 
 
 def _plan(wf) -> str:
-    """Every stage the workflow runs, in order, with its settings: each collection's per-photo
-    stages and the steps over it, then the drive's (:data:`persona.dag.stages.STEPS`)."""
+    """Every stage the workflow runs, in order, with its settings: each collection's, then each
+    drive's (:data:`persona.dag.stages.STAGES`)."""
     from persona.plugins.manager import default_registry
 
-    from .runner import ALL_STAGES
-    from .stages import STEPS
+    from .stages import STAGES
 
     uses_mesh = default_registry().get("render", wf.stage("render")[0]).uses_mesh
 
-    def steps(where: str) -> list[str]:
+    def stages(where: str) -> list[str]:
         lines = []
-        for step in STEPS.values():
-            if where in step.where and (uses_mesh or not step.mesh):
-                lines.append(f"    {step.name:<14} {step.makes} ({step.runs})")
-                lines += [f"      {_setting(wf, kind)}" for kind in step.settings]
+        for stage in STAGES.values():
+            if where in stage.where and (uses_mesh or not stage.mesh):
+                lines.append(f"    {stage.name:<14} {stage.makes} ({stage.runs})")
+                lines += [f"      {_setting(wf, kind)}" for kind in stage.settings]
         return lines
 
     lines = [f"workflow {wf.name}: store {wf.store}, output {wf.output}"]
-    for plan in wf.collections():
+    for plan in wf.collections():  # a video gives frames, not a 3D shape; a puppet's stages include the driver's
         lines.append(f"  {plan.path}: {plan.photos}")
-        lines += [f"    {_setting(wf, stage)}" for stage in ALL_STAGES]
-        if not plan.video:  # a video gives frames, not a 3D shape; a puppet's steps include the driver's
-            lines += steps("puppet" if plan.texture else "driver")
+        lines += stages("video" if plan.video else "puppet" if plan.texture else "driver")
     for drive in wf.drive_plans():
         c = drive.cast
         lines.append(f"  {c.drive}: {c.puppet} performing {c.frames} (driver model {c.driver}), frame by frame, "
                      f"into {drive.output}")
-        lines += steps("drive")
+        lines += stages("drive")
     c = wf.cluster
     if c.kind == "local":
         lines.append(f"  cluster: {c.scheduler} (workers: {c.workers or 'one per core'})")

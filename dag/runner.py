@@ -40,9 +40,6 @@ from .workflow import TLS, Cluster, VideoRange, Workflow, tls_problem
 
 log = logging.getLogger(__name__)
 
-PHOTO_STAGE_ORDER = ("landmarks", "pose", "frontalize")
-ALL_STAGES = ("ingest", *PHOTO_STAGE_ORDER, "screen")
-
 
 def persona_version() -> str:
     import importlib.metadata
@@ -415,7 +412,7 @@ class Runner:
         else:
             canvas = _canvas(sources, params)
         group.attrs.update({"n_photos": n, "photos_per_shard": self.wf.photos_per_shard,
-                            "canvas": canvas, "stages": list(ALL_STAGES)})
+                            "canvas": canvas, "stages": list(st.COLLECTION_STAGES)})
         coll.create("photos/ids", (), str, ("photo",), prov)[:] = np.array([s.id for s in sources])
         coll.create("photos/source", (), str, ("photo",), prov)[:] = np.array([s.path for s in sources])
         coll.create("photos/frame", (), "int64", ("photo",), prov, fill_value=-1)[:] = np.array(
@@ -433,10 +430,9 @@ class Runner:
         each stage whose cache key changed, so that it starts over."""
         steps = [("ingest", "-", self._ingest_params())]
         upstream = coll.provenance("status/ingest/state")
-        for name in PHOTO_STAGE_ORDER:
-            stage = st.PHOTO_STAGES[name]
+        for stage in st.CHAIN:
             upstream = self.prepare_stage(coll, stage, {stage.upstream: upstream.key})
-            steps.append((name, upstream.backend, upstream.params))
+            steps.append((stage.name, upstream.backend, upstream.params))
         return steps
 
     def prepare_stage(self, coll: Collection, stage: st.PhotoStage, inputs: dict[str, str],
@@ -464,7 +460,7 @@ class Runner:
             self._run(coll, steps[:1], [(self.wf.store, coll.path, steps[0][2])], st.ingest_video)
             steps = steps[1:]
         self.run_stage_tasks(coll, steps)
-        coll.group.attrs["stages"] = list(ALL_STAGES)  # stores made before the screen existed
+        coll.group.attrs["stages"] = list(st.COLLECTION_STAGES)  # stores made before the screen existed
         screen = self.prepare_stage(coll, st.SCREEN, {"frontalize": coll.provenance("status/frontalize/state").key})
         self.run_stage_tasks(coll, [("screen", screen.backend, screen.params)])
 
@@ -480,9 +476,9 @@ class Runner:
         """A collection-level step (shape, texture, motion, ...) as the lifecycle hooks and the
         timing table see a stage: before, after (with its wall time) or error; and as progress, one
         step that starts and ends (a log gets a line each, with the time taken). ``stage`` is one
-        of :data:`persona.dag.stages.STEPS`."""
-        if stage not in st.STEPS:
-            raise KeyError(f"{stage!r} is not in persona.dag.stages.STEPS, which the plan shows")
+        of :data:`persona.dag.stages.STAGES`."""
+        if stage not in st.STAGES:
+            raise KeyError(f"{stage!r} is not in persona.dag.stages.STAGES, which the plan shows")
         self.pm.hook.persona_before_stage(stage=stage, collection=collection, info={})
         start = time.perf_counter()
         try:

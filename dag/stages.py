@@ -67,42 +67,6 @@ class PhotoStage:
     context: Callable[..., dict] | None = field(default=None, repr=False)
 
 
-@dataclass(frozen=True)
-class Step:
-    """A step after a collection's per-photo stages, over the whole collection or the drive: where
-    it runs, the workflow's stage settings it reads (``stages.<kind>``), what it makes, and how it
-    runs (Dask tasks over shards, or one piece of work in the client). ``STEPS`` lists them in the
-    order a run takes them; the plan (``persona run --dry-run``, ``persona validate``) and the
-    progress lines (:meth:`persona.dag.runner.Runner.step`) read it."""
-
-    name: str
-    where: tuple[str, ...]
-    settings: tuple[str, ...]
-    makes: str
-    runs: str = "tasks over shards"
-    mesh: bool = False  # for renderers of the 3D puppet only
-
-
-STEPS = {step.name: step for step in (
-    Step("align", ("puppet", "driver"), ("align", "flow"), "the appearance subspace, then each photo's flow to the "
-         "mean face", "the client (subspace), then tasks over shards"),
-    Step("shape", ("puppet", "driver"), ("shape", "integrate"), "depth, albedo and meshes by photometric stereo",
-         "tasks over shards (the mean), then one task (photometric stereo over the whole collection)"),
-    Step("texture", ("puppet",), ("texture",), "the expression-dependent texture's cache of aligned photos",
-         "tasks over shards (warp, basis by products over them, cache), then one task (the neutral texture)"),
-    Step("retarget", ("drive",), ("motion",), "the driver's smoothed poses and B's target fiducials", "the client"),
-    Step("frame textures", ("drive",), ("texture",), "B's face for each frame's expression"),
-    Step("dynamics", ("drive",), ("flow", "motion"), "the driver's per-frame 3D flow", mesh=True),
-    Step("motion", ("drive",), ("motion", "denoise"), "A's meshes, then B's by deformation transfer", mesh=True),
-    Step("mouth", ("puppet",), ("render",), "the inside of B's mouth from its widest-open photos", "the client",
-         mesh=True),
-    Step("render", ("drive",), ("render",), "the puppet's frames"),
-    Step("composite", ("drive",), ("composite",), "B's face blended into each of the driver's frames"),
-    Step("videos", ("drive",), (), "puppet.mp4, side_by_side.mp4, composite.mp4 (encoded)", "the client"),
-    Step("evaluate", ("drive",), ("identity",), "metrics.json and report.html", "tasks over shards, then the client"),
-)}
-
-
 def _photo(inputs: dict) -> np.ndarray:
     h, w = inputs["photos/size"]
     return inputs["photos/rgb"][:h, :w]
@@ -157,25 +121,26 @@ INGEST = PhotoStage("ingest", None, None, ("photos/source", "photos/frame"), (
     Output("photos/sha256", (), "str", ("photo",)),
 ), _ingest)
 
-PHOTO_STAGES = {s.name: s for s in (
-    INGEST,
-    PhotoStage("landmarks", "landmarks", "ingest", ("photos/rgb", "photos/size", "photos/hint"), (
-        Output("landmarks/points", (68, 2), "float32", ("photo", "landmark", "xy")),
-        Output("landmarks/fiducials", (49, 2), "float32", ("photo", "fiducial", "xy")),
-        Output("landmarks/box", (4,), "float32", ("photo", "ltrb")),
-        Output("landmarks/n_faces", (), "int16", ("photo",)),
-    ), _landmarks),
-    PhotoStage("pose", "pose", "landmarks", ("landmarks/points", "photos/size"), (
-        Output("pose", (len(POSE_FIELDS),), "float64", ("photo", "field")),
-    ), _pose),
-    PhotoStage("frontalize", "frontalize", "pose",
-               ("photos/rgb", "photos/size", "landmarks/points", "pose"), (
-        Output("aligned/rgb", (H, W, 3), "uint8", ("photo", "y", "x", "channel")),
-        Output("aligned/mask", (H, W), "bool", ("photo", "y", "x")),
-        Output("aligned/landmarks", (68, 2), "float32", ("photo", "landmark", "xy")),
-        Output("aligned/fiducials", (49, 2), "float32", ("photo", "fiducial", "xy")),
-    ), _frontalize),
-)}
+LANDMARKS = PhotoStage("landmarks", "landmarks", "ingest", ("photos/rgb", "photos/size", "photos/hint"), (
+    Output("landmarks/points", (68, 2), "float32", ("photo", "landmark", "xy")),
+    Output("landmarks/fiducials", (49, 2), "float32", ("photo", "fiducial", "xy")),
+    Output("landmarks/box", (4,), "float32", ("photo", "ltrb")),
+    Output("landmarks/n_faces", (), "int16", ("photo",)),
+), _landmarks)
+
+POSE = PhotoStage("pose", "pose", "landmarks", ("landmarks/points", "photos/size"), (
+    Output("pose", (len(POSE_FIELDS),), "float64", ("photo", "field")),
+), _pose)
+
+FRONTALIZE = PhotoStage("frontalize", "frontalize", "pose", ("photos/rgb", "photos/size", "landmarks/points", "pose"), (
+    Output("aligned/rgb", (H, W, 3), "uint8", ("photo", "y", "x", "channel")),
+    Output("aligned/mask", (H, W), "bool", ("photo", "y", "x")),
+    Output("aligned/landmarks", (68, 2), "float32", ("photo", "landmark", "xy")),
+    Output("aligned/fiducials", (49, 2), "float32", ("photo", "fiducial", "xy")),
+), _frontalize)
+
+#: the per-photo chain after ingest, in the order a shard's task runs it (one Dask task per shard)
+CHAIN = (LANDMARKS, POSE, FRONTALIZE)
 
 
 def _screen_context(root, path) -> dict:
@@ -207,7 +172,6 @@ def _screen(backend, params, inputs, context):
 SCREEN = PhotoStage("screen", None, "frontalize", ("aligned/fiducials", "photos/sha256", "photos/ids"), (
     Output("aligned/shape_distance", (), "float32", ("photo",)),
 ), _screen, _screen_context)
-PHOTO_STAGES["screen"] = SCREEN
 
 
 def accepted(coll: Collection) -> np.ndarray:
@@ -245,7 +209,6 @@ ALIGN = PhotoStage(
         Output("collection/mask", (H, W), "bool", ("photo", "y", "x")),
         Output("collection/map", (H, W, 2), "float32", ("photo", "y", "x", "xy")),
     ), _align, _subspace)
-PHOTO_STAGES["align"] = ALIGN
 
 
 #: the prefix of a drive stage's inputs that are arrays of the driver's frames (:class:`PhotoStage`)
@@ -287,7 +250,6 @@ RENDER = PhotoStage("render", "render", "retarget", _RENDER_INPUTS, _RENDER_OUTP
 #: the same for renderers of the 3D puppet: B's mesh of each frame (``mesh``, from the motion step) too
 RENDER_3D = PhotoStage("render3d", "render", "retarget", (*_RENDER_INPUTS, "mesh"), _RENDER_OUTPUTS, _render,
                        _puppet)
-PHOTO_STAGES.update(render=RENDER, render3d=RENDER_3D)
 
 
 def _composite(backend, params, inputs, context):
@@ -303,7 +265,6 @@ def _composite(backend, params, inputs, context):
 COMPOSITE = PhotoStage("composite", None, None, ("render/rgb", "render/mask", "@frames/photos/rgb",
                                                  "@frames/photos/size"),
                        (Output("composite/rgb", (), "uint8", ("frame", "y", "x", "channel")),), _composite)
-PHOTO_STAGES["composite"] = COMPOSITE
 
 
 def driver_model(root, path) -> dict:
@@ -334,7 +295,63 @@ DYNAMICS = PhotoStage(
         Output("dynamics/flow", (H, W, 2), "float32", ("frame", "y", "x", "xy")),
         Output("dynamics/delta", (H, W), "float32", ("frame", "y", "x")),
     ), _dynamics, driver_model)
-PHOTO_STAGES["dynamics"] = DYNAMICS
+
+
+@dataclass(frozen=True)
+class Stage:
+    """One stage of a run, as everything that lists stages reads it: where it runs (``puppet``,
+    ``driver``, ``video`` (the driver's frames) or ``drive``), the workflow's stage settings it reads
+    (``stages.<kind>``), what it makes, how it runs (Dask tasks over shards, or one piece of work in
+    the client), whether only renderers of the 3D puppet need it (``mesh``), and, for a stage that
+    works photo by photo (or frame by frame), its :class:`PhotoStage` (two for the render: 2D and
+    3D). :data:`STAGES` lists them in the order a run takes them; the plan (``persona run
+    --dry-run``, ``persona validate``), the progress lines and the lifecycle hooks
+    (:meth:`persona.dag.runner.Runner.step`) and the per-photo tasks (:func:`run_chain`) read it."""
+
+    name: str
+    where: tuple[str, ...]
+    settings: tuple[str, ...]
+    makes: str
+    runs: str = "tasks over shards"
+    mesh: bool = False
+    photo: tuple[PhotoStage, ...] = ()
+
+
+_COLLECTION = ("puppet", "driver", "video")
+_CHAIN_RUNS = "the per-photo chain: one task per shard, ingest to frontalize"
+STAGES = {stage.name: stage for stage in (
+    Stage("ingest", _COLLECTION, ("ingest",), "each photo (or video frame) decoded onto the collection's canvas",
+          _CHAIN_RUNS + "; a video's frames decoded in one pass first", photo=(INGEST,)),
+    Stage("landmarks", _COLLECTION, ("landmarks",), "the face's 68 landmarks and its box", _CHAIN_RUNS,
+          photo=(LANDMARKS,)),
+    Stage("pose", _COLLECTION, ("pose",), "the head's pose and the camera", _CHAIN_RUNS, photo=(POSE,)),
+    Stage("frontalize", _COLLECTION, ("frontalize",), "the face warped to the canonical frontal view",
+          _CHAIN_RUNS, photo=(FRONTALIZE,)),
+    Stage("screen", _COLLECTION, ("screen",), "photos far from the collection's median shape, and copies, "
+          "rejected", photo=(SCREEN,)),
+    Stage("align", ("puppet", "driver"), ("align", "flow"), "the appearance subspace, then each photo's flow to the "
+          "mean face", "the client (subspace), then tasks over shards", photo=(ALIGN,)),
+    Stage("shape", ("puppet", "driver"), ("shape", "integrate"), "depth, albedo and meshes by photometric stereo",
+          "tasks over shards (the mean), then one task (photometric stereo over the whole collection)"),
+    Stage("texture", ("puppet",), ("texture",), "the expression-dependent texture's cache of aligned photos",
+          "tasks over shards (warp, basis by products over them, cache), then one task (the neutral texture)"),
+    Stage("retarget", ("drive",), ("motion",), "the driver's smoothed poses and B's target fiducials", "the client"),
+    Stage("frame textures", ("drive",), ("texture",), "B's face for each frame's expression"),
+    Stage("dynamics", ("drive",), ("flow", "motion"), "the driver's per-frame 3D flow", mesh=True, photo=(DYNAMICS,)),
+    Stage("motion", ("drive",), ("motion", "denoise"), "A's meshes, then B's by deformation transfer", mesh=True),
+    Stage("mouth", ("puppet",), ("render",), "the inside of B's mouth from its widest-open photos", "the client",
+          mesh=True),
+    Stage("render", ("drive",), ("render",), "the puppet's frames", photo=(RENDER, RENDER_3D)),
+    Stage("composite", ("drive",), ("composite",), "B's face blended into each of the driver's frames",
+          photo=(COMPOSITE,)),
+    Stage("videos", ("drive",), (), "puppet.mp4, side_by_side.mp4, composite.mp4 (encoded)", "the client"),
+    Stage("evaluate", ("drive",), ("identity",), "metrics.json and report.html", "tasks over shards, then the client"),
+)}
+
+#: what each per-photo stage computes, by the name its status and provenance carry
+PHOTO_STAGES = {photo.name: photo for stage in STAGES.values() for photo in stage.photo}
+#: the stages every collection's photos go through, in order: the ``stages`` a collection records
+COLLECTION_STAGES = tuple(name for name, stage in STAGES.items() if stage.where == _COLLECTION)
 
 
 def output_tail(output: Output, canvas) -> tuple[int, ...]:
