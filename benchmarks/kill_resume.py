@@ -12,9 +12,11 @@ stores is compared: shape, dtype, and values (NaN equal to NaN). Prints one line
 where, the last line the run printed) and the comparison; exit status 1 when an array differs or
 a run failed.
 
-The default triggers fit the example workflows (collections ``puppet``, ``driver``, ``driver/frames``
-and ``drive``): per-photo stages, the collection-level shape and texture, the drive's per-frame
-textures, dynamics, transfer, render and the evaluation.
+The default triggers fit the example workflows, version 1 (collections ``puppet``, ``driver``,
+``driver/frames`` and ``drive``) and version 2 (``people/<name>``, ``videos/<name>``,
+``drives/<name>``; the first person, video and drive to print the step): per-photo stages, the
+collection-level shape and texture cache, the video's frames, the drive's per-frame textures,
+dynamics, transfer, render, composite, videos and the evaluation.
 """
 
 from __future__ import annotations
@@ -33,18 +35,23 @@ from pathlib import Path
 import numpy as np
 import zarr
 
+#: The collection a line is about, in a version-1 or a version-2 workflow.
+PERSON, VIDEO, DRIVE = r"(puppet|people/\S+)", r"(driver/frames|videos/\S+)", r"(drive|drives/\S+)"
+
 #: (pattern of a line the run prints, seconds to wait after it before the SIGKILL)
 TRIGGERS = [
-    (r"puppet ingest: started", 4),              # photos: ingest, landmarks, pose, frontalize
-    (r"puppet align: started", 6),               # the collection flow, per photo
-    (r"puppet align: done", 10),                 # the puppet's subspace and shape
-    (r"puppet align: done", 30),                 # the puppet's shape and texture cache
-    (r"driver/frames landmarks: started", 4),    # the driver's frames, per frame
-    (r"drive texture: started", 3),              # the per-frame textures
-    (r"drive dynamics: started", 15),            # the driver's 3D flow
-    (r"drive transfer: started", 6),             # the deformation transfer
-    (r"drive render3d: started", 5),             # the render
-    (r"drive render3d: done", 4),                # videos and the evaluation
+    (rf"{PERSON} ingest: started", 4),           # photos: ingest, landmarks, pose, frontalize
+    (rf"{PERSON} align: started", 6),            # the collection flow, per photo
+    (rf"{PERSON} shape: started", 8),            # the puppet's subspace and shape
+    (rf"{PERSON} tex. cache: started", 6),       # the puppet's texture cache
+    (rf"{VIDEO} landmarks: started", 3),         # the driver's frames, per frame
+    (rf"{DRIVE} texture: started", 2),           # the per-frame textures
+    (rf"{DRIVE} dynamics: started", 6),          # the driver's 3D flow
+    (rf"{DRIVE} transfer: started", 6),          # the deformation transfer
+    (rf"{DRIVE} render3d: started", 2),          # the render
+    (rf"{DRIVE} composite: started", 5),         # the composite
+    (rf"{DRIVE} videos: started", 3),            # the videos
+    (rf"{DRIVE} analyse: started", 10),          # the evaluation
 ]
 
 
