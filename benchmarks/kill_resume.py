@@ -44,13 +44,13 @@ TRIGGERS = [
     (rf"{PERSON} align: started", 6),            # the collection flow, per photo
     (rf"{PERSON} shape: started", 8),            # the puppet's subspace and shape
     (rf"{PERSON} tex. cache: started", 6),       # the puppet's texture cache
-    (rf"{VIDEO} landmarks: started", 3),         # the driver's frames, per frame
-    (rf"{DRIVE} texture: started", 2),           # the per-frame textures
-    (rf"{DRIVE} dynamics: started", 6),          # the driver's 3D flow
-    (rf"{DRIVE} transfer: started", 6),          # the deformation transfer
-    (rf"{DRIVE} render3d: started", 2),          # the render
-    (rf"{DRIVE} composite: started", 5),         # the composite
-    (rf"{DRIVE} videos: started", 3),            # the videos
+    (rf"{VIDEO} landmarks: started", 1),         # the driver's frames, per frame
+    (rf"{DRIVE} texture: started", 1),           # the per-frame textures
+    (rf"{DRIVE} dynamics: started", 3),          # the driver's 3D flow
+    (rf"{DRIVE} transfer: started", 1),          # the deformation transfer
+    (rf"{DRIVE} render3d: started", 1),          # the render
+    (rf"{DRIVE} composite: started", 2),         # the composite
+    (rf"{DRIVE} videos: started", 2),            # the videos
     (rf"{DRIVE} analyse: started", 10),          # the evaluation
 ]
 
