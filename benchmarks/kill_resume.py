@@ -9,12 +9,14 @@ store is built by a sequence of runs: attempt k waits until its run prints the k
 busy writing, and SIGKILLs the whole process group (the client and its local Dask workers, as a
 power cut or an out-of-memory killer would). A final run completes the store. Every array of both
 stores is compared: shape, dtype, and values (NaN equal to NaN). Prints one line per kill (when,
-where, the last line the run printed) and the comparison; exit status 1 when an array differs or
-a run failed.
+where, the last line the run printed; each run's whole output is in the folder, ``kill_<k>.log``)
+and the comparison; exit status 1 when an array differs or a run failed.
 
-The default triggers fit the example workflows (collections ``puppet``, ``driver``, ``driver/frames``
-and ``drive``): per-photo stages, the collection-level shape and texture, the drive's per-frame
-textures, dynamics, transfer, render and the evaluation.
+The default triggers fit the example workflows, version 1 (collections ``puppet``, ``driver``,
+``driver/frames`` and ``drive``) and version 2 (``people/<name>``, ``videos/<name>``,
+``drives/<name>``; the first person, video and drive to print the step): per-photo stages, the
+collection-level shape and texture cache, the video's frames, the drive's per-frame textures,
+dynamics, transfer, render, composite, videos and the evaluation.
 """
 
 from __future__ import annotations
@@ -33,24 +35,30 @@ from pathlib import Path
 import numpy as np
 import zarr
 
+#: The collection a line is about, in a version-1 or a version-2 workflow.
+PERSON, VIDEO, DRIVE = r"(puppet|people/\S+)", r"(driver/frames|videos/\S+)", r"(drive|drives/\S+)"
+
 #: (pattern of a line the run prints, seconds to wait after it before the SIGKILL)
 TRIGGERS = [
-    (r"puppet ingest: started", 4),              # photos: ingest, landmarks, pose, frontalize
-    (r"puppet align: started", 6),               # the collection flow, per photo
-    (r"puppet align: done", 10),                 # the puppet's subspace and shape
-    (r"puppet align: done", 30),                 # the puppet's shape and texture cache
-    (r"driver/frames landmarks: started", 4),    # the driver's frames, per frame
-    (r"drive texture: started", 3),              # the per-frame textures
-    (r"drive dynamics: started", 15),            # the driver's 3D flow
-    (r"drive transfer: started", 6),             # the deformation transfer
-    (r"drive render3d: started", 5),             # the render
-    (r"drive render3d: done", 4),                # videos and the evaluation
+    (rf"{PERSON} ingest: started", 4),           # photos: ingest, landmarks, pose, frontalize
+    (rf"{PERSON} align: started", 6),            # the collection flow, per photo
+    (rf"{PERSON} shape: started", 8),            # the puppet's subspace and shape
+    (rf"{PERSON} tex. cache: started", 6),       # the puppet's texture cache
+    (rf"{VIDEO} landmarks: started", 1),         # the driver's frames, per frame
+    (rf"{DRIVE} texture: started", 1),           # the per-frame textures
+    (rf"{DRIVE} dynamics: started", 3),          # the driver's 3D flow
+    (rf"{DRIVE} transfer: started", 1),          # the deformation transfer
+    (rf"{DRIVE} render3d: started", 1),          # the render
+    (rf"{DRIVE} composite: started", 2),         # the composite
+    (rf"{DRIVE} videos: started", 2),            # the videos
+    (rf"{DRIVE} analyse: started", 10),          # the evaluation
 ]
 
 
-def run(workflow: str, store: Path, output: Path, workers: int, trigger=None, env=None):
+def run(workflow: str, store: Path, output: Path, workers: int, trigger=None, env=None, log: Path | None = None):
     """One ``persona run``; with ``trigger`` (pattern, delay), SIGKILLed ``delay`` s after the first
-    line matching it. Returns (return code or "killed", seconds, the last line printed)."""
+    line matching it; the lines it prints go to the file ``log`` too. Returns (return code or
+    "killed", seconds, the last line printed)."""
     command = [sys.executable, "-m", "persona.dag.cli", "run", workflow, "--workers", str(workers),
                "--set", f"store={store}", "--set", f"output={output}"]
     start = time.perf_counter()
@@ -59,18 +67,20 @@ def run(workflow: str, store: Path, output: Path, workers: int, trigger=None, en
     selector = selectors.DefaultSelector()
     selector.register(proc.stdout, selectors.EVENT_READ)
     last, deadline = "", None
-    while True:
-        if deadline is not None and time.perf_counter() >= deadline:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait()
-            return "killed", time.perf_counter() - start, last
-        if selector.select(timeout=0.2):
-            line = proc.stdout.readline()
-            if not line:
-                break
-            last = line.rstrip()[:120] or last
-            if trigger and deadline is None and re.search(trigger[0], line):
-                deadline = time.perf_counter() + trigger[1]
+    with open(log or os.devnull, "w", buffering=1) as out:  # line by line: a run that hangs shows where
+        while True:
+            if deadline is not None and time.perf_counter() >= deadline:
+                os.killpg(proc.pid, signal.SIGKILL)
+                proc.wait()
+                return "killed", time.perf_counter() - start, last
+            if selector.select(timeout=0.2):
+                line = proc.stdout.readline()
+                if not line:
+                    break
+                last = line.rstrip()[:120] or last
+                out.write(line)
+                if trigger and deadline is None and re.search(trigger[0], line):
+                    deadline = time.perf_counter() + trigger[1]
     proc.wait()
     return proc.returncode, time.perf_counter() - start, last
 
@@ -113,16 +123,16 @@ def main() -> int:
     reference = args.reference
     if reference is None:
         reference = folder / "reference.zarr"
-        rc, seconds, last = run(workflow, reference, folder / "reference", args.workers)
+        rc, seconds, last = run(workflow, reference, folder / "reference", args.workers, log=folder / "reference.log")
         print(f"uninterrupted run: rc {rc}, {seconds:.0f} s")
         if rc != 0:
             print(last)
             return 1
     store, output = folder / "killed.zarr", folder / "killed"
     for k, trigger in enumerate(TRIGGERS, 1):
-        rc, seconds, last = run(workflow, store, output, args.workers, trigger)
+        rc, seconds, last = run(workflow, store, output, args.workers, trigger, log=folder / f"kill_{k:02d}.log")
         print(f"kill {k:2d} ({trigger[0]} + {trigger[1]} s): {rc} after {seconds:.0f} s; last line: {last}")
-    rc, seconds, last = run(workflow, store, output, args.workers)
+    rc, seconds, last = run(workflow, store, output, args.workers, log=folder / "final.log")
     print(f"final run: rc {rc}, {seconds:.0f} s; last line: {last}")
     problems = compare(reference, store)
     for p in problems:

@@ -189,8 +189,8 @@ class WorkerSetup(WorkerPlugin):
     """A Dask worker plugin, on every worker present and future: the run's storage options
     (:func:`persona.stores.storage.configure`; sent to the workers, never written anywhere),
     OpenCV on one thread (Dask runs a task per worker thread already; OpenCV's own pool of a thread
-    per core on top oversubscribes the cores, as Dask's nanny says of OpenMP and BLAS) and
-    :func:`malloc_for_arrays`."""
+    per core on top oversubscribes the cores, as Dask's nanny says of OpenMP and BLAS),
+    :func:`malloc_for_arrays` and :func:`no_profile`."""
 
     def __init__(self, options: dict | None):
         self.options = options
@@ -199,9 +199,23 @@ class WorkerSetup(WorkerPlugin):
         one_thread()  # for the worker's life
         malloc_for_arrays()
         storage.configure(self.options)
+        no_profile(worker)
 
     def __repr__(self) -> str:  # no secrets in logs
         return "WorkerSetup(...)"
+
+
+def no_profile(worker) -> None:
+    """The worker's statistical profiler stopped (it shows in the dashboard only, which nobody
+    reads). Every 10 ms it takes every thread's stack with ``sys._current_frames()``, and on CPython
+    3.11 before 3.11.9 that can deadlock the worker for good: a garbage collection inside it waits
+    for the GIL while holding the interpreter's lock on its threads, which a thread being started
+    (zarr starts decoder threads as it reads) holds the GIL to take (python/cpython#106883,
+    dask/distributed#8616). A run hung so, every thread of a worker waiting, in a mean face's task."""
+    for name in ("profile", "profile-cycle"):
+        callback = worker.periodic_callbacks.pop(name, None)
+        if callback is not None:
+            callback.stop()
 
 
 def one_thread() -> Callable[[], None]:

@@ -319,6 +319,22 @@ def test_the_local_cluster_listens_on_loopback_only():
         ex.close()
 
 
+def test_the_workers_sample_no_profile():
+    """Dask's workers sample every thread's stack (sys._current_frames()) every 10 ms; on CPython
+    3.11 before 3.11.9 that can deadlock the worker for good against a thread being started (GC
+    inside the sampling waits for the GIL while holding the runtime lock; python/cpython#106883,
+    dask/distributed#8616): a run of benchmarks/kill_resume.py hung so in a worker's mean-face
+    task (zarr starting a decoder thread). Persona's workers sample nothing."""
+    from persona.dag.runner import Executor
+
+    ex = Executor("local", 1)
+    try:
+        list(ex.run(time.sleep, [(1.2,)]))  # busy for longer than the profile's cycle (1 s)
+        assert ex.client.profile()["count"] == 0
+    finally:
+        ex.close()
+
+
 def test_a_connection_closed_while_a_result_comes_back_is_a_lost_scheduler():
     """The scheduler SIGKILLed just as a finished task's result is fetched: distributed raises
     CommClosedError there (seen once in CI under load, a raw traceback and exit 1); the run says it
