@@ -82,7 +82,9 @@ def local_cluster(folder: Path, protocol: str = "tcp", tls: list[str] = (), secu
     port = free_port()
     address = f"{protocol}://127.0.0.1:{port}"
     dask = str(Path(sys.executable).with_name("dask"))
-    env = {**os.environ, "PERSONA_PLUGINS": ""}
+    # the workers sample no profile, as a run's do (runner.no_profile: CPython 3.11.7 can deadlock in
+    # it); and a busy machine gets two minutes to answer, not one (a CI run once timed out here)
+    env = {**os.environ, "PERSONA_PLUGINS": "", "DASK_DISTRIBUTED__WORKER__PROFILE__ENABLED": "False"}
     procs = [subprocess.Popen([dask, "scheduler", "--protocol", protocol, "--host", "127.0.0.1", "--port", str(port),
                                "--no-dashboard", *tls], env=env, cwd=folder,
                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)]
@@ -93,8 +95,8 @@ def local_cluster(folder: Path, protocol: str = "tcp", tls: list[str] = (), secu
     try:
         from distributed import Client
 
-        with Client(address, timeout="60s", security=security) as client:
-            client.wait_for_workers(2, timeout=60)
+        with Client(address, timeout="120s", security=security) as client:
+            client.wait_for_workers(2, timeout=120)
         yield address
     finally:
         for p in reversed(procs):
