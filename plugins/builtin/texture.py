@@ -20,7 +20,7 @@ from pydantic import Field, model_validator
 from ..base import Params
 from ..face import eyes, texture as align
 from ..face.blend import BlendCache, BlendSums, BlendTotals, chosen, expression_weights
-from ..face.dynamics import smooth_in_time
+from ..face.dynamics import smooth_in_time, time_radius
 from ..face.fiducials import mean_shape
 from ..face.template import CANONICAL_HEIGHT as H, CANONICAL_WIDTH as W
 from ..face.warp import tps_map
@@ -162,7 +162,7 @@ class MultiscaleTexture(TextureBackend):
     @property
     def time_radius(self) -> int:
         """Video mode: how many frames on each side a frame's expression weights take in (``time_sigma``)."""
-        return int(np.ceil(3 * self.params.time_sigma))
+        return time_radius(self.params.time_sigma)
 
     def expression(self, fiducials: np.ndarray, targets: np.ndarray, keep: slice = slice(None)) -> np.ndarray:
         """Video mode: the expression weights (f, n) of the targets ``keep`` of consecutive frames' targets

@@ -380,7 +380,12 @@ def smooth_in_time(values: np.ndarray, sigma: float) -> np.ndarray:
     (or a single frame) returns them unchanged."""
     if sigma <= 0 or len(values) < 2:
         return np.asarray(values, dtype=np.float64)
-    return gaussian_in_time(values, None, sigma, max(1, int(np.ceil(3 * sigma))))
+    return gaussian_in_time(values, None, sigma, time_radius(sigma))
+
+
+def time_radius(sigma: float) -> int:
+    """How many frames on each side :func:`smooth_in_time` takes in at ``sigma`` (0 for none)."""
+    return max(1, int(np.ceil(3 * sigma))) if sigma > 0 else 0
 
 
 def gaussian_in_time(values: np.ndarray, valid: np.ndarray | None, sigma: float, radius: int) -> np.ndarray:
