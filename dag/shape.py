@@ -33,9 +33,9 @@ def compute_subspace(runner, coll: Collection, *, source: str, state: str, rank:
                            inputs={"photos": upstream}, persona_version=runner.version)
     if coll.made_by("subspace/basis", prov):
         return prov
-    ok = np.flatnonzero(coll.state(state) == OK)
-    if len(ok) <= rank:
-        raise Rejected(f"{len(ok)} usable photos of {coll.n}, and the rank-{rank} appearance subspace needs at "
+    keep = coll.state(state) == OK
+    if keep.sum() <= rank:
+        raise Rejected(f"{keep.sum()} usable photos of {coll.n}, and the rank-{rank} appearance subspace needs at "
                        f"least {rank + 1} (the 3D shape needs 8 or more): add photos of the same person; "
                        "`persona inspect` says why the others were rejected")
     chunks = coll.shard
@@ -43,8 +43,8 @@ def compute_subspace(runner, coll: Collection, *, source: str, state: str, rank:
     mask = da.from_zarr(coll.array(f"{source}/mask"), chunks=(chunks, H, W))
     mean = coll.array("aligned/mean")[...].astype(np.float32) / 255
     # pixels a photo does not see take the collection's mean (its unseen parts carry no light)
-    rows = da.where(mask[..., None], rgb.astype(np.float32) / 255, mean)[ok].reshape(len(ok), H * W * 3)
-    singular, basis = streamed_svd(rows.rechunk((chunks, -1)), rank, runner.executor.compute)
+    rows = da.where(mask[..., None], rgb.astype(np.float32) / 255, mean).reshape(coll.n, H * W * 3)
+    singular, basis = streamed_svd(rows, rank, runner.executor.compute, keep=keep)  # a shard's rows per chunk
     basis = basis.astype(np.float32).reshape(rank, H, W, 3)
     if basis[0].sum() < 0:  # the first component is the average face: keep it positive
         basis[0] *= -1

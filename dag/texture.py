@@ -107,10 +107,10 @@ def run_texture(runner, coll: Collection, aligned: Provenance) -> dict[str, str]
                                          name, params))
     basis = None
     if own:
-        ok = np.flatnonzero(coll.state("align") == OK)
-        grey, valid = (da.from_zarr(coll.array(f"texture/warped_{kind}"), chunks=(coll.shard, H, W))[ok]
+        grey, valid = (da.from_zarr(coll.array(f"texture/warped_{kind}"), chunks=(coll.shard, H, W))
                        for kind in ("grey", "valid"))
-        basis = warped_basis(grey, valid, fill, backend.params.rank, runner.executor.compute)
+        basis = warped_basis(grey, valid, fill, backend.params.rank, runner.executor.compute,
+                             keep=coll.state("align") == OK)
     levels = backend.params.levels
     for k, level in enumerate(gaussian_pyramid(np.zeros((H, W), np.float32), levels)):
         coll.create(f"texture/weighted_{k}", (*level.shape, 3), np.float32, ("photo", *_level_dims(k), "channel"), prov)

@@ -164,10 +164,10 @@ def flow_aligned(photos: TexturePhotos, warped: Aligned, maps: np.ndarray, basis
     return Aligned(rgb, valid, stretch, residual)
 
 
-def warped_basis(grey, valid, fill: np.ndarray, rank: int, compute=lambda *arrays: arrays) -> np.ndarray:
+def warped_basis(grey, valid, fill: np.ndarray, rank: int, compute=lambda *arrays: arrays, keep=None) -> np.ndarray:
     """Rank-k basis (k, H, W) of TPS-warped grey photos (n, H, W), NumPy or Dask arrays; unseen
     pixels take the grey of ``fill`` (H, W, 3), the collection's mean where it sees (they carry no
     light of their own). A randomised SVD (subspace.streamed_svd) whose products ``compute`` makes:
-    on Dask arrays a pass over the shards each."""
+    on Dask arrays a pass over the shards each; over the photos where ``keep`` (n,) is true."""
     rows = np.where(valid, grey, to_grey(np.asarray(fill, np.float32))).reshape(len(grey), -1)
-    return streamed_svd(rows, rank, compute)[1].reshape(rank, H, W).astype(np.float32)
+    return streamed_svd(rows, rank, compute, keep=keep)[1].reshape(rank, H, W).astype(np.float32)

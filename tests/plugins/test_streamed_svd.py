@@ -21,3 +21,21 @@ def test_streamed_svd_finds_the_top_subspace_of_a_tall_array():
     overlap = np.linalg.svd(basis @ exact[2][:4].T, compute_uv=False)
     assert overlap.min() > 0.9999
     np.testing.assert_allclose(basis @ basis.T, np.eye(4), atol=1e-5)
+
+
+def test_rows_left_out_do_not_count_and_the_chunks_stay():
+    """``keep`` leaves rows out as the SVD of the kept rows alone would: here the left-out rows
+    are 100 times larger and of another subspace, so counting them in would change everything."""
+    rng = np.random.default_rng(1)
+    kept = (rng.normal(size=(40, 4)) * [9, 5, 3, 2]) @ rng.normal(size=(4, 300))
+    stray = 100 * rng.normal(size=(20, 300))
+    matrix = np.concatenate([kept, stray]).astype(np.float32)
+    order = rng.permutation(60)
+    keep = order < 40
+    rows = da.from_array(matrix[order], chunks=(8, 300))
+    singular, basis = streamed_svd(rows, 4, sync_compute, keep=keep)
+    exact = np.linalg.svd(kept, full_matrices=False)
+    np.testing.assert_allclose(singular, exact[1][:4], rtol=1e-3)
+    assert np.linalg.svd(basis @ exact[2][:4].T, compute_uv=False).min() > 0.9999
+    # the same on a NumPy array
+    np.testing.assert_allclose(streamed_svd(matrix[order], 4, lambda *a: a, keep=keep)[0], singular, rtol=1e-5)
