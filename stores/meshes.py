@@ -17,7 +17,10 @@ This module imports neither ``persona.plugins`` nor ``persona.dag``.
 from __future__ import annotations
 
 import io
+import multiprocessing
 import os
+import threading
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -144,34 +147,51 @@ def clean_mesh(mesh: o3d.geometry.TriangleMesh, *, min_component_faces: int | No
 
     Vertex colours and per-corner ``triangle_uvs`` are carried through; vertex normals are
     recomputed.
-    """
-    import pymeshlab
 
+    pymeshlab runs in the process's main thread only: from any other thread it corrupts the heap
+    (glibc then aborts, "malloc_consolidate(): unaligned fastbin chunk detected", at the latest when
+    the process exits). Called from another thread (a Dask worker's task, a version-2 run's build
+    of a person), the cleaning runs in a new process of its own, which costs a second or two.
+    """
     verts = np.asarray(mesh.vertices, dtype=np.float64)
     faces = np.asarray(mesh.triangles, dtype=np.int32)
-    kw = {}
-    if mesh.has_vertex_colors():
-        kw["v_color_matrix"] = np.hstack([np.asarray(mesh.vertex_colors), np.ones((len(verts), 1))])
-    has_uv = len(mesh.triangle_uvs) == 3 * len(faces) and len(faces) > 0
-    if has_uv:
-        kw["w_tex_coords_matrix"] = np.asarray(mesh.triangle_uvs, dtype=np.float64)
-    ms = pymeshlab.MeshSet()
-    ms.add_mesh(pymeshlab.Mesh(vertex_matrix=verts, face_matrix=faces, **kw))
+    colours = np.asarray(mesh.vertex_colors, dtype=np.float64) if mesh.has_vertex_colors() else None
+    uvs = np.asarray(mesh.triangle_uvs, dtype=np.float64) if len(mesh.triangle_uvs) == 3 * len(faces) > 0 else None
     if min_component_faces is None:
         min_component_faces = max(10, len(faces) // 100)
-    ms.meshing_remove_duplicate_vertices()
-    ms.meshing_remove_duplicate_faces()
-    ms.meshing_remove_null_faces()
-    ms.meshing_remove_connected_component_by_face_number(mincomponentsize=int(min_component_faces),
-                                                         removeunref=True)
-    ms.meshing_remove_unreferenced_vertices()
-    cur = ms.current_mesh()
-    out = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(cur.vertex_matrix()),
-                                    o3d.utility.Vector3iVector(cur.face_matrix().astype(np.int32)))
-    if mesh.has_vertex_colors():
-        out.vertex_colors = o3d.utility.Vector3dVector(cur.vertex_color_matrix()[:, :3])
-    if has_uv and cur.has_wedge_tex_coord():
-        out.triangle_uvs = o3d.utility.Vector2dVector(cur.wedge_tex_coord_matrix())
+    args = (verts, faces, colours, uvs, int(min_component_faces))
+    if threading.current_thread() is threading.main_thread():
+        verts, faces, colours, uvs = _cleaned(*args)
+    else:
+        with ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn")) as process:
+            verts, faces, colours, uvs = process.submit(_cleaned, *args).result()
+    out = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(verts), o3d.utility.Vector3iVector(faces))
+    if colours is not None:
+        out.vertex_colors = o3d.utility.Vector3dVector(colours)
+    if uvs is not None:
+        out.triangle_uvs = o3d.utility.Vector2dVector(uvs)
         out.triangle_material_ids = o3d.utility.IntVector(np.zeros(len(out.triangles), np.int32))
     out.compute_vertex_normals()
     return out
+
+
+def _cleaned(verts, faces, colours, uvs, min_component_faces: int) -> tuple:
+    """:func:`clean_mesh`'s pymeshlab filters on arrays: (vertices, faces, colours or None, uvs or None)."""
+    import pymeshlab
+
+    kw = {}
+    if colours is not None:
+        kw["v_color_matrix"] = np.hstack([colours, np.ones((len(verts), 1))])
+    if uvs is not None:
+        kw["w_tex_coords_matrix"] = uvs
+    ms = pymeshlab.MeshSet()
+    ms.add_mesh(pymeshlab.Mesh(vertex_matrix=verts, face_matrix=faces, **kw))
+    ms.meshing_remove_duplicate_vertices()
+    ms.meshing_remove_duplicate_faces()
+    ms.meshing_remove_null_faces()
+    ms.meshing_remove_connected_component_by_face_number(mincomponentsize=min_component_faces, removeunref=True)
+    ms.meshing_remove_unreferenced_vertices()
+    cur = ms.current_mesh()
+    return (cur.vertex_matrix(), cur.face_matrix().astype(np.int32),
+            cur.vertex_color_matrix()[:, :3] if colours is not None else None,
+            cur.wedge_tex_coord_matrix() if uvs is not None and cur.has_wedge_tex_coord() else None)
