@@ -14,6 +14,7 @@ import os
 import sys
 import time
 from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 
@@ -627,24 +628,65 @@ class Runner:
         """A version-2 workflow: every person and video once, then every drive, each drive's outputs
         in its own folder and the batch page over them. A person or a video that cannot be built
         fails the drives that use it, a drive that fails fails alone; the run then raises a
-        :class:`RunError` naming each failed drive, after the others are done."""
-        broken = {}
-        for plan in self.wf.collections():
-            try:
-                if isinstance(inputs[plan.path], InputError):
-                    raise inputs[plan.path]
-                report["collections"][plan.path] = self.build_collection(plan, inputs[plan.path], report)
-            except ChunkError:  # a damaged store: recovered by run(), then everything is run again
-                raise
-            except Exception as exc:
-                broken[plan.path] = f"{plan.path}: {_why(exc)}"
-                log.error("%s", broken[plan.path])
+        :class:`RunError` naming each failed drive, after the others are done.
+
+        People and videos are built ``cluster.builds`` at a time, in threads of this process whose
+        tasks share the cluster; the drives run one after another in this thread, each as soon as
+        its puppet, driver and video are built, while the others' builds go on."""
+        plans = self.wf.collections()
+        for plan in plans:  # every group (and its parents) made here, before the threads write in them
+            self.root.require_group(plan.path)
+        # built in the order the drives need them, so that the first drive starts as soon as it can
+        needed = [p for d in self.wf.drive_plans() for p in (d.cast.puppet, d.cast.driver, d.cast.frames)]
+        first_use = {path: i for i, path in reversed(list(enumerate(needed)))}
+        pool = (_OneByOne() if self.executor.client is None or self.wf.cluster.builds == 1
+                else ThreadPoolExecutor(self.wf.cluster.builds, thread_name_prefix="persona-build"))
+        try:
+            builds = {plan.path: pool.submit(self._build, plan, inputs[plan.path], report)
+                      for plan in sorted(plans, key=lambda plan: first_use.get(plan.path, len(needed)))}
+            failed = self._run_drives(report, builds)
+            pool.shutdown()  # the people and videos no drive uses
+            for build in builds.values():
+                _built(build)  # a damaged chunk met there is recovered as anywhere
+        except BaseException as exc:
+            # a damaged chunk (run() recovers and starts again) or an error: no build may go on writing
+            # meanwhile. Ctrl-C does not wait: closing the cluster then ends the builds' tasks
+            pool.shutdown(wait=not isinstance(exc, KeyboardInterrupt), cancel_futures=True)
+            raise
+        built = report["collections"]  # in the order the builds ended: the workflow's order
+        report["collections"] = {plan.path: built[plan.path] for plan in plans if plan.path in built}
+        write_json(storage.join(self.wf.output, "metrics.json"), report)
+        write_batch_page(self.wf, report)
+        if failed:
+            raise RunError(f"{len(failed)} of {len(report['drives'])} drives failed: "
+                           + "; ".join(f"{name}: {why}" for name, why in failed.items())
+                           + f". The others are done (in {self.wf.output}); fix the cause and run again: "
+                           "what is done is not redone")
+        return report
+
+    def _build(self, plan, sources: list[media.Source] | InputError, report: dict) -> None:
+        """:meth:`build_collection` in a build thread, its result into ``report``; an error is logged
+        here, when it happens, and raised to the drives that wait for it."""
+        try:
+            if isinstance(sources, InputError):
+                raise sources
+            report["collections"][plan.path] = self.build_collection(plan, sources, report)
+        except ChunkError:
+            raise
+        except Exception as exc:
+            log.error("%s: %s", plan.path, _why(exc))
+            raise
+
+    def _run_drives(self, report: dict, builds: dict[str, Future]) -> dict[str, str]:
+        """Every drive of a version-2 workflow, each once its collections' ``builds`` are done, into
+        ``report``; returns why each drive that failed did."""
         report["stages"] = self.timer.records
         report["report"] = str(storage.join(self.wf.output, "index.html"))
         report["drives"], failed = {}, {}
         for plan in self.wf.drive_plans():
             try:
-                cause = [broken[p] for p in (plan.cast.puppet, plan.cast.driver, plan.cast.frames) if p in broken]
+                cause = [f"{p}: {why}" for p in dict.fromkeys((plan.cast.puppet, plan.cast.driver, plan.cast.frames))
+                         if (why := _built(builds[p])) is not None]
                 if cause:
                     raise RunError("; ".join(cause))
                 part = self.drive(plan)
@@ -664,14 +706,7 @@ class Runner:
             self.write_outputs(plan.output, own, part["series"], plan.cast)
             report["drives"][plan.name] = {"output": str(plan.output), "report": own["report"],
                                            "evaluation": own["evaluation"]}
-        write_json(storage.join(self.wf.output, "metrics.json"), report)
-        write_batch_page(self.wf, report)
-        if failed:
-            raise RunError(f"{len(failed)} of {len(report['drives'])} drives failed: "
-                           + "; ".join(f"{name}: {why}" for name, why in failed.items())
-                           + f". The others are done (in {self.wf.output}); fix the cause and run again: "
-                           "what is done is not redone")
-        return report
+        return failed
 
     def build_collection(self, plan, sources: list[media.Source], report: dict) -> dict:
         """One collection's per-photo stages, mean face and pictures; for photo collections (not a
@@ -760,6 +795,34 @@ class Runner:
         return evaluate(self.wf.store, self.executor, identity=self.wf.stage("identity"),
                         threshold=e.threshold, collection_sample=e.collection_sample,
                         self_reenactment=e.self_reenactment, cast=cast, progress=progress)
+
+
+class _OneByOne:
+    """The builds of :meth:`Runner.run_batch` one after another in this thread, as a pool of one
+    thread would run them (the scheduler "sync", or ``cluster.builds`` 1)."""
+
+    @staticmethod
+    def submit(fn, *args) -> Future:
+        future = Future()
+        try:
+            future.set_result(fn(*args))
+        except ChunkError:  # at once, as a thread's would stop the run (Runner.run recovers it)
+            raise
+        except Exception as exc:  # raised where the drives wait for it (_built)
+            future.set_exception(exc)
+        return future
+
+    def shutdown(self, wait: bool = True, cancel_futures: bool = False) -> None:
+        pass
+
+
+def _built(build: Future) -> str | None:
+    """Waits for a collection's build (:meth:`Runner._build`): None when it is built, else why not. A
+    damaged chunk met there is raised, for :meth:`Runner.run` to recover."""
+    exc = build.exception()
+    if isinstance(exc, ChunkError) or (exc is not None and not isinstance(exc, Exception)):
+        raise exc
+    return None if exc is None else _why(exc)
 
 
 def _why(exc: Exception) -> str:

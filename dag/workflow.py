@@ -144,6 +144,10 @@ class Cluster(Strict):
     workers: int | None = Field(None, ge=1, description="local workers (default: one per core)")
     threads_per_worker: int = Field(1, ge=1, description="threads per local worker")
     memory_limit: str = Field("auto", description='memory per local worker, e.g. "2GiB"')
+    builds: int = Field(2, ge=1, description="version 2: how many people and videos are built at once, their "
+                        "tasks sharing the workers (one's single-task steps, such as the 3D shape, leave the "
+                        "other workers to the next's photos); 1 = one after another. The scheduler \"sync\" "
+                        "builds one at a time")
     # batch kinds
     jobs: int = Field(1, ge=1, description="batch jobs of workers to submit (batch kinds)")
     cores: int = Field(1, ge=1, description="cores per batch job; each runs one single-threaded worker process")

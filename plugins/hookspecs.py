@@ -7,6 +7,12 @@ group of their ``pyproject.toml``::
 
     [project.entry-points.persona]
     my_flow = "my_package.persona_plugin"
+
+The lifecycle hooks (``persona_before_stage`` and the others) come from the process that runs the
+workflow. A version-2 workflow builds several people at once (``cluster.builds``), each in a
+thread of its own, so these hooks may be called from several threads at the same time, for
+different collections; a plugin that keeps state across calls should key it by collection (or
+take a lock).
 """
 
 import pluggy

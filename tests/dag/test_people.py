@@ -14,6 +14,7 @@ from persona.dag.demo import make_demo_data, write_collection
 from persona.dag.runner import run_workflow
 from persona.dag.workflow import WorkflowError, load_workflow, parse_workflow
 from persona.plugins.face import synthetic
+from persona.plugins.hookspecs import hookimpl
 from persona.stores import media
 from persona.stores.layout import Cast, Collection, open_store, summarize
 
@@ -109,6 +110,52 @@ def test_a_drive_of_format_2_is_the_drive_of_format_1(people_run):
         assert np.array_equal(batch.array(name)[:], alone.array(name)[:], equal_nan=name == "mesh"), name
 
 
+class _Meet:
+    """A lifecycle plugin that holds the first stage of the first person to start until a second
+    person's stage has started too (at most ``timeout`` s): it meets one only if two are built at once."""
+
+    def __init__(self, timeout: float = 60.0):
+        import threading
+
+        self.timeout, self.started, self.first_met = timeout, set(), None
+        self.changed = threading.Condition()
+
+    @hookimpl
+    def persona_before_stage(self, stage, collection, info):
+        if not collection.startswith("people/"):
+            return
+        with self.changed:
+            self.started.add(collection)
+            self.changed.notify_all()
+            if self.first_met is None:
+                self.first_met = False  # this call is the first: it waits for another person
+                self.first_met = self.changed.wait_for(lambda: len(self.started) >= 2, timeout=self.timeout)
+
+
+def test_people_are_built_two_at_a_time_on_a_cluster_and_the_store_is_the_same(people_run):
+    """``cluster.builds`` 2 (the default) on a local Dask cluster: a second person's stages start
+    while the first's are under way, and the store is the same, array for array, as the one-at-a-time
+    run in this process (people_run, scheduler "sync")."""
+    from persona.dag.runner import Runner, executor_for, resolve_inputs
+    from persona.plugins.manager import get_plugin_manager
+    from pipeline import assert_same_store
+
+    folder, drives, _, _ = people_run
+    data = {**_people_workflow(folder, drives), "store": "together.zarr", "output": "together",
+            "cluster": {"scheduler": "local", "workers": 2}}
+    path = folder / "together.yaml"
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    wf, meet = load_workflow(path), _Meet()
+    assert wf.cluster.builds == 2
+    with executor_for(wf) as ex, contextlib.redirect_stderr(io.StringIO()):
+        report = Runner(wf, ex, progress=False, pm=get_plugin_manager([meet])[0]).run(
+            resolve_inputs(wf, keep_going=True))
+    assert meet.first_met is True and len(meet.started) == 3
+    assert set(report["drives"]) == {"bea_al_driver", "cy_al_driver"}
+    assert list(report["collections"]) == [plan.path for plan in wf.collections()]  # the workflow's order
+    assert_same_store(folder / "together.zarr", folder / "people.zarr")
+
+
 def test_a_new_drive_builds_only_what_is_new(people_run):
     """Adding a drive (a range of the same video) to the workflow: no person, no finished drive is
     built, encoded or evaluated again; only the new range's frames and its drive are."""
@@ -158,3 +205,4 @@ def test_a_drive_that_fails_fails_alone(people_run):
     assert (folder / "people" / "cy_al_driver" / "composite.mp4").is_file()
     page = (folder / "people" / "index.html").read_text()
     assert page.count("failed: ") == 2 and 'href="cy_al_driver/report.html"' in page
+
