@@ -9,8 +9,9 @@ the renderer moves the geometry. Every step is Dask tasks over shards of photos 
 no process holds the whole cache (:func:`run_texture`, :func:`stored_textures`).
 
 Stored: ``<puppet>/texture/weighted_<k>``, ``texture/detail_<k>`` (per photo and level), their
-sums over all photos ``texture/total_<weighted|detail|energy>_<k>``, ``texture/neutral`` (the
-texture at the mean fiducials, written last) and ``drive/texture/rgb`` (per frame).
+sums over all photos ``texture/total_<weighted|detail|energy>_<k>`` (the cache, whose provenance
+leaves out the texture backend's ``frame_params``), ``texture/neutral`` (the texture at the mean
+fiducials, written last; its provenance has every param) and ``drive/texture/rgb`` (per frame).
 For 3D renderers also the inside of B's mouth (:mod:`persona.plugins.face.mouth`):
 ``texture/mouth`` (when a photo shows it) and ``texture/lips`` (B's mean inner-lip curves,
 written last).
@@ -75,8 +76,40 @@ def collection_aligned(coll: Collection, rows: np.ndarray) -> Aligned:
 
 
 def run_texture(runner, coll: Collection, aligned: Provenance) -> dict[str, str]:
-    """The video-mode cache of the aligned collection and its neutral texture; returns the
-    picture written (``texture_neutral``).
+    """The video-mode cache of the aligned collection (:func:`build_cache`) and its neutral texture
+    (``texture/neutral``, written last: it marks the step done); returns the picture written
+    (``texture_neutral``).
+
+    The cache is keyed by the texture backend's params but its ``frame_params``, the neutral texture
+    by all of them and the cache's key: when only frame params changed, the cache stays and only the
+    neutral texture is made again from it (one task)."""
+    name, params, backend = texture_backend(runner)
+    cache = Provenance.make(stage="texture", backend=name, backend_version=backend.version,
+                            params={k: v for k, v in params.items() if k not in backend.frame_params},
+                            inputs={"align": aligned.key}, persona_version=runner.version)
+    prov = Provenance.make(stage="texture", backend=name, backend_version=backend.version, params=params,
+                           inputs={"align": aligned.key, "cache": cache.key}, persona_version=runner.version)
+    out = storage.join(runner.wf.output, f"{coll.path.replace('/', '_')}_texture_neutral.png")
+    if coll.made_by("texture/neutral", prov) and coll.made_by(CACHE_DONE, cache) and storage.isfile(out):
+        return {"texture_neutral": str(out)}
+    if type(backend).cache is TextureBackend.cache:
+        log.warning("texture backend %s has no video mode: the drive shows the static average", name)
+        coll.remove("texture/neutral")  # another backend's, from an earlier run
+        return {}
+    if not coll.made_by(CACHE_DONE, cache):
+        build_cache(runner, coll, cache)
+    target = coll.array("aligned/mean_fiducials")[...].astype(np.float64)
+    (neutral,) = runner.executor.run(stored_textures, [(runner.wf.store, coll.path, name, params, target[None])])
+    neutral = neutral[0].round().astype(np.uint8)
+    # the neutral texture last: its provenance marks the step done
+    coll.create_single("texture/neutral", neutral, ("y", "x", "channel"), prov)
+    media.write_png(out, np.kron(neutral, np.ones((2, 2, 1), np.uint8)))
+    return {"texture_neutral": str(out)}
+
+
+def build_cache(runner, coll: Collection, cache: Provenance) -> None:
+    """The video-mode cache of the aligned collection, made with the texture backend and params of
+    the run, its arrays given the provenance ``cache``.
 
     Every step is Dask tasks over shards of photos, so neither the client nor a worker holds the
     collection: (1) each accepted photo warped to the mean fiducials (with the backend's own
@@ -84,25 +117,17 @@ def run_texture(runner, coll: Collection, aligned: Provenance) -> dict[str, str]
     rank-k basis of the warped photos (a randomised SVD, a pass over the shards per product);
     (3) each photo flowed to its projection on it and its pyramids stored (``texture/weighted_k``,
     ``detail_k``), with the sums over the shard that every blend needs of all photos; (4) the
-    totals of those, then the neutral texture (``texture/neutral``, written last: it marks the
-    step done)."""
+    totals of those; then the cache is marked done (:data:`CACHE_DONE` last)."""
     import dask.array as da
 
     name, params, backend = texture_backend(runner)
-    prov = Provenance.make(stage="texture", backend=name, backend_version=backend.version, params=params,
-                           inputs={"align": aligned.key}, persona_version=runner.version)
-    out = storage.join(runner.wf.output, f"{coll.path.replace('/', '_')}_texture_neutral.png")
-    if coll.made_by("texture/neutral", prov) and storage.isfile(out):
-        return {"texture_neutral": str(out)}
-    if type(backend).cache is TextureBackend.cache:
-        log.warning("texture backend %s has no video mode: the drive shows the static average", name)
-        coll.remove("texture/neutral")  # another backend's, from an earlier run
-        return {}
-    coll.remove("texture/neutral")  # an earlier cache's: nothing may take the new one as done before (4)
+    # an earlier cache's (of any number of levels) and what was made from it: nothing may take the
+    # new one as done before it is
+    coll.remove("texture/neutral", *_cache_arrays(coll))
     own = params.get("video_alignment") == "own"
     if own:  # the TPS-warped photos, for the basis: removed again below
-        coll.create("texture/warped_grey", (H, W), np.float32, ("photo", "y", "x"), prov)
-        coll.create("texture/warped_valid", (H, W), bool, ("photo", "y", "x"), prov)
+        coll.create("texture/warped_grey", (H, W), np.float32, ("photo", "y", "x"), cache)
+        coll.create("texture/warped_valid", (H, W), bool, ("photo", "y", "x"), cache)
     fill = seen_mean(*runner.fold_shards(coll, "tex. warp", warp_shard, lambda a, b: (a[0] + b[0], a[1] + b[1]),
                                          name, params))
     basis = None
@@ -113,22 +138,39 @@ def run_texture(runner, coll: Collection, aligned: Provenance) -> dict[str, str]
                              keep=coll.state("align") == OK)
     levels = backend.params.levels
     for k, level in enumerate(gaussian_pyramid(np.zeros((H, W), np.float32), levels)):
-        coll.create(f"texture/weighted_{k}", (*level.shape, 3), np.float32, ("photo", *_level_dims(k), "channel"), prov)
-        coll.create(f"texture/detail_{k}", (*level.shape, 1), np.float32, ("photo", *_level_dims(k), "weight"), prov)
+        coll.create(f"texture/weighted_{k}", (*level.shape, 3), np.float32, ("photo", *_level_dims(k), "channel"),
+                    cache, pending=True)
+        coll.create(f"texture/detail_{k}", (*level.shape, 1), np.float32, ("photo", *_level_dims(k), "weight"),
+                    cache, pending=True)
     totals = runner.fold_shards(coll, "tex. cache", cache_shard, operator.add, name, params, fill, basis)
     coll.remove("texture/warped_grey", "texture/warped_valid")
     for k in range(levels):  # what every target's blend takes of all photos (small)
-        coll.create_single(f"texture/total_weighted_{k}", totals.weighted[k], (*_level_dims(k), "channel"), prov)
-        coll.create_single(f"texture/total_detail_{k}", totals.detail[k], (*_level_dims(k), "weight"), prov)
-        coll.create_single(f"texture/total_energy_{k}", totals.energy[k], _level_dims(k), prov)
-    target = coll.array("aligned/mean_fiducials")[...].astype(np.float64)
-    (neutral,) = runner.executor.run(stored_textures, [(runner.wf.store, coll.path, prov.key, name, params,
-                                                        target[None])])
-    neutral = neutral[0].round().astype(np.uint8)
-    # the neutral texture last: its provenance marks the step done
-    coll.create_single("texture/neutral", neutral, ("y", "x", "channel"), prov)
-    media.write_png(out, np.kron(neutral, np.ones((2, 2, 1), np.uint8)))
-    return {"texture_neutral": str(out)}
+        coll.create_single(f"texture/total_weighted_{k}", totals.weighted[k], (*_level_dims(k), "channel"), cache)
+        coll.create_single(f"texture/total_detail_{k}", totals.detail[k], (*_level_dims(k), "weight"), cache)
+        coll.create_single(f"texture/total_energy_{k}", totals.energy[k], _level_dims(k), cache)
+    for k in reversed(range(levels)):  # after the data, CACHE_DONE (texture/weighted_0) last
+        coll.mark_done(f"texture/detail_{k}", cache)
+        coll.mark_done(f"texture/weighted_{k}", cache)
+
+
+#: the array of the video-mode cache whose provenance, written after all the cache's data, marks it done
+CACHE_DONE = "texture/weighted_0"
+
+
+def _cache_arrays(coll: Collection) -> list[str]:
+    """The names of the stored video-mode cache's arrays, whatever its number of levels."""
+    if "texture" not in coll.group:
+        return []
+    return [f"texture/{key}" for key in coll.group["texture"].array_keys()
+            if key.startswith(("weighted_", "detail_", "total_"))]
+
+
+def _cache_id(coll: Collection) -> str:
+    """Which build of the stored cache this is, for the copies of it a process keeps between tasks
+    (:func:`stages.per_process`, :func:`_read_shard`): its key, shared by every neutral texture made
+    from it whatever their frame params, and when it was built, so a cache built again is read again."""
+    made = coll.provenance(CACHE_DONE)
+    return f"{made.key}@{made.created}"
 
 
 def _level_dims(k: int) -> tuple[str, str]:
@@ -195,7 +237,7 @@ def load_cache(coll: Collection) -> tuple[BlendCache, np.ndarray]:
     levels = _levels(coll)
     weighted = [coll.rows(f"texture/weighted_{k}", ok) for k in range(levels)]
     detail = [coll.rows(f"texture/detail_{k}", ok) for k in range(levels)]
-    params = coll.provenance("texture/neutral").params
+    params = coll.provenance(CACHE_DONE).params
     cache = BlendCache(weighted, detail, level_bias(levels, params["beta"], params["tau"]))
     return cache, coll.array("aligned/fiducials")[:][ok].astype(np.float64)
 
@@ -222,8 +264,9 @@ _shards: dict[tuple[str, int], tuple[list, list]] = {}
 
 
 def _read_shard(coll: Collection, key: str, start: int, stop: int, rows: np.ndarray) -> tuple[list, list]:
-    """The cache levels (weighted, detail) of the photos ``rows`` of shard [start, stop), kept
-    between tasks while all kept shards fit in :data:`CACHE_BYTES` (the oldest dropped first)."""
+    """The cache levels (weighted, detail) of the photos ``rows`` of shard [start, stop) of the cache
+    ``key`` (:func:`_cache_id`), kept between tasks while all kept shards fit in :data:`CACHE_BYTES`
+    (the oldest dropped first)."""
     if (key, start) not in _shards:
         levels = _levels(coll)
         _shards[(key, start)] = tuple([coll.array(f"texture/{kind}_{k}")[start:stop][rows - start]
@@ -264,18 +307,19 @@ def frame_textures(url: str, path: str, start: int, stop: int, puppet: str, name
     """One shard's task of :func:`run_frame_textures`: B's texture for frames [start, stop) with the
     texture backend ``name``, from the ``puppet``'s stored cache (:func:`stored_textures`)."""
     drive = Collection(open_store(url), path)
-    key = Collection(drive.root, puppet).provenance("texture/neutral").key  # shared by the puppet's drives
-    textures = stored_textures(url, puppet, key, name, params, drive.array("target"), start, stop)
+    textures = stored_textures(url, puppet, name, params, drive.array("target"), start, stop)
     drive.array("texture/rgb")[start:stop] = textures.round().astype(np.uint8)
 
 
-def stored_textures(url: str, path: str, key: str, name: str, params: dict, targets, start: int = 0,
+def stored_textures(url: str, path: str, name: str, params: dict, targets, start: int = 0,
                     stop: int | None = None) -> np.ndarray:
     """B's textures (f, H, W, 3) float32 for the frames [start, stop) of consecutive frames' ``targets``
-    (T, 49, 2; an array read only about those frames) from the stored video-mode cache (provenance ``key``)
-    of the collection ``path``: the sums of Eq. 3 taken over it a shard of photos at a time (a shard that no
-    target weighs is not read), then finished with the totals."""
+    (T, 49, 2; an array read only about those frames) from the stored video-mode cache of the collection
+    ``path``: the sums of Eq. 3 taken over it a shard of photos at a time (a shard that no target weighs
+    is not read, one kept from an earlier task of this process is not read again), then finished with
+    the totals."""
     source = Collection(open_store(url, mode="r"), path)
+    key = _cache_id(source)
     backend = st.default_registry().get("texture", name)(params)
     stop = targets.shape[0] if stop is None else stop
     first, last = max(start - backend.time_radius, 0), min(stop + backend.time_radius, targets.shape[0])

@@ -281,6 +281,14 @@ class TextureBackend(Backend):
     # Video mode (optional; the paper's puppetry mode): the collection is aligned once, to its
     # mean fiducials, and only the expression weights change per frame. A backend without it
     # raises NotImplementedError and the run shows the static average instead.
+
+    #: Video mode: the names of the params that act only where a frame's texture is blended from
+    #: the cache (:meth:`expression`, :meth:`finish`), never on the cache itself (:meth:`cache`
+    #: and the alignment before it). The stored cache is keyed by the other params alone, so a
+    #: change of one of these recomputes the textures from the cache already stored. A backend
+    #: that names none keys its cache on every param.
+    frame_params: ClassVar[frozenset[str]] = frozenset()
+
     def cache(self, aligned):
         """The target-independent state of an aligned collection (``.rgb`` (n, H, W, 3) float
         0-255, ``.valid`` (n, H, W) bool), e.g. its pyramids."""

@@ -82,6 +82,8 @@ class MultiscaleTexture(TextureBackend):
     #: aligns the collection with that flow too (video_alignment); 5: restore_detail, close_eyes; 6: the
     #: video-mode cache's totals are stored with it (a drive reads the cache a shard at a time); 7: time_sigma
     version = "7"
+    #: what :meth:`expression` and :meth:`finish` read and :meth:`cache` does not (``tau`` is read by both)
+    frame_params = frozenset({"sigma", "skip", "time_sigma", "restore_detail", "close_eyes", "shut_from", "shut_at"})
 
     class Params(_Alignment):
         levels: int = Field(5, ge=2, le=8, description="pyramid levels p (the paper does not say; 5 gives a "

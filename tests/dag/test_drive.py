@@ -312,8 +312,7 @@ def test_the_texture_cache_made_a_shard_at_a_time_is_the_whole_collections(drive
     monkeypatch.setattr(texture_module, "CACHE_BYTES", 1)  # every task reads every shard it needs
     texture_module._shards.clear()
     name, params = load_workflow(path).stage("texture")
-    key = puppet.provenance("texture/neutral").key
-    again = texture_module.stored_textures(str(folder / "run.zarr"), "puppet", key, name, params,
+    again = texture_module.stored_textures(str(folder / "run.zarr"), "puppet", name, params,
                                            drive.array("target"), 0, 8)
     np.testing.assert_array_equal(again.round().astype(np.uint8), drive.array("texture/rgb")[:8])
     assert len(texture_module._shards) == 1
@@ -410,6 +409,101 @@ def test_a_run_killed_during_the_frame_textures_resumes_to_complete_textures(tmp
     for t in (1, 5, 7):
         expect = backend.blend(cache, fiducials, drive.array("target")[t]).round().astype(np.uint8)
         np.testing.assert_array_equal(textures[t], expect)
+
+
+def _small_run(folder, **texture):
+    """A small workflow (10 photos, 8 frames, shards of 4) with the texture params ``texture``, run;
+    returns its workflow file."""
+    path = make_demo_data(folder, n_photos=10, n_frames=8)
+    _run_with(path, **texture)
+    return path
+
+
+def _run_with(path, **texture):
+    """Run the workflow ``path`` again with the texture params ``texture`` (the others at their defaults)."""
+    wf = yaml.safe_load(path.read_text())
+    wf["photos_per_shard"] = 4
+    wf.setdefault("stages", {})["texture"] = {"params": texture}
+    path.write_text(yaml.safe_dump(wf))
+    run_workflow(load_workflow(path), scheduler="sync", progress=False)
+
+
+def _cache_state(folder) -> dict:
+    """Per array of the puppet's texture cache: its provenance key and time, and its files' mtimes."""
+    from persona.dag.texture import _cache_arrays
+    from persona.stores.layout import Collection, open_store
+
+    puppet = Collection(open_store(str(folder / "run.zarr"), mode="r"), "puppet")
+    state = {}
+    for name in _cache_arrays(puppet):
+        made = puppet.provenance(name)
+        files = sorted((folder / "run.zarr" / "puppet" / name).rglob("*"))
+        state[name] = (made and made.key, made and made.created, [(f.name, f.stat().st_mtime_ns) for f in files])
+    return state
+
+
+def test_a_frame_param_keeps_the_texture_cache_a_cache_param_builds_it_again(tmp_path, monkeypatch):
+    """Changing params that act only on the blend of each frame (``restore_detail``, ``sigma``: the
+    backend's ``frame_params``) leaves every array of the texture cache as it was (provenance and
+    files), and the neutral texture and every frame's texture are those of a fresh store made with
+    the new params. Changing cache params (``levels``, ``detail_blur``) builds the cache again, no
+    earlier level left over, and the frames' textures are made from the new cache (none from a copy
+    of the old one that a process kept); a run killed while building it leaves no cache that counts
+    as done."""
+    import persona.dag.texture as texture_module
+    from persona.plugins.builtin.texture import MultiscaleTexture
+    from persona.stores.layout import Collection, open_store
+
+    def arrays(folder):
+        root = open_store(str(folder / "run.zarr"), mode="r")
+        return Collection(root, "puppet"), Collection(root, "drive")
+
+    path = _small_run(tmp_path / "a")
+    before = _cache_state(tmp_path / "a")
+    assert len(before) == 5 * 5 and all(key for key, _, _ in before.values())
+    puppet, drive = arrays(tmp_path / "a")
+    neutral, textures = puppet.array("texture/neutral")[...], drive.array("texture/rgb")[:]
+    made = puppet.provenance("texture/neutral").key, drive.provenance("texture/rgb").key
+
+    frame_only = {"restore_detail": 2.0, "sigma": 5.0}
+    assert set(frame_only) <= MultiscaleTexture.frame_params
+    _run_with(path, **frame_only)
+    assert _cache_state(tmp_path / "a") == before
+    puppet, drive = arrays(tmp_path / "a")
+    assert puppet.provenance("texture/neutral").key != made[0] and drive.provenance("texture/rgb").key != made[1]
+    assert not np.array_equal(puppet.array("texture/neutral")[...], neutral)
+    assert not np.array_equal(drive.array("texture/rgb")[:], textures)
+    _small_run(tmp_path / "b", **frame_only)
+    fresh_puppet, fresh_drive = arrays(tmp_path / "b")
+    np.testing.assert_array_equal(puppet.array("texture/neutral")[...], fresh_puppet.array("texture/neutral")[...])
+    np.testing.assert_array_equal(drive.array("texture/rgb")[:], fresh_drive.array("texture/rgb")[:])
+
+    cache_change = {"levels": 4, "detail_blur": 2.0}  # every level's weights change, one level goes
+    real, shards = texture_module.cache_shard, []
+
+    def dying(*args):  # the second shard's pyramids not written
+        shards.append(args[2])
+        if len(shards) == 2:
+            raise KeyboardInterrupt
+        return real(*args)
+
+    monkeypatch.setattr(texture_module, "cache_shard", dying)
+    with pytest.raises(KeyboardInterrupt):
+        _run_with(path, **cache_change, **frame_only)
+    puppet, _ = arrays(tmp_path / "a")
+    assert puppet.provenance(texture_module.CACHE_DONE) is None and not puppet.has("texture/neutral")
+    monkeypatch.setattr(texture_module, "cache_shard", real)
+    _run_with(path, **cache_change, **frame_only)
+    after = _cache_state(tmp_path / "a")
+    assert sorted(after) == sorted(name for name in before if not name.endswith("_4"))
+    assert all(after[name][0] != before[name][0] and after[name][1] != before[name][1] for name in after)
+    puppet, drive = arrays(tmp_path / "a")
+    cache, fiducials = texture_module.load_cache(puppet)
+    assert cache.levels == 4
+    backend = texture_module.texture_backend(type("R", (), {"wf": load_workflow(path)})())[2]
+    for t in (0, 3, 7):  # summed a shard of photos at a time, the detail restored: to 1 level of 255
+        expect = backend.blend(cache, fiducials, drive.array("target")[t])
+        assert np.abs(drive.array("texture/rgb")[t] - expect).max() <= 1.0, t
 
 
 @pytest.mark.skipif(shutil.which("chromium") is None and shutil.which("chromium-browser") is None,

@@ -53,6 +53,22 @@ def test_a_deleted_shard_is_recomputed_with_everything_after_it(finished, copy, 
     assert cli(["inspect", "--verify", str(copy / "run.zarr")]) == 0
 
 
+def test_a_lost_shard_of_the_texture_cache_is_built_again_with_the_neutral_texture(finished, copy, caplog):
+    """The texture cache has a provenance of its own (keyed without the frame params), from which the
+    neutral texture's key chains: a shard of the cache lost, both lose their provenance, and the
+    re-run's store is the one a run that never lost it made."""
+    from persona.stores.layout import Collection, open_store
+    from persona.stores.verify import check, recover
+
+    (copy / "run.zarr/puppet/texture/detail_1/c/1/0/0/0").unlink()
+    recover(open_store(str(copy / "run.zarr")), check(open_store(str(copy / "run.zarr"), mode="r")))
+    puppet = Collection(open_store(str(copy / "run.zarr"), mode="r"), "puppet")
+    assert puppet.provenance("texture/weighted_0") is None and puppet.provenance("texture/neutral") is None
+    _rerun(copy, caplog)
+    assert_same_store(copy / "run.zarr", finished / "run.zarr")
+    assert cli(["inspect", "--verify", str(copy / "run.zarr")]) == 0
+
+
 def test_a_damaged_chunk_is_named_by_verify_and_a_rerun_recovers(finished, copy, caplog, capsys):
     shard = copy / "run.zarr/puppet/aligned/rgb/c/2/0/0/0"
     data = bytearray(shard.read_bytes())

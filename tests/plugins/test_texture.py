@@ -179,3 +179,34 @@ def test_weights_smoothed_in_time_change_gradually_and_a_shard_with_its_margin_g
     r = smooth.time_radius
     part = smooth.expression(fiducials, targets[8 - r:13 + r], slice(r, r + 5))
     np.testing.assert_allclose(part, whole[8:13], rtol=1e-6)
+
+
+#: a value other than the default for each of MultiscaleTexture's frame_params
+FRAME_PARAMS = {"sigma": 3.0, "skip": 0.1, "time_sigma": 2.0, "restore_detail": 2.0, "close_eyes": False,
+                "shut_from": 0.8, "shut_at": 0.3}
+
+
+def test_the_frame_params_leave_the_video_mode_cache_as_it_is():
+    """Each param the backend names in ``frame_params`` (all of them listed here: a new one must be
+    checked too) changes neither the photos' alignment to the mean fiducials nor the cache made of
+    them, to the bit, so the run may keep a stored cache when one of them changes; a cache param
+    (``detail_blur``) does change the cache."""
+    assert set(FRAME_PARAMS) == MultiscaleTexture.frame_params
+    assert MultiscaleTexture.frame_params <= set(MultiscaleTexture.Params.model_fields)
+    photos, _ = synthetic.crease_collection(6, seed=5)
+    photos = _texture_photos(photos)
+    target = photos.fiducials.mean(axis=0)
+    default = MultiscaleTexture()
+    aligned = default.params.aligned(photos, target)
+    cache = default.cache(aligned)
+
+    def same(a, b) -> bool:
+        return all(np.array_equal(x, y) for x, y in zip(a.weighted + a.detail, b.weighted + b.detail))
+
+    for name, value in FRAME_PARAMS.items():
+        other = MultiscaleTexture({name: value})
+        again = other.params.aligned(photos, target)
+        for field in ("rgb", "valid", "stretch", "residual"):
+            np.testing.assert_array_equal(getattr(again, field), getattr(aligned, field), err_msg=name)
+        assert same(other.cache(aligned), cache), name
+    assert not same(MultiscaleTexture({"detail_blur": 2.0}).cache(aligned), cache)
