@@ -635,7 +635,8 @@ class Runner:
         its puppet, driver and video are built, while the others' builds go on."""
         plans = self.wf.collections()
         for plan in plans:  # every group (and its parents) made here, before the threads write in them
-            self.root.require_group(plan.path)
+            if not isinstance(inputs[plan.path], InputError):
+                self.root.require_group(plan.path)
         # built in the order the drives need them, so that the first drive starts as soon as it can
         needed = [p for d in self.wf.drive_plans() for p in (d.cast.puppet, d.cast.driver, d.cast.frames)]
         first_use = {path: i for i, path in reversed(list(enumerate(needed)))}
