@@ -97,7 +97,7 @@ def run_texture(runner, coll: Collection, aligned: Provenance) -> dict[str, str]
         coll.remove("texture/neutral")  # another backend's, from an earlier run
         return {}
     if not coll.made_by(CACHE_DONE, cache):
-        build_cache(runner, coll, cache)
+        build_cache(runner, coll, cache, (name, params, backend))
     target = coll.array("aligned/mean_fiducials")[...].astype(np.float64)
     (neutral,) = runner.executor.run(stored_textures, [(runner.wf.store, coll.path, name, params, target[None])])
     neutral = neutral[0].round().astype(np.uint8)
@@ -107,9 +107,9 @@ def run_texture(runner, coll: Collection, aligned: Provenance) -> dict[str, str]
     return {"texture_neutral": str(out)}
 
 
-def build_cache(runner, coll: Collection, cache: Provenance) -> None:
-    """The video-mode cache of the aligned collection, made with the texture backend and params of
-    the run, its arrays given the provenance ``cache``.
+def build_cache(runner, coll: Collection, cache: Provenance, chosen: tuple) -> None:
+    """The video-mode cache of the aligned collection, made with the run's texture backend
+    ``chosen`` = (name, params, backend) (:func:`texture_backend`), its arrays given the provenance ``cache``.
 
     Every step is Dask tasks over shards of photos, so neither the client nor a worker holds the
     collection: (1) each accepted photo warped to the mean fiducials (with the backend's own
@@ -120,7 +120,7 @@ def build_cache(runner, coll: Collection, cache: Provenance) -> None:
     totals of those; then the cache is marked done (:data:`CACHE_DONE` last)."""
     import dask.array as da
 
-    name, params, backend = texture_backend(runner)
+    name, params, backend = chosen
     # an earlier cache's (of any number of levels) and what was made from it: nothing may take the
     # new one as done before it is
     coll.remove("texture/neutral", *_cache_arrays(coll))
