@@ -99,8 +99,10 @@ class Executor:
                                "`dask scheduler` and `dask worker ADDRESS`, or use --scheduler local"
                                + (" (a tls:// scheduler takes only a certificate its CA signed: cluster.tls)"
                                   if scheduler.startswith("tls://") else "")) from None
-        # a lost scheduler: the client logs each reconnection attempt's traceback; the run says it once (_lost)
+        # a lost scheduler: the client logs each reconnection attempt's traceback, and its batched stream
+        # the closed connection's (at INFO, when a message was on its way); the run says it once (_lost)
         logging.getLogger("distributed.client").setLevel(logging.CRITICAL)
+        logging.getLogger("distributed.batched").setLevel(logging.WARNING)
         # every worker, on any machine: object storage reached as this process does, one thread (one_thread)
         self.client.register_plugin(WorkerSetup(storage_options), name="persona-worker")
 
