@@ -64,9 +64,10 @@ def describe_photos(url: str, path: str, indices: list[int], identity: tuple[str
     return np.array(out).reshape(len(out), -1)
 
 
-def analyse_frames(url: str, start: int, stop: int, identity: tuple[str, dict], compare: bool, cast: Cast) -> dict:
-    """For output frames [start, stop) of the drive of ``cast``: landmarks found anew, descriptors,
-    the mean face colour of output and driver inside the rendered face, and (``compare``) PSNR and
+def analyse_frames(url: str, start: int, stop: int, identity: tuple[str, dict], compare: bool, cast: Cast,
+                   every: int = 1) -> dict:
+    """For output frames [start, stop) of the drive of ``cast``: landmarks found anew, descriptors
+    (of every ``every``-th frame of the drive, NaN for the others: :func:`identity_every`), the mean face colour of output and driver inside the rendered face, and (``compare``) PSNR and
     SSIM against the driver, of the render and of the composite (the composite stage's frames,
     composite.mp4's)."""
     root = open_store(url, mode="r")
@@ -86,17 +87,14 @@ def analyse_frames(url: str, start: int, stop: int, identity: tuple[str, dict], 
     for j in range(n):
         alpha = render_alpha(alphas[j])
         face = composite.alone(rendered[j], alpha)  # as puppet.mp4 shows it
-        try:
-            landmarks[j] = detector.detect(face).points
-            descriptors[j, 0] = backend.describe(face, landmarks[j])
-        except Rejected:
-            pass
         blended = composites[j]
-        try:
-            composite_landmarks[j] = detector.detect(blended).points
-            descriptors[j, 1] = backend.describe(blended, composite_landmarks[j])
-        except Rejected:
-            pass
+        for k, (image, found) in enumerate(((face, landmarks), (blended, composite_landmarks))):
+            try:
+                found[j] = detector.detect(image).points
+                if (start + j) % every == 0:
+                    descriptors[j, k] = backend.describe(image, found[j])
+            except Rejected:
+                pass
         if compare and masks[j].any():
             for k, image in enumerate((face, blended)):
                 psnr[j, k] = ev.masked_psnr(image, original[j], masks[j])
@@ -116,17 +114,24 @@ def analyse_frames(url: str, start: int, stop: int, identity: tuple[str, dict], 
             "colour_driver": ev.masked_mean_colours(original, masks)}
 
 
+def identity_every(n: int, frames: int) -> int:
+    """Every how many of a drive's ``n`` frames a descriptor is taken so that about ``frames`` of them
+    are (0: every frame)."""
+    return 1 if frames == 0 or n <= frames else -(-n // frames)
+
+
 def _sample(ok: np.ndarray, k: int) -> list[int]:
     idx = np.flatnonzero(ok)
     return [int(i) for i in idx[np.linspace(0, len(idx) - 1, min(k, len(idx))).round().astype(int)]] if len(idx) else []
 
 
 def evaluate(store: str, executor, *, identity: tuple[str, dict], threshold: float = 0.6,
-             collection_sample: int = 100, self_reenactment: bool = False, cast: Cast = Cast(),
+             collection_sample: int = 100, identity_frames: int = 0, self_reenactment: bool = False,
+             cast: Cast = Cast(),
              progress: Callable[[int], object] = lambda frames: None) -> dict:
     """Every figure of a finished drive (``cast``; a format-1 store's by default), as a JSON-ready
     dict (plus per-frame series under "series"); ``progress(n)`` is called as each shard of n
-    frames is analysed."""
+    frames is analysed. Identity is judged on ``identity_frames`` frames evenly spaced (0: all)."""
     root = open_store(store, mode="r")
     centroids = {}
     for actor, path in (("puppet", cast.puppet), ("driver", cast.driver)):
@@ -139,7 +144,8 @@ def evaluate(store: str, executor, *, identity: tuple[str, dict], threshold: flo
         parts = list(executor.run(describe_photos, [(store, path, chosen[i::2], identity) for i in range(2)]))
         centroids[actor] = ev.centroid(np.concatenate(parts))
     drive = Collection(root, cast.drive)
-    tasks = [(store, s, e, identity, self_reenactment, cast) for s, e in drive.shard_ranges()]
+    every = identity_every(drive.n, identity_frames)
+    tasks = [(store, s, e, identity, self_reenactment, cast, every) for s, e in drive.shard_ranges()]
     parts = []
     for part in executor.run(analyse_frames, tasks):
         parts.append(part)
@@ -148,9 +154,13 @@ def evaluate(store: str, executor, *, identity: tuple[str, dict], threshold: flo
     joined = {k: np.concatenate([p[k] for p in parts]) for k in parts[0] if k != "start"}
 
     driver_landmarks = driver_frame_landmarks(root, cast.frames)
-    identity_figures = ev.identity_figures(joined["descriptors"][:, 0], centroids["puppet"], centroids["driver"],
-                                           threshold)
-    on_composite = ev.identity_figures(joined["descriptors"][:, 1], centroids["puppet"], centroids["driver"], threshold)
+    judged = joined["descriptors"][::every]  # the frames described
+    identity_figures = ev.identity_figures(judged[:, 0], centroids["puppet"], centroids["driver"], threshold)
+    on_composite = ev.identity_figures(judged[:, 1], centroids["puppet"], centroids["driver"], threshold)
+    distances = {}  # per frame, NaN where not judged
+    for name in ("distance_to_b", "distance_to_a"):
+        distances[name] = np.full(drive.n, np.nan)
+        distances[name][::every] = identity_figures[name]
     video = ev.compare_videos(driver_landmarks, joined["landmarks"])
     on_composite_video = ev.compare_videos(driver_landmarks, joined["composite_landmarks"])
     stability = video["stability"]
@@ -164,7 +174,8 @@ def evaluate(store: str, executor, *, identity: tuple[str, dict], threshold: flo
     stability["texture_change_ratio"] = _ratio(stability["texture_change_output"], stability["texture_change_driver"])
     result = {
         "identity": {**{k: v for k, v in identity_figures.items() if not isinstance(v, np.ndarray)},
-                     "fraction_b_not_a_composite": on_composite["fraction_b_not_a"]},
+                     "fraction_b_not_a_composite": on_composite["fraction_b_not_a"],
+                     "frames_judged": len(judged), "frames_without_face": int(np.isnan(joined["landmarks"][:, 0, 0]).sum())},
         "texture": texture_figures(root, cast, collection_sample),
         "expression": video["expression"],
         "amplitude": video["amplitude"],
@@ -175,8 +186,7 @@ def evaluate(store: str, executor, *, identity: tuple[str, dict], threshold: flo
         "frames": drive.n,
         "bridged_frames": int(drive.array("bridged")[:].sum()),
         "series": {
-            "distance_to_b": identity_figures["distance_to_b"],
-            "distance_to_a": identity_figures["distance_to_a"],
+            **distances,
             **{f"driver_{k}": v for k, v in ev.expression_signals(driver_landmarks).items()},
             **{f"output_{k}": v for k, v in ev.expression_signals(joined["landmarks"]).items()},
         },

@@ -53,8 +53,9 @@ def plots(series: dict, threshold: float, fps: float) -> dict[str, str]:
     out = {}
     t = np.arange(len(series["distance_to_b"])) / fps
     fig, ax = plt.subplots(figsize=(9, 2.8))
-    ax.plot(t, series["distance_to_b"], label="to B (puppet)", lw=1)
-    ax.plot(t, series["distance_to_a"], label="to A (driver)", lw=1)
+    for name, label in (("distance_to_b", "to B (puppet)"), ("distance_to_a", "to A (driver)")):
+        judged = np.isfinite(np.asarray(series[name], float))  # the frames described (evaluate.identity_frames)
+        ax.plot(t[judged], np.asarray(series[name], float)[judged], label=label, lw=1)
     ax.axhline(threshold, color="k", ls="--", lw=0.8, label=f"same-person threshold {threshold:g}")
     ax.set(xlabel="seconds", ylabel="descriptor distance", title="Identity of each output frame")
     ax.legend(loc="upper right", fontsize=8)
@@ -98,6 +99,7 @@ def figure_rows(ev: dict) -> list[tuple]:
     identity = ev["identity"]
     rows = [("frames", ev["frames"], ""),
             ("frames bridged (no face in the driver)", ev["bridged_frames"], "lower is better"),
+            ("frames whose identity is judged (evenly spaced)", identity.get("frames_judged", ev["frames"]), ""),
             ("frames that are B and not A", identity["fraction_b_not_a"], "higher is better; target ≥ 0.95"),
             ("composite.mp4 frames that are B and not A", identity.get("fraction_b_not_a_composite"),
              "higher is better; target ≥ 0.95"),

@@ -170,6 +170,29 @@ def test_evaluate_command_prints_json(drive_run, capsys):
     assert result["expression"]["mouth_open"] == pytest.approx(report["evaluation"]["expression"]["mouth_open"], nan_ok=True)
 
 
+def test_identity_judged_on_a_few_frames_gives_every_frames_own_distances(drive_run):
+    """evaluate.identity_frames: only every k-th frame is described, each with the distances it has when
+    every frame is; the landmarks, and the figures made from them, stay every frame's."""
+    from persona.dag.evaluate import identity_every
+    from persona.dag.runner import Runner, executor_for
+
+    _, path, _ = drive_run
+    results = {}
+    for frames in (0, 5):
+        wf = load_workflow(path, [f"evaluate.identity_frames={frames}"])
+        with executor_for(wf, "sync", None) as ex:
+            results[frames] = Runner(wf, ex, progress=False).evaluate()
+    every, n = identity_every(results[0]["frames"], 5), results[0]["frames"]
+    assert (identity_every(16, 5), identity_every(15, 5), identity_every(4, 5), identity_every(1000, 0)) == (4, 3, 1, 1)
+    assert results[5]["identity"]["frames_judged"] == len(range(0, n, every)) <= 5 < n
+    full, few = results[0]["series"], results[5]["series"]
+    judged = np.arange(n) % every == 0
+    np.testing.assert_allclose(few["distance_to_b"][judged], full["distance_to_b"][judged])
+    assert np.isnan(few["distance_to_b"][~judged]).all()
+    assert json.dumps(results[5]["amplitude"]) == json.dumps(results[0]["amplitude"])
+    assert results[5]["identity"]["frames_without_face"] == results[0]["identity"]["frames_without_face"]
+
+
 def test_evaluating_a_store_from_before_the_screen_says_to_run_again(drive_run, tmp_path, capsys):
     """A store written before the collection's screen existed has no accepted photos by today's
     rule: the evaluation says so and what to do, rather than judging identity against nothing."""
