@@ -99,7 +99,8 @@ def figure_rows(ev: dict) -> list[tuple]:
     identity = ev["identity"]
     rows = [("frames", ev["frames"], ""),
             ("frames bridged (no face in the driver)", ev["bridged_frames"], "lower is better"),
-            ("frames whose identity is judged (evenly spaced)", identity.get("frames_judged", ev["frames"]), ""),
+            ("frames whose identity is judged", identity.get("frames_judged", ev["frames"]),
+             "evenly spaced (evaluate.identity_frames); = frames when that is 0"),
             ("frames that are B and not A", identity["fraction_b_not_a"], "higher is better; target ≥ 0.95"),
             ("composite.mp4 frames that are B and not A", identity.get("fraction_b_not_a_composite"),
              "higher is better; target ≥ 0.95"),

@@ -18,7 +18,7 @@ def evaluation(to_b: float, to_a: float) -> dict:
 
 def test_every_figure_says_what_is_good():
     rows = figure_rows(evaluation(0.3, 0.9))
-    assert len(rows) == 18  # 7 identity, 2 + 2 expression, 3 stability, 2 composite, 2 self-reenactment
+    assert len(rows) == 19  # 8 identity, 2 + 2 expression, 3 stability, 2 composite, 2 self-reenactment
     for label, _, guide in rows[1:]:  # all but the frame count
         assert "better" in guide or "target" in guide or "= " in guide, label
     assert dict((r[0], r[2]) for r in rows)["self-reenactment psnr_db"] == "higher is better; target ≥ 28 dB"
