@@ -57,7 +57,7 @@ def plots(series: dict, threshold: float, fps: float) -> dict[str, str]:
         judged = np.isfinite(np.asarray(series[name], float))  # the frames described (evaluate.identity_frames)
         ax.plot(t[judged], np.asarray(series[name], float)[judged], label=label, lw=1)
     ax.axhline(threshold, color="k", ls="--", lw=0.8, label=f"same-person threshold {threshold:g}")
-    ax.set(xlabel="seconds", ylabel="descriptor distance", title="Identity of each output frame")
+    ax.set(xlabel="seconds", ylabel="descriptor distance", title="Identity of the output frames judged")
     ax.legend(loc="upper right", fontsize=8)
     out["identity"] = _figure(fig)
     plt.close(fig)

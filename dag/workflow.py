@@ -15,7 +15,7 @@ from typing import Any, Literal, Union
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, SecretStr, ValidationError, field_validator, model_validator
 
-from persona.plugins.face.dynamics import DynamicsParams
+from persona.plugins.face.dynamics import POSE_SIGMA, DynamicsParams
 from persona.plugins.face.transfer import TransferParams
 from persona.plugins.manager import FlowChoice, Registry, default_registry, did_you_mean
 from persona.stores import storage
@@ -375,8 +375,9 @@ class CorrespondenceParams(FlowChoice):
 
 
 class MotionParams(Strict):
-    pose_sigma: float = Field(1.5, ge=0, le=10, description="σ (frames) of the Gaussian smoothing of the "
-                              "driver's head pose over time (ALGORITHMS §9.2.1: 1-2); 0 = none")
+    pose_sigma: float = Field(POSE_SIGMA, ge=0, le=10, description="σ (frames) of the Gaussian smoothing of the "
+                              "driver's head pose over time (ALGORITHMS §9.2.1; not in the paper); 0 = none. "
+                              "1.5 lagged the head's real motion (docs/expression.md)")
     lips: Literal["mean", "closed"] = Field("mean", description="how the driver's lips move the puppet's "
                                             "(retargeting): 'mean', the paper's, by the driver's offsets about the "
                                             "puppet's mean mouth; 'closed', the driver's own gap between the inner "

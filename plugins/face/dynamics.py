@@ -348,8 +348,13 @@ class _Operators:
 
 # ----------------------------------------------------------------------------- poses
 
+#: σ (frames) of the driver's pose smoothing, the default of ``stages.motion.params.pose_sigma``: the
+#: lightest smoothing that still takes out landmark noise; 1.5 took real head motion away (the face lagged
+#: where the head went; docs/expression.md, "The head's pose, smoothed less", benchmarks/pose_smoothing.py)
+POSE_SIGMA = 0.75
 
-def smooth_poses(poses: Sequence[Pose | None], sigma: float = 1.5) -> list[Pose]:
+
+def smooth_poses(poses: Sequence[Pose | None], sigma: float = POSE_SIGMA) -> list[Pose]:
     """Poses smoothed over time: Gaussian of ``sigma`` frames on rvec and tvec (ALGORITHMS §9.2.1).
 
     Frames without a pose (None) are first bridged by linear interpolation between their neighbours
@@ -697,7 +702,7 @@ def mean_mesh(meshes: Iterable[np.ndarray]) -> np.ndarray:
 
 
 def driver_meshes(model: DriverModel, images: Sequence[np.ndarray], poses: Sequence[Pose | None],
-                  flow: FlowBackend, params: DynamicsParams = DynamicsParams(), *, pose_sigma: float = 1.5
+                  flow: FlowBackend, params: DynamicsParams = DynamicsParams(), *, pose_sigma: float = POSE_SIGMA
                   ) -> tuple[np.ndarray, np.ndarray]:
     """A whole video in memory: poses smoothed, every frame tracked, tracks smoothed, meshes built.
 
