@@ -54,8 +54,9 @@ def plots(series: dict, threshold: float, fps: float) -> dict[str, str]:
     t = np.arange(len(series["distance_to_b"])) / fps
     fig, ax = plt.subplots(figsize=(9, 2.8))
     for name, label in (("distance_to_b", "to B (puppet)"), ("distance_to_a", "to A (driver)")):
-        judged = np.isfinite(np.asarray(series[name], float))  # the frames described (evaluate.identity_frames)
-        ax.plot(t[judged], np.asarray(series[name], float)[judged], label=label, lw=1)
+        distance = np.asarray(series[name], float)
+        judged = np.isfinite(distance)  # the frames described (evaluate.identity_frames)
+        ax.plot(t[judged], distance[judged], label=label, lw=1)
     ax.axhline(threshold, color="k", ls="--", lw=0.8, label=f"same-person threshold {threshold:g}")
     ax.set(xlabel="seconds", ylabel="descriptor distance", title="Identity of the output frames judged")
     ax.legend(loc="upper right", fontsize=8)

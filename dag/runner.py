@@ -797,7 +797,8 @@ class Runner:
         e = self.wf.evaluate
         return evaluate(self.wf.store, self.executor, identity=self.wf.stage("identity"),
                         threshold=e.threshold, collection_sample=e.collection_sample,
-                        identity_frames=e.identity_frames, self_reenactment=e.self_reenactment, cast=cast, progress=progress)
+                        identity_frames=e.identity_frames, self_reenactment=e.self_reenactment, cast=cast,
+                        progress=progress)
 
 
 class _OneByOne:
