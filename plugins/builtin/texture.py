@@ -80,8 +80,9 @@ class MultiscaleTexture(TextureBackend):
     default = True
     #: 2: the alignment confidence (stretch_scale, residual_scale); 3: its own flow (varref); 4: video mode
     #: aligns the collection with that flow too (video_alignment); 5: restore_detail, close_eyes; 6: the
-    #: video-mode cache's totals are stored with it (a drive reads the cache a shard at a time); 7: time_sigma
-    version = "7"
+    #: video-mode cache's totals are stored with it (a drive reads the cache a shard at a time); 7: time_sigma;
+    #: 8: close_eyes lowers the upper lid (was: a fade to skin from 65 %)
+    version = "8"
     #: what :meth:`expression` and :meth:`finish` read and :meth:`cache` does not (``tau`` is read by both)
     frame_params = frozenset({"sigma", "skip", "time_sigma", "restore_detail", "close_eyes", "shut_from", "shut_at"})
 
@@ -117,13 +118,14 @@ class MultiscaleTexture(TextureBackend):
                                   "paper (0, the default: each frame's own weights, the paper's); 1.5 halves the "
                                   "texture's change from frame to frame on the cross-identity drives, but lowers the "
                                   "self-reenactment's mouth gain, whose teeth come from the texture (docs/texture.md)")
-        close_eyes: bool = Field(True, description="when the target shuts an eye (its lids less than "
-                                 "`shut_from` as far apart as at B's neutral), draw that eye's opening over with the "
-                                 "skin around it, fully at `shut_at`: B's photos rarely show shut eyes, and a mesh "
+        close_eyes: bool = Field(True, description="when the target closes an eye (its lids less than "
+                                 "`shut_from` as far apart as at B's neutral), draw that eye's upper lid down over "
+                                 "it, to cover it all at `shut_at`: B's photos rarely show shut eyes, and a mesh "
                                  "squeezes an open eye rather than covers it (persona.plugins.face.eyes). Not in the "
                                  "paper")
-        shut_from: float = Field(0.65, gt=0, le=1, description="close_eyes: the lids' distance, over B's neutral one, "
-                                 "below which the eye starts to be drawn shut")
+        shut_from: float = Field(0.85, gt=0, le=1, description="close_eyes: the lids' distance, over B's neutral one, "
+                                 "below which the upper lid starts to come down (the open-eye frames' 10th "
+                                 "percentile on the self-reenactment: 0.87; docs/expression.md)")
         shut_at: float = Field(0.45, ge=0, lt=1, description="close_eyes: the distance at which it is fully shut "
                                "(dlib's lid points of a shut eye stay 40-50 % of their open distance apart)")
         stretch_scale: float = Field(0.3, ge=0, description="s of the alignment confidence's flow term "
@@ -186,8 +188,8 @@ class MultiscaleTexture(TextureBackend):
         if self.params.close_eyes if close_eyes is None else close_eyes:
             neutral = mean_shape(fiducials)  # the texture's geometry is B's neutral: the photos' mean fiducials
             for texture, target in zip(textures, targets):
-                shut = eyes.closure(target, neutral, start=self.params.shut_from, end=self.params.shut_at)
-                texture[:] = np.clip(eyes.close(texture, neutral, shut), 0, 255)
+                visible = eyes.lowered(target, neutral, start=self.params.shut_from, end=self.params.shut_at)
+                texture[:] = np.clip(eyes.lower(texture, neutral, visible), 0, 255)
         return textures
 
     def blend(self, cache: BlendCache, fiducials: np.ndarray, target: np.ndarray, *,

@@ -1,18 +1,20 @@
-"""Eyelids that close: B's eye drawn shut in a frame's texture when the target closes it.
+"""Eyelids that close: B's upper lid drawn down over the eye in a frame's texture as the target closes it.
 
 Not in the paper. The drive's texture keeps B's neutral geometry (paper §6), with the detail of
 the photos whose expression is the target's; a collection rarely has photos with the eyes shut,
 so the texture's eyes stay open. The 3D mesh then brings B's lids together, but it squeezes the
-open eye between them rather than covering it: a bright sliver of eye white and iris stays, and the
-eye still reads as open (dlib, and a viewer, see it so). Here each eye's opening in the canonical
-texture — the polygon of its six fiducials at B's neutral, grown by a pixel — is replaced by the
-skin around it (inpainted from the lids) with the line of lashes where the lids meet (a soft dark
-line, the colour of the eye's darkest tenth, from corner to corner through the middles of the
-facing lid points), with a weight that grows as the target's lids come
-together: 0 while that eye is open by at least ``start`` (65 %) of its neutral opening, 1 once it is
-open by at most ``end`` (45 %), smooth in between. An open eye is left exactly as it was. The
-thresholds are dlib's: on a shut eye its lid points stay 40-50 % of their open distance apart (the
-lashes' line), as the drivers' blinks measured (docs/expression.md).
+open eye between them rather than covering it: a sliver of eye white and iris stays, and the eye
+still reads as open (dlib, and a viewer, see it so).
+
+A real eye closes by its upper lid coming down over it. dlib's lid points of a shut eye stay
+``end`` (45 %) of their open distance apart (the lashes' line; the drivers' blinks measured so), so
+an eye whose lid points are r of their neutral distance apart shows φ(r) = start · (r - end) /
+(start - end) of its opening below ``start`` (85 %), and all of it (φ = r) from there up: the
+target's own ratio, what the driver's eye showed. The mesh already squeezes the texture's eye to r;
+here the upper lid — the skin around the eye, inpainted from the lids, with a soft line of lashes
+the colour of the eye's darkest tenth at its edge — is drawn down over the top 1 - φ(r) / r of the
+eye's opening (the polygon of its six fiducials at B's neutral, grown by a pixel) in the canonical
+texture. An eye open by ``start`` or more is left exactly as it was (docs/expression.md).
 """
 
 from __future__ import annotations
@@ -29,53 +31,55 @@ EYES = ((tuple(IDX49.index(i) for i in range(36, 42)), FACING[0:2]),
         (tuple(IDX49.index(i) for i in range(42, 48)), FACING[2:4]))
 
 
-def closure(target: np.ndarray, neutral: np.ndarray, *, start: float = 0.65, end: float = 0.45) -> np.ndarray:
-    """(2,) how shut each eye of ``target`` (49, 2) is, in [0, 1], against ``neutral`` (49, 2): 0 while
-    open by at least ``start`` of its neutral opening, 1 at most ``end``, smoothstep in between."""
-    out = np.zeros(2)
+def lowered(target: np.ndarray, neutral: np.ndarray, *, start: float = 0.85, end: float = 0.45) -> np.ndarray:
+    """(2,) the share of each eye's opening the upper lid leaves uncovered in the texture, in [0, 1]:
+    φ(r) / r, r the distance of the eye's lids in the fiducials ``target`` (49, 2) over ``neutral``'s
+    (the module's docstring); 1 from ``start`` up, 0 at ``end`` and below."""
+    out = np.ones(2)
     for k, (_, pairs) in enumerate(EYES):
-        ratio = gap(target, pairs) / max(float(gap(neutral, pairs)), 1e-6)
-        if np.isfinite(ratio):
-            s = np.clip((start - ratio) / (start - end), 0.0, 1.0)
-            out[k] = s * s * (3 - 2 * s)
+        r = gap(target, pairs) / max(float(gap(neutral, pairs)), 1e-6)
+        if np.isfinite(r) and r < start:
+            out[k] = np.clip(start * (r - end) / (start - end) / max(r, 1e-6), 0.0, 1.0)
     return out
 
 
-def _lash_line(polygon: np.ndarray) -> np.ndarray:
-    """(4, 2) where a shut eye's lids meet, from its six points (iBUG order: outer corner, two upper
-    lid points, inner corner, two lower): the corners and the middles of the facing pairs."""
-    return np.array([polygon[0], (polygon[1] + polygon[5]) / 2, (polygon[2] + polygon[4]) / 2, polygon[3]])
-
-
-def close(texture: np.ndarray, neutral: np.ndarray, shut: np.ndarray, *, grow: int = 1,
+def lower(texture: np.ndarray, neutral: np.ndarray, visible: np.ndarray, *, grow: int = 1,
           margin: int = 6) -> np.ndarray:
-    """``texture`` (H, W, 3) at the geometry of the fiducials ``neutral`` (49, 2), each eye k blended
-    towards the skin around it by ``shut[k]`` in [0, 1] (:func:`closure`)."""
-    if not np.any(shut > 0):
+    """``texture`` (H, W, 3) at the geometry of the fiducials ``neutral`` (49, 2), each eye k's upper
+    lid drawn down so that the share ``visible[k]`` (:func:`lowered`) of its opening stays uncovered."""
+    if not np.any(visible < 1):
         return texture
     out = np.asarray(texture, np.float32).copy()
     h, w = out.shape[:2]
-    for (points, _), s in zip(EYES, shut):
-        polygon = np.asarray(neutral, np.float64)[list(points)]
-        if s <= 0 or not np.isfinite(polygon).all():
+    for (points, _), v in zip(EYES, visible):
+        polygon = np.asarray(neutral, np.float64)[list(points)]  # iBUG order: outer corner, upper lid
+        if v >= 1 or not np.isfinite(polygon).all():             # (2), inner corner, lower lid (2)
             continue
         x0, y0 = np.floor(polygon.min(axis=0)).astype(int) - margin
         x1, y1 = np.ceil(polygon.max(axis=0)).astype(int) + margin + 1
         x0, y0, x1, y1 = max(x0, 0), max(y0, 0), min(x1, w), min(y1, h)
         if x1 - x0 < 3 or y1 - y0 < 3:
             continue
-        hole = np.zeros((y1 - y0, x1 - x0), np.uint8)
-        cv2.fillPoly(hole, [np.round(polygon - (x0, y0)).astype(np.int32)], 1)
+        polygon = polygon - (x0, y0)
+        opening = np.zeros((y1 - y0, x1 - x0), np.uint8)
+        cv2.fillPoly(opening, [np.round(polygon).astype(np.int32)], 1)
         if grow:
-            hole = cv2.dilate(hole, np.ones((2 * grow + 1, 2 * grow + 1), np.uint8))
+            opening = cv2.dilate(opening, np.ones((2 * grow + 1, 2 * grow + 1), np.uint8))
         patch = np.clip(out[y0:y1, x0:x1], 0, 255).round().astype(np.uint8)
-        skin = cv2.inpaint(patch, hole, 3, cv2.INPAINT_TELEA).astype(np.float32)
-        inner = patch[hole > 0].astype(np.float32)
-        lash = inner[np.argsort(inner.sum(axis=1))[: max(1, len(inner) // 10)]].mean(axis=0)
-        line = np.zeros(hole.shape, np.float32)
-        cv2.polylines(line, [np.round(_lash_line(polygon) - (x0, y0)).astype(np.int32)], False, 1.0, 1, cv2.LINE_AA)
-        line = np.clip(cv2.GaussianBlur(line, (0, 0), 0.5) * 1.5, 0, 1)[..., None]
-        skin = skin * (1 - line) + lash * line
-        weight = s * cv2.GaussianBlur(hole.astype(np.float32), (0, 0), 0.8)[..., None]
+        skin = cv2.inpaint(patch, opening, 3, cv2.INPAINT_TELEA).astype(np.float32)
+        inside = patch[opening > 0].astype(np.float32)
+        lash = inside[np.argsort(inside.sum(axis=1))[: max(1, len(inside) // 10)]].mean(axis=0)
+        # the lid: from the upper lid's points down to its new edge, 1 - v of the way to the lower lid's
+        upper, lower_lid = polygon[1:3], polygon[[5, 4]]
+        edge = np.vstack([polygon[0], upper + (1 - v) * (lower_lid - upper), polygon[3]])
+        lid = np.zeros(opening.shape, np.uint8)
+        cv2.fillPoly(lid, [np.round(np.vstack([polygon[:4], edge[::-1]])).astype(np.int32)], 1)
+        if grow:  # up over the old lid line too, which is the lid's crease now, not its edge
+            lid = cv2.dilate(lid, np.ones((2 * grow + 1, 1), np.uint8)) * opening
+        lashes = np.zeros(opening.shape, np.float32)
+        cv2.polylines(lashes, [np.round(edge).astype(np.int32)], False, 1.0, 1, cv2.LINE_AA)
+        lashes = np.clip(cv2.GaussianBlur(lashes, (0, 0), 0.5) * 1.5, 0, 1)[..., None]
+        skin = skin * (1 - lashes) + lash * lashes
+        weight = cv2.GaussianBlur(lid.astype(np.float32), (0, 0), 0.8)[..., None]
         out[y0:y1, x0:x1] = out[y0:y1, x0:x1] * (1 - weight) + skin * weight
     return out

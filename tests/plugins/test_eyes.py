@@ -37,12 +37,8 @@ def shut(neutral, ratio):
 
 def test_a_shut_eye_is_drawn_over_with_skin_and_lashes_and_an_open_one_is_left_alone():
     texture, neutral = texture_with_dark_eyes()
-    np.testing.assert_allclose(eyes.closure(neutral, neutral), 0)
-    np.testing.assert_allclose(eyes.closure(shut(neutral, 0.3), neutral), 1)
-    half = eyes.closure(shut(neutral, 0.55), neutral)
-    assert np.all((half > 0.2) & (half < 0.8))  # half way between 65 % and 45 %
-    assert np.array_equal(eyes.close(texture, neutral, eyes.closure(neutral, neutral)), texture)
-    closed = eyes.close(texture, neutral, eyes.closure(shut(neutral, 0.3), neutral))
+    assert np.array_equal(eyes.lower(texture, neutral, eyes.lowered(shut(neutral, 0.9), neutral)), texture)
+    closed = eyes.lower(texture, neutral, eyes.lowered(shut(neutral, 0.3), neutral))
     for points, _ in eyes.EYES:
         pixels = closed[eye_mask(neutral, points)]
         skin = np.abs(pixels - (180, 140, 120)).max(axis=1) < 12
@@ -52,3 +48,28 @@ def test_a_shut_eye_is_drawn_over_with_skin_and_lashes_and_an_open_one_is_left_a
         assert pixels.sum(axis=1).min() < 3 * 90  # the line of lashes, the eye's dark colour
     far = np.s_[200:, :]  # the chin: untouched
     assert np.array_equal(closed[far], texture[far])
+
+
+def test_the_upper_lid_comes_down_over_the_share_of_the_eye_a_real_one_would_cover():
+    texture, neutral = texture_with_dark_eyes()
+    np.testing.assert_allclose(eyes.lowered(neutral, neutral), 1)  # open: nothing covered
+    np.testing.assert_allclose(eyes.lowered(shut(neutral, 0.86), neutral), 1)  # above 85 %: the mesh alone
+    np.testing.assert_allclose(eyes.lowered(shut(neutral, 0.4), neutral), 0)  # below 45 %: shut
+    # at 0.7 of the neutral distance a real eye shows 0.85 (0.7 - 0.45) / (0.85 - 0.45) = 0.531 of its
+    # opening; the mesh squeezes it to 0.7, so the lid covers all but 0.531 / 0.7 = 0.759 of the squeezed eye
+    np.testing.assert_allclose(eyes.lowered(shut(neutral, 0.7), neutral), 0.531 / 0.7, atol=0.005)
+    assert np.array_equal(eyes.lower(texture, neutral, np.ones(2)), texture)
+    for visible in (0.25, 0.5, 0.75):
+        lowered = eyes.lower(texture, neutral, np.full(2, visible))
+        for points, _ in eyes.EYES:
+            inside = eye_mask(neutral, points)
+            rows = np.flatnonzero(inside.any(axis=1))
+            dark = (lowered.sum(axis=2) < 3 * 60) & inside  # the eye still seen, and the line of lashes
+            seen = np.flatnonzero(dark.any(axis=1))
+            # the dark part starts lower down (the lid's edge) and ends at the lower lid, as before
+            top = (seen.min() - rows.min()) / (rows.max() - rows.min())
+            print(f"\nvisible {visible}: dark from {top:.2f} of the eye's height down")
+            assert abs(top - (1 - visible)) < 0.2 and seen.max() >= rows.max() - 1
+            edge = rows.min() + (1 - visible) * (rows.max() - rows.min())
+            above = inside & (np.arange(244)[:, None] < edge - 1)  # the lid, over what was the dark eye
+            assert above.any() and (lowered[above].sum(axis=1) > 3 * 100).mean() > 0.9
