@@ -1,18 +1,26 @@
 """Peak memory of the subspace step against the size of the collection.
 
     .venv/bin/python benchmarks/subspace_memory.py [--sizes 530 2000]
+    .venv/bin/python benchmarks/subspace_memory.py --random [--sizes 500 2000 5000] [--shard 16]
 
 For each size, george_w_bush repeated through symbolic links goes through ingest ->
 frontalize (2 local workers); then the rank-4 subspace (randomised SVD over shards) runs
 alone while the summed resident memory of this process and its workers is sampled.
 Printed: the peak during the subspace step, the memory just before it (the baseline of
 the processes), and the step's time.
+
+``--random``: the streamed SVD alone (``streamed_svd``, as the subspace step calls it, a
+seventh of the rows left out) on that many random rows of a face's size (244 × 194 × 3) in
+chunks of ``--shard`` rows, made chunk by chunk on 2 local workers (one thread each); printed:
+the largest worker's resident memory before and at its peak, and the time.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -21,10 +29,47 @@ import yaml
 from ingest_throughput import SHARED, PeakMemory
 
 
+def random_rows(size: int, shard: int) -> None:
+    import dask.array as da
+    import numpy as np
+    import psutil
+    from dask.distributed import Client, LocalCluster
+
+    from persona.plugins.face.subspace import streamed_svd
+
+    with LocalCluster(n_workers=2, threads_per_worker=1, dashboard_address=None) as cluster, Client(cluster) as client:
+        workers = [psutil.Process(pid) for pid in client.run(os.getpid).values()]
+        largest = lambda: max(w.memory_info().rss for w in workers)  # noqa: E731
+        rows = da.random.RandomState(0).random_sample((size, 244 * 194 * 3), chunks=(shard, -1)).astype(np.float32)
+        keep = np.arange(size) % 7 != 0
+        before, peak, done = largest(), [0], threading.Event()
+
+        def sample():
+            while not done.is_set():
+                peak[0] = max(peak[0], largest())
+                time.sleep(0.05)
+
+        sampler = threading.Thread(target=sample)
+        sampler.start()
+        t0 = time.perf_counter()
+        streamed_svd(rows, 4, lambda *arrays: client.gather(client.compute(list(arrays))), keep=keep)
+        seconds = time.perf_counter() - t0
+        done.set()
+        sampler.join()
+    print(f"{size} random rows in chunks of {shard}: largest worker {before / 2**30:.2f} GiB before, "
+          f"peak {peak[0] / 2**30:.2f} GiB; {seconds:.1f} s")
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--sizes", type=int, nargs="+", default=[530, 2000])
+    ap.add_argument("--random", action="store_true", help="the streamed SVD alone, on random rows")
+    ap.add_argument("--shard", type=int, default=16, help="--random: rows per chunk")
     args = ap.parse_args()
+    if args.random:
+        for size in args.sizes:
+            random_rows(size, args.shard)
+        return
     from persona.dag.runner import Runner, executor_for, resolve_inputs
     from persona.dag.shape import compute_subspace
     from persona.dag.workflow import load_workflow

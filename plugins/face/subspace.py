@@ -35,6 +35,19 @@ def project(image: np.ndarray, basis: np.ndarray, weights: np.ndarray | None = N
     return (coef @ b).reshape(image.shape)
 
 
+def transposed_product(rows, q: np.ndarray, compute, shards: int = 32) -> np.ndarray:
+    """rowsᵀ q, (p, l), for a tall dask array ``rows`` (n, p) (or NumPy) and q (n, l), summed in the
+    caller ``shards`` chunks of rows at a time. Each chunk's product is a (p, l) array the width of
+    a face; in one graph over all of them the workers held many of those at once before the sum,
+    and their peak grew with the rows (docs/batch.md)."""
+    edges = np.cumsum((0, *getattr(rows, "chunks", ((len(rows),),))[0]))
+    total = np.zeros((rows.shape[1], q.shape[1]), np.float64)
+    for i in range(0, len(edges) - 1, shards):
+        lo, hi = edges[i], edges[min(i + shards, len(edges) - 1)]
+        total += compute(rows[lo:hi].T @ q[lo:hi])[0]
+    return total
+
+
 def streamed_svd(rows, rank: int, compute, *, keep=None, oversample: int = 10, power_iterations: int = 2,
                  seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """Top ``rank`` singular values and right singular vectors (rank, p) of a tall dask array
@@ -42,8 +55,9 @@ def streamed_svd(rows, rank: int, compute, *, keep=None, oversample: int = 10, p
 
     A randomised SVD (Halko et al. 2011) in which every product with ``rows`` is its own
     computation: each pass streams the shards once and keeps only small (n, l) or (p, l)
-    results, so memory does not grow with the number of rows (dask's ``svd_compressed``
-    computes all passes in one graph and holds every shard between them).
+    results (the (p, l) ones a few shards at a time, :func:`transposed_product`), so memory does
+    not grow with the number of rows (dask's ``svd_compressed`` computes all passes in one graph
+    and holds every shard between them).
 
     The rows left out are set to 0 rather than indexed away: a zero row adds nothing to AᵀA, so
     the singular values and right vectors are those of the kept rows alone, and the array keeps
@@ -57,8 +71,8 @@ def streamed_svd(rows, rank: int, compute, *, keep=None, oversample: int = 10, p
     omega = np.random.default_rng(seed).standard_normal((p, rank + oversample)).astype(np.float32)
     q = np.linalg.qr(compute(rows @ omega)[0])[0]
     for _ in range(power_iterations):
-        z = np.linalg.qr(compute(rows.T @ q.astype(np.float32))[0])[0]
+        z = np.linalg.qr(transposed_product(rows, q.astype(np.float32), compute))[0]
         q = np.linalg.qr(compute(rows @ z.astype(np.float32))[0])[0]
-    projected = compute(rows.T @ q.astype(np.float32))[0].T  # Qᵀ A, (l, p)
+    projected = transposed_product(rows, q.astype(np.float32), compute).T  # Qᵀ A, (l, p)
     _, singular, vt = np.linalg.svd(projected.astype(np.float64), full_matrices=False)
     return singular[:rank], vt[:rank]

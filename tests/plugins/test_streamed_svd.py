@@ -2,7 +2,7 @@ import dask
 import dask.array as da
 import numpy as np
 
-from persona.plugins.face.subspace import streamed_svd
+from persona.plugins.face.subspace import streamed_svd, transposed_product
 
 
 def sync_compute(*arrays):
@@ -39,3 +39,29 @@ def test_rows_left_out_do_not_count_and_the_chunks_stay():
     assert np.linalg.svd(basis @ exact[2][:4].T, compute_uv=False).min() > 0.9999
     # the same on a NumPy array
     np.testing.assert_allclose(streamed_svd(matrix[order], 4, lambda *a: a, keep=keep)[0], singular, rtol=1e-5)
+
+
+def test_the_wide_products_are_summed_a_few_shards_at_a_time():
+    """rowsᵀ q gives a face-wide (p, l) array per shard; each computation takes in at most
+    ``shards`` shards of rows, so no worker holds more of those at once, and the sum is exact."""
+    rng = np.random.default_rng(2)
+    matrix = rng.normal(size=(70, 300)).astype(np.float32)
+    q = rng.normal(size=(70, 5)).astype(np.float32)
+    read, seen = [], []
+
+    def reading(block, block_info=None):
+        read.append(block_info[0]["chunk-location"][0])
+        return block
+
+    rows = da.from_array(matrix, chunks=(4, 300)).map_blocks(reading, dtype=matrix.dtype)  # 18 shards, the last of 2
+
+    def counting(*arrays):  # how many shards of rows each computation reads
+        read.clear()
+        out = sync_compute(*arrays)
+        seen.append(len(set(read)))
+        return out
+
+    total = transposed_product(rows, q, counting, shards=5)
+    np.testing.assert_allclose(total, matrix.T.astype(np.float64) @ q, rtol=1e-4, atol=1e-4)
+    assert seen == [5, 5, 5, 3]
+    np.testing.assert_allclose(transposed_product(matrix, q, lambda *a: a), total, rtol=1e-5, atol=1e-4)
