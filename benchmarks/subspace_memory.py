@@ -18,9 +18,7 @@ the largest worker's resident memory before and at its peak, and the time.
 from __future__ import annotations
 
 import argparse
-import os
 import tempfile
-import threading
 import time
 from pathlib import Path
 
@@ -32,32 +30,22 @@ from ingest_throughput import SHARED, PeakMemory
 def random_rows(size: int, shard: int) -> None:
     import dask.array as da
     import numpy as np
-    import psutil
     from dask.distributed import Client, LocalCluster
 
+    from person_memory import Sampler
     from persona.plugins.face.subspace import streamed_svd
 
-    with LocalCluster(n_workers=2, threads_per_worker=1, dashboard_address=None) as cluster, Client(cluster) as client:
-        workers = [psutil.Process(pid) for pid in client.run(os.getpid).values()]
-        largest = lambda: max(w.memory_info().rss for w in workers)  # noqa: E731
+    times = {}
+    with LocalCluster(n_workers=2, threads_per_worker=1, dashboard_address=None) as cluster, \
+            Client(cluster) as client, Sampler() as memory:
         rows = da.random.RandomState(0).random_sample((size, 244 * 194 * 3), chunks=(shard, -1)).astype(np.float32)
-        keep = np.arange(size) % 7 != 0
-        before, peak, done = largest(), [0], threading.Event()
-
-        def sample():
-            while not done.is_set():
-                peak[0] = max(peak[0], largest())
-                time.sleep(0.05)
-
-        sampler = threading.Thread(target=sample)
-        sampler.start()
-        t0 = time.perf_counter()
-        streamed_svd(rows, 4, lambda *arrays: client.gather(client.compute(list(arrays))), keep=keep)
-        seconds = time.perf_counter() - t0
-        done.set()
-        sampler.join()
-    print(f"{size} random rows in chunks of {shard}: largest worker {before / 2**30:.2f} GiB before, "
-          f"peak {peak[0] / 2**30:.2f} GiB; {seconds:.1f} s")
+        with memory.during("before", times):
+            time.sleep(1.0)
+        with memory.during("svd", times):
+            streamed_svd(rows, 4, lambda *arrays: client.gather(client.compute(list(arrays))),
+                         keep=np.arange(size) % 7 != 0)
+    print(f"{size} random rows in chunks of {shard}: largest worker {memory.peaks['before'][1] / 2**30:.2f} GiB "
+          f"before, peak {memory.peaks['svd'][1] / 2**30:.2f} GiB; {times['svd']:.1f} s")
 
 
 def main():
