@@ -34,11 +34,13 @@ def random_rows(size: int, shard: int) -> None:
 
     from person_memory import Sampler
     from persona.plugins.face.subspace import streamed_svd
+    from persona.plugins.face.template import CANONICAL_HEIGHT, CANONICAL_WIDTH
 
     times = {}
     with LocalCluster(n_workers=2, threads_per_worker=1, dashboard_address=None) as cluster, \
             Client(cluster) as client, Sampler() as memory:
-        rows = da.random.RandomState(0).random_sample((size, 244 * 194 * 3), chunks=(shard, -1)).astype(np.float32)
+        face = CANONICAL_HEIGHT * CANONICAL_WIDTH * 3
+        rows = da.random.RandomState(0).random_sample((size, face), chunks=(shard, -1)).astype(np.float32)
         with memory.during("before", times):
             time.sleep(1.0)
         with memory.during("svd", times):
