@@ -335,6 +335,42 @@ def test_the_workers_sample_no_profile():
         ex.close()
 
 
+def _tasks_on_scheduler(dask_scheduler):
+    return sorted(key for key in dask_scheduler.tasks)
+
+
+def _first_value_plus(value, array):
+    return value + float(array[0])
+
+
+def test_an_array_every_task_takes_is_sent_once_and_each_task_let_go_when_taken():
+    """An array that every task takes goes to the cluster as one task (sent with each, the client
+    held a copy per task: 1.1 MB each); a task whose result was taken is let go (its result no longer
+    held by a worker), so neither side grows with the number of tasks. The results are unchanged."""
+    from persona.dag.runner import Executor
+
+    big = np.arange(100_000, dtype=np.float64) + 0.5  # 800 kB, above shared_bytes
+    small = np.arange(4.0)
+    ex = Executor("local", 1)
+    try:
+        results, seen = [], []
+        for result in ex.run(_first_value_plus, [(i, big) for i in range(20)] + [(100, small)]):
+            results.append(result)
+            seen.append(ex.client.run_on_scheduler(_tasks_on_scheduler))
+            if len(results) == 21:  # the 20 taken before are let go while the last is held
+                deadline = time.monotonic() + 10
+                while len(seen[-1]) > 2 and time.monotonic() < deadline:
+                    time.sleep(0.1)
+                    seen.append(ex.client.run_on_scheduler(_tasks_on_scheduler))
+        assert sorted(results) == [i + 0.5 for i in range(20)] + [100.0]
+        on_scheduler = set().union(*seen)
+        assert sum(key.startswith("_identity") for key in on_scheduler) == 1  # the big array, once
+        assert sum(key.startswith("_first_value_plus") for key in on_scheduler) == 21
+        assert sum(key.startswith("_first_value_plus") for key in seen[-1]) == 1, seen[-1]
+    finally:
+        ex.close()
+
+
 def test_a_connection_closed_while_a_result_comes_back_is_a_lost_scheduler():
     """The scheduler SIGKILLed just as a finished task's result is fetched: distributed raises
     CommClosedError there (seen once in CI under load, a raw traceback and exit 1); the run says it
