@@ -116,14 +116,18 @@ def photometric_stereo(url: str, path: str, seen: np.ndarray, prov: Provenance,
     ok[accepted[backend.images_for(len(accepted))]] = True  # all, or as many as the backend takes
     template = generic_template()
     mask = template.mask & seen
-    images, visible = [], []
-    for start, stop in coll.shard_ranges():  # the aligned collection, grey: n x H x W
+    # the aligned collection, grey (n x H x W), filled a shard at a time: no second copy of it
+    images = np.empty((int(ok.sum()), *mask.shape))
+    visible = np.empty(images.shape, bool)
+    done = 0
+    for start, stop in coll.shard_ranges():
         keep = ok[start:stop]
         if keep.any():
-            images.append(as_grey(coll.array("collection/rgb")[start:stop][keep].astype(np.float32) / 255))
-            visible.append(coll.array("collection/mask")[start:stop][keep])
-    result = backend.reconstruct(np.concatenate(images), mask, np.concatenate(visible), template.normals,
-                                 template.depth)
+            rows = np.s_[done:done + int(keep.sum())]
+            images[rows] = as_grey(coll.array("collection/rgb")[start:stop][keep].astype(np.float32) / 255)
+            visible[rows] = coll.array("collection/mask")[start:stop][keep]
+            done = rows.stop
+    result = backend.reconstruct(images, mask, visible, template.normals, template.depth)
     mask &= np.isfinite(result.normals).all(axis=-1)  # pixels seen by too few photos have no normal
     depth = registry.get("integrate", integrate_name)(integrate_params).integrate(
         result.normals, mask, reference=template.depth)

@@ -45,12 +45,12 @@ _LUMA = np.array([0.299, 0.587, 0.114])
 
 def as_grey(images: np.ndarray) -> np.ndarray:
     """(n, H, W) grey or (n, H, W, 3) RGB -> (n, H, W) float64 grey (Rec. 601 luma; linear, so
-    a Lambertian collection stays Lambertian)."""
+    a Lambertian collection stays Lambertian). Float64 grey is returned as it is, not copied."""
     a = np.asarray(images)
     if a.ndim == 4 and a.shape[3] == 3:
         return a.astype(np.float64) @ _LUMA
     if a.ndim == 3:
-        return a.astype(np.float64)
+        return np.asarray(a, dtype=np.float64)  # no copy of a float64 collection: it is the largest array
     raise ValueError(f"images must have shape (n, H, W) or (n, H, W, 3), got {a.shape}")
 
 
@@ -148,9 +148,10 @@ class TemplatePhotometricStereo(ShapeBackend):
                                 "robustly and the collection is rejected")
         max_images: int = Field(600, ge=0, description="most images: a larger collection gives this many, "
                                 "evenly spaced over it (the others get no lights); 0 = all. Not in [14]: the "
-                                "fit holds every image's grey face in memory, about 2.3 MB each with its "
-                                "working arrays, so 600 keeps a worker within 2 GiB. On Bush, every 2nd of "
-                                "530 photos moves the normals by 0.66° (median; docs/shape.md)")
+                                "fit holds every image's grey face in memory, about 1.8 MB each with its "
+                                "working arrays (Bush's 530: 1.08 GiB), so 600 keeps a worker well within "
+                                "2 GiB. On Bush, every 2nd of 530 photos moves the normals by 0.66° (median; "
+                                "docs/shape.md)")
         min_visible: float = Field(0.6, ge=0, le=1, description="a mask pixel seen by fewer than this "
                                    "fraction of the images is left out (NaN in the result). The outer ring of "
                                    "the oval, seen only in part of the photos, is where real collections show "
@@ -210,7 +211,6 @@ class TemplatePhotometricStereo(ShapeBackend):
         if W.all():
             return M
         Mz = np.where(W, M, 0.0)
-        F = Mz.copy()
         S = np.vstack([np.ones(len(tn)), tn.T])
         if self.params.rank > 4:
             col_mean = Mz.sum(axis=0) / np.maximum(W.sum(axis=0), 1)
@@ -227,8 +227,8 @@ class TemplatePhotometricStereo(ShapeBackend):
             previous = filled
             if change < self.params.fill_tolerance:
                 break
-        F[miss] = previous
-        return F
+        Mz[miss] = previous  # filled in place, the last use of Mz: no second (n, p) array
+        return Mz
 
     def _template_fit(self, M, W, tn):
         F = self._fill(M, W, tn)
@@ -264,10 +264,16 @@ class TemplatePhotometricStereo(ShapeBackend):
             if self.params.prior == "normal":  # a fixed pull on the direction: g (mean ρ / ρ_j)²
                 g = g * (rho.mean() / np.maximum(rho, 0.05 * rho.mean())) ** 2
             S = _solve_rows(L, Mz, Wf, reg=g, prior=prior)
-            if self.params.robust > 0:
-                r = np.abs(Mz - L @ S)
-                sigma = 1.4826 * np.median(r if W.all() else r[W])
-                Wf = 1.0 / (1.0 + (r / max(self.params.robust * sigma, 1e-12)) ** 2)
+            if self.params.robust > 0:  # in place: each (n, p) array here is as large as the collection
+                Wf = None  # this round's weights are used: let them go before the next are made
+                r = L @ S
+                np.subtract(Mz, r, out=r)
+                np.abs(r, out=r)
+                sigma = 1.4826 * (np.median(r) if W.all() else np.median(r[W], overwrite_input=True))
+                np.divide(r, max(self.params.robust * sigma, 1e-12), out=r)
+                np.square(r, out=r)
+                r += 1.0
+                Wf = np.reciprocal(r, out=r)
                 if seen is not None:
                     Wf *= seen
         return L, S
