@@ -114,8 +114,8 @@ class Executor:
 
         Memory stays flat in the number of tasks. An array argument (of at least
         :attr:`shared_bytes`) is sent once, as a task of its own that every task taking it depends
-        on; sent with each task it was one copy per task in this process (a shard's 1.1 MB mean
-        face: 0.33 GB for 300 shards). Each task is let go once its result is taken, so no worker
+        on; sent with each task it was one copy per task in this process (the texture cache's 1.1 MB
+        mean face, taken by 300 tasks: 0.33 GB). Each task is let go once its result is taken, so no worker
         keeps the results of all of them until the last ends."""
         if self.client is None:
             for args in argument_lists:

@@ -50,7 +50,7 @@ def as_grey(images: np.ndarray) -> np.ndarray:
     if a.ndim == 4 and a.shape[3] == 3:
         return a.astype(np.float64) @ _LUMA
     if a.ndim == 3:
-        return np.asarray(a, dtype=np.float64)  # no copy of a float64 collection: it is the largest array
+        return np.asarray(a, dtype=np.float64)
     raise ValueError(f"images must have shape (n, H, W) or (n, H, W, 3), got {a.shape}")
 
 
@@ -148,8 +148,8 @@ class TemplatePhotometricStereo(ShapeBackend):
                                 "robustly and the collection is rejected")
         max_images: int = Field(600, ge=0, description="most images: a larger collection gives this many, "
                                 "evenly spaced over it (the others get no lights); 0 = all. Not in [14]: the "
-                                "fit holds every image's grey face in memory, about 1.8 MB each with its "
-                                "working arrays (Bush's 530: 1.08 GiB), so 600 keeps a worker well within "
+                                "fit holds every image's grey face in memory, about 1.6 MB each with its "
+                                "working arrays (Bush's 530: 1.08 GiB resident), so 600 keeps a worker within "
                                 "2 GiB. On Bush, every 2nd of 530 photos moves the normals by 0.66° (median; "
                                 "docs/shape.md)")
         min_visible: float = Field(0.6, ge=0, le=1, description="a mask pixel seen by fewer than this "

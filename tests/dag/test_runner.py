@@ -336,7 +336,7 @@ def test_the_workers_sample_no_profile():
 
 
 def _tasks_on_scheduler(dask_scheduler):
-    return sorted(key for key in dask_scheduler.tasks)
+    return list(dask_scheduler.tasks)
 
 
 def _first_value_plus(value, array):
