@@ -562,6 +562,49 @@ def test_a_worker_killed_in_the_drive_leaves_the_run_to_the_other(tmp_path, dask
     assert_same_store(remote / "run.zarr", local / "run.zarr")
 
 
+def test_workers_killed_in_the_per_person_steps_leave_the_run_to_the_others(tmp_path, dask_cluster):
+    """The per-person steps: the worker fitting the puppet's shape (one task) SIGKILLed, then, once
+    its nanny has started another, a worker folding shards of the texture cache. The run exits 0,
+    and the store is the one a run without the kills makes."""
+    import threading
+
+    from distributed import Client
+
+    from persona.dag.demo import make_demo_data
+
+    remote, local = tmp_path / "remote", tmp_path / "local"
+    for folder in (remote, local):
+        path = make_demo_data(folder, n_photos=16, n_frames=4)
+        path.write_text(path.read_text().replace("photos_per_shard: 8", "photos_per_shard: 2"))  # 8 shards
+    proc = subprocess.Popen([PERSONA, "run", str(remote / "demo.yaml"), "--scheduler", dask_cluster],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    lines = []
+    reader = threading.Thread(target=lambda: lines.extend(proc.stderr), daemon=True)  # the run's progress lines
+    reader.start()
+    killed = []
+    with Client(dask_cluster, timeout="30s") as client:
+        for step, task in (("puppet shape: started", "photometric_stereo"), ("puppet tex. cache: started", "on_shard")):
+            assert _wait_for(lambda: any(step in line for line in lines) or proc.poll() is not None, timeout=600)
+            assert proc.poll() is None, f"the run ended before {step!r}:\n{''.join(lines)}"
+
+            def busy():  # a worker running a task of the step (each worker runs one task at a time)
+                return next((w for w, keys in client.processing().items()
+                             if any(str(k).startswith(task) for k in keys)), None)
+
+            assert _wait_for(lambda: busy() is not None, timeout=60, interval=0.01), f"no {task} task seen"
+            worker = busy()
+            killed.append((step, worker))
+            os.kill(client.run(os.getpid, workers=[worker])[worker], signal.SIGKILL)
+            _wait_for(lambda: len(client.scheduler_info()["workers"]) == 2, timeout=60)  # the nanny's new worker
+        assert proc.wait(timeout=900) == 0, "".join(lines)
+    reader.join(timeout=10)
+    proc.stderr.close()
+    assert len(killed) == 2
+    assert not any("Traceback" in line for line in lines), "".join(lines)
+    run_workflow(load_workflow(local / "demo.yaml"), scheduler="sync", progress=False)
+    assert_same_store(remote / "run.zarr", local / "run.zarr")
+
+
 def test_a_lost_scheduler_stops_the_run_clearly_and_a_new_one_resumes_it(tmp_path):
     """The scheduler SIGKILLed mid-run: the run exits 2 within seconds, saying it lost the scheduler
     and how to resume; with a new scheduler and workers the re-run gives the uninterrupted store."""
