@@ -149,12 +149,21 @@ class Executor:
         return self._result(self.client.gather, futures)
 
     def _result(self, fetch, *args):
-        """fetch(*args), a finished task's result; a RunError (:meth:`_lost`) when the scheduler went
-        away while it came back (a closed connection), not a traceback. A task's own error passes."""
+        """fetch(*args), a finished task's result; a RunError, not a traceback, when the scheduler went
+        away while it came back (a closed connection, :meth:`_lost`) or when every worker that ran the
+        task died under it (Dask's ``KilledWorker``). A task's own error passes."""
+        from dask.utils import key_split
+        from distributed import KilledWorker
         from distributed.comm.core import CommClosedError
 
         try:
             return fetch(*args)
+        except KilledWorker as exc:
+            raise RunError(f"{exc.allowed_failures + 1} Dask workers in turn died while running one task "
+                           f"({key_split(exc.task)}; the last on {exc.last_worker.address}): most "
+                           "often a worker out of memory, killed by the system or by its nanny. See the workers' "
+                           "logs, give each worker more memory (or fewer threads), and re-run the workflow to "
+                           "resume (finished shards are kept)") from None
         except OSError as exc:
             if isinstance(exc, CommClosedError) or self.client.status != "running":
                 raise self._lost() from None

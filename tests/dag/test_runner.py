@@ -415,6 +415,28 @@ def test_a_run_whose_workers_are_all_gone_stops_with_a_clear_error():
         executor.close()
 
 
+def die_with_its_worker():
+    os.kill(os.getpid(), signal.SIGKILL)
+
+
+def test_a_task_that_kills_its_workers_stops_the_run_with_a_clear_error():
+    """A task whose every worker dies under it (as one out of memory does): after Dask's allowed
+    failures the run stops with a RunError that says what likely happened and how to resume,
+    not with distributed's KilledWorker traceback."""
+    import dask
+
+    from persona.dag.runner import Executor, RunError
+
+    with dask.config.set({"distributed.scheduler.allowed-failures": 1}):  # the scheduler runs in this process
+        executor = Executor("local", workers=1)
+        try:
+            with pytest.raises(RunError, match=r"2 Dask workers in turn died while running one task \(die_with_its_worker; .*"
+                                               r"out of memory.* re-run the workflow to resume"):
+                list(executor.run(die_with_its_worker, [()]))
+        finally:
+            executor.close()
+
+
 def test_a_byte_identical_copy_of_a_photo_is_used_once_and_reported(tmp_path, synthetic_photos):
     """The same file twice under two names: the first is used, the copy rejected naming it; the
     collection's mean face is that of the photos without the copy."""
