@@ -112,9 +112,8 @@ def one_core(store: Path, runs: int, frames: int = 40) -> dict[str, list[float]]
     renderer = RaycastRender()
 
     def dynamics(i):
-        st._dynamics(flow, {}, {"pose": poses[i], "/driver/frames/photos/rgb": images[i],
-                                "/driver/frames/photos/size": sizes[i],
-                                "/driver/frames/landmarks/points": landmarks[i]}, context)
+        st._dynamics(flow, {}, {"pose": poses[i], "@frames/photos/rgb": images[i], "@frames/photos/size": sizes[i],
+                                "@frames/landmarks/points": landmarks[i]}, context)
 
     def render(i):
         h, w = sizes[i]

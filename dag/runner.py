@@ -780,24 +780,26 @@ class Runner:
     def drive(self, plan) -> dict:
         """One drive: its stages, its videos and its evaluation (``videos``, ``speed``, ``evaluation``
         and the per-frame ``series`` of the report's plots). The videos and the evaluation are kept
-        from the last run when nothing they are made from changed (:meth:`kept_outputs`)."""
+        from the last run when nothing they are made from changed (:meth:`kept_outputs`); the drive's
+        speed is this run's whenever it rendered every frame, the last run's otherwise."""
         t0 = time.perf_counter()
         drive = run_drive(self, plan.cast, plan.output)
         drive_seconds = time.perf_counter() - t0
+        render = [r for r in self.timer.records if r["stage"] in ("render", "render3d")][-1]
+        speed = {}
+        if render["n_done"] == drive.n:  # timed only when this run rendered every frame
+            speed = {"ms_per_driver_frame": 1000 * drive_seconds / drive.n,
+                     "render_ms_per_frame_one_worker": 1000 * render["task_seconds"] / drive.n}
         key = cache_key(composite=drive.provenance("composite/rgb").key, identity=self.wf.stage("identity"),
                         evaluate=self.wf.evaluate.model_dump(mode="json"))
         kept = self.kept_outputs(plan.output, key)
         if kept is not None:
             log.info("%s: nothing new since its videos and evaluation were made: kept", plan.cast.drive)
+            kept["speed"].update(speed)  # a drive made again (the same bytes) was timed again
             return kept
-        out = {"outputs_key": key}
+        out = {"outputs_key": key, "speed": speed}
         with self.step("videos", plan.cast.drive):
             out["videos"] = write_videos(drive, Collection(self.root, plan.cast.frames), plan.output)
-        render = [r for r in self.timer.records if r["stage"] in ("render", "render3d")][-1]
-        out["speed"] = {}
-        if render["n_done"] == drive.n:  # timed only when this run rendered every frame
-            out["speed"] = {"ms_per_driver_frame": 1000 * drive_seconds / drive.n,
-                            "render_ms_per_frame_one_worker": 1000 * render["task_seconds"] / drive.n}
         t0 = time.perf_counter()
         with self.step("evaluate", plan.cast.drive), \
                 self.progress_bar(f"{plan.cast.drive:>13} {'analyse':<10}", drive.n) as bar:

@@ -598,3 +598,24 @@ def test_a_video_decoded_before_is_not_decoded_again(drive_run):
     folder, _, _ = drive_run
     summary = st.ingest_video(str(folder / "run.zarr"), "driver/frames", {})["ingest"]
     assert summary["skipped"] and summary["n"] == 16
+
+
+def test_a_drive_made_again_reports_its_own_speed(drive_run):
+    """The drive removed from the store and made again (the same frames, so the videos and the
+    evaluation are kept): metrics.json gives this run's speed, not the last one's (benchmarks/
+    drive_speed.py does exactly this; it once printed the first run's figure every time)."""
+    folder, path, _ = drive_run
+    metrics = folder / "output" / "metrics.json"
+    first = metrics.read_text()
+    before = json.loads(first)
+    shutil.rmtree(folder / "run.zarr" / "drive")  # made again below, the same bytes
+    try:
+        assert cli(["run", str(path), "--scheduler", "sync", "--quiet"]) == 0
+        after = json.loads(metrics.read_text())
+    finally:
+        metrics.write_text(first)  # as the other tests of the module know it
+    assert after["outputs_key"] == before["outputs_key"]  # the same frames: videos and evaluation kept
+    assert "videos" not in {r["stage"] for r in after["stages"]}
+    assert after["evaluation"] == before["evaluation"]
+    assert after["speed"]["ms_per_driver_frame"] != before["speed"]["ms_per_driver_frame"]
+    assert after["speed"]["evaluate_seconds"] == before["speed"]["evaluate_seconds"]
