@@ -130,7 +130,8 @@ def _transfer(root, drive: Collection, puppet: Collection, denoise) -> tuple:
     tp = transfer.params
     if not tp.fiducials:
         return transfer, None, None, mask
-    follow = FiducialFollow(puppet.array("aligned/mean_fiducials")[...], mask, lam=tp.fiducial_lambda)
+    follow = FiducialFollow(puppet.array("aligned/mean_fiducials")[...], mask, lam=tp.fiducial_lambda,
+                            corner_reach=tp.corner_reach)
     targets = smooth_in_time(drive.array("target")[:].astype(np.float64), tp.fiducial_sigma)
     return transfer, follow, targets, mask
 

@@ -99,6 +99,10 @@ class TransferParams(Params):
                                   "of the retargeted fiducials over time (dlib's landmarks jitter; σ = 1 "
                                   "halves speech's 5 Hz at 25 fps: on Bush driven by Obama the targets' mouth "
                                   "gain is 0.92 unsmoothed, 0.89 at σ 0.5, 0.79 at 1)")
+    corner_reach: float = Field(
+        0.0, ge=0, description="canonical px beyond each mouth corner over which the skin's sideways "
+        "motion is held at the corner's, fading to none at that distance (0: off; not in the paper; "
+        ":class:`FiducialFollow`)")
     small_motion: float = Field(
         0.3, ge=0, description="δ in canonical px: the displacement is w Δ̂ f* + (1 - w) Δ with "
         "w = min(1, |Δ|/δ), so that sub-pixel motions, whose nearest vertex is the point itself, pass "
@@ -322,6 +326,10 @@ class DeformationTransfer:
         return self.apply(driver_mesh).mesh
 
 
+#: the outer mouth corners among the 49 fiducials (iBUG 48 and 54)
+_MOUTH_CORNERS = (31, 37)
+
+
 class FiducialFollow:
     """B's transferred meshes moved so that their fiducials land on per-frame targets (not in the
     paper; ``TransferParams.fiducials``).
@@ -338,28 +346,54 @@ class FiducialFollow:
     fiducials : (49, 2) B's mean fiducials on the canonical grid; mask : (H, W) bool, B's face;
     lam : the spline's λ; spacing : px between the rim's still points; step : the spline is
     evaluated on every ``step``-th pixel (1: the inner and outer lips are 3-5 px apart and move
-    apart, which a coarser grid blurs).
+    apart, which a coarser grid blurs); corner_reach : px beyond each mouth corner (0: none) over
+    which the skin moves sideways with the corner. The transfer's sideways motion falls to about
+    half the corner's 15 px beyond it, so a narrowing mouth left the end of B's lip line behind,
+    where dlib reads the corner (docs/expression.md). Two points on the line from the mouth's centre
+    through each corner, a third and two thirds of the reach out, are moved sideways by
+    (1 - distance / reach) of what separates their motion from the corner's.
     """
 
     def __init__(self, fiducials: np.ndarray, mask: np.ndarray, *, lam: float = 0.1, spacing: int = 12,
-                 step: int = 1):
+                 step: int = 1, corner_reach: float = 0.0):
         self.fiducials = np.asarray(fiducials, np.float64)
         rim = rim_points(mask, spacing)
         self._still = np.zeros((len(rim), 2))
-        self.warp = TpsWarp(np.concatenate([self.fiducials, rim]), np.asarray(mask).shape, lam=lam, step=step)
+        # with corner_reach: points beyond each mouth corner, each with its corner and how much of
+        # the corner's sideways motion it takes
+        self._beyond, self._corner, self._fade = np.zeros((0, 2)), np.zeros(0, int), np.zeros(0)
+        if corner_reach > 0:
+            centre = self.fiducials[list(_MOUTH_CORNERS)].mean(axis=0)
+            steps = corner_reach * np.array([1, 2]) / 3
+            out = [(self.fiducials[c] + d * (self.fiducials[c] - centre) / np.linalg.norm(self.fiducials[c] - centre),
+                    c, 1 - d / corner_reach) for c in _MOUTH_CORNERS for d in steps]
+            self._beyond, self._corner, self._fade = (np.array(v) for v in zip(*out))
+        self.warp = TpsWarp(np.concatenate([self.fiducials, self._beyond, rim]), np.asarray(mask).shape, lam=lam,
+                            step=step)
+
+    @staticmethod
+    def moved(mesh: np.ndarray, points: np.ndarray) -> np.ndarray:
+        """(n, 2) where a mesh (H, W, 3) has moved the texels at ``points`` (x, y; bilinear)."""
+        xy, rows_cols = np.nan_to_num(np.asarray(mesh, np.float64)[..., :2]), points[:, ::-1].T
+        return np.stack([map_coordinates(xy[..., c], rows_cols, order=1, mode="nearest") for c in (0, 1)], axis=1)
 
     def landmarks(self, mesh: np.ndarray) -> np.ndarray:
         """(49, 2) where a mesh (H, W, 3) has moved B's fiducials (bilinear in the texels)."""
-        xy, rows_cols = np.nan_to_num(np.asarray(mesh, np.float64)[..., :2]), self.fiducials[:, ::-1].T
-        return np.stack([map_coordinates(xy[..., c], rows_cols, order=1, mode="nearest") for c in (0, 1)], axis=1)
+        return self.moved(mesh, self.fiducials)
 
     def __call__(self, mesh: np.ndarray, target: np.ndarray, weight: float = 1.0) -> np.ndarray:
         """The mesh (H, W, 3) moved ``weight`` of the way to fiducials at ``target`` (49, 2); a
         target with a NaN moves nothing."""
-        miss = weight * (np.asarray(target, np.float64) - self.landmarks(mesh))
+        now = self.landmarks(mesh)
+        miss = weight * (np.asarray(target, np.float64) - now)
         miss[~np.isfinite(miss).all(axis=1)] = 0.0
+        beyond = np.zeros_like(self._beyond)  # sideways: a share of the corner's motion after this move
+        if len(beyond):
+            corner = now[self._corner] + miss[self._corner] - self.fiducials[self._corner]
+            shift = self.moved(mesh, self._beyond) - self._beyond
+            beyond[:, 0] = self._fade * (corner[:, 0] - shift[:, 0])
         out = np.array(mesh, np.float64, copy=True)
-        out[..., :2] += self.warp.map(np.concatenate([miss, self._still]))
+        out[..., :2] += self.warp.map(np.concatenate([miss, beyond, self._still]))
         return out
 
 

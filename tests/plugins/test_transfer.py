@@ -302,6 +302,34 @@ def test_fiducial_follow_lands_the_fiducials_and_holds_the_rim():
     assert np.abs(follow.landmarks(follow(mesh, target))[20] - fiducials[20]).max() < 0.5
 
 
+def test_corner_reach_moves_the_skin_beyond_a_mouth_corner_sideways_with_it():
+    """A transferred mesh whose mouth narrows (the corners 4 px inwards) but whose sideways motion
+    falls to half 10 px beyond the corners, as the transfer's does on real drives, its fiducials
+    already on their targets: without ``corner_reach`` the follower leaves that skin where it is
+    (2 px); with a reach of 30 px it moves the corner's 4 px less a third of the difference
+    (3.33 px, within 0.3). The fiducials stay on their targets, and the brows do not move."""
+    fiducials = generic_template().fiducials3d[:, :2]
+    mask = np.zeros((H, W), bool)
+    mask[10:-10, 10:-10] = True
+    left, right = fiducials[31], fiducials[37]  # iBUG 48 and 54
+    centre, half = (left + right) / 2, (right[0] - left[0]) / 2
+    grid = _identity_grid()
+    u = np.abs(grid[..., 0] - centre[0])
+    reach = np.where(u <= half, u / half, np.clip(1 - (u - half) / 20, 0, 1))  # 1 at the corners, 0.5 10 px out
+    dx = -4.0 * np.sign(grid[..., 0] - centre[0]) * reach * np.exp(-((grid[..., 1] - centre[1]) / 15) ** 2)
+    mesh = np.dstack([grid[..., 0] + dx, grid[..., 1], np.zeros((H, W))])
+    mesh[~mask] = np.nan
+    out = left - np.array([10.0, 0.0])  # 10 px beyond the left corner
+    brow = np.array([left[0], fiducials[:10, 1].mean()])
+    for corner_reach, expected in ((0.0, 2.0), (30.0, 4.0 - 2.0 / 3)):
+        follow = FiducialFollow(fiducials, mask, corner_reach=corner_reach)
+        target = follow.landmarks(mesh)
+        moved = follow(mesh, target)
+        assert np.abs(follow.landmarks(moved) - target).max() < 0.25, corner_reach
+        assert follow.moved(moved, out[None])[0, 0] - out[0] == pytest.approx(expected, abs=0.3), corner_reach
+        assert np.abs(follow.moved(moved, brow[None])[0] - follow.moved(mesh, brow[None])[0]).max() < 0.3, corner_reach
+
+
 @pytest.mark.parametrize("driver_seed, puppet_seed", [(19, 12), (12, 19)])
 def test_fiducial_follow_closes_the_puppets_blink(driver_seed, puppet_seed):
     """The driver's full blink closes the puppet's own eye, whose opening differs by 40 %: after the
