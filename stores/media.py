@@ -175,7 +175,7 @@ def _expand_string(text, base_dir: Path) -> list[tuple[str, int | None]]:
         raise InputError(f"empty path in photos (relative to {base_dir}): give a folder, a glob, an image or a video")
     path, where, check = _located(raw, base_dir)
     if storage.isdir(path):
-        files = [p for p in storage.files_in(path) if not _hidden(p)]
+        files = [p for p in storage.entries_in(path) if not _hidden(p)]
         if not files:
             raise InputError(
                 f"folder {where} is empty (no visible files): put photos in it or point to another folder"
@@ -235,10 +235,11 @@ def resolve_sources(spec, base_dir) -> list[Source]:
 
     ``spec`` is one of:
 
-    - a folder: every visible file in it, sorted by name, not recursive (files of every
-      extension are listed, so a text file named ``x.jpg`` reaches :func:`decode_image`
-      and is rejected there with a reason; a video gives its frames, and a file named like a
-      video that does not open is kept as a photo to reject, not an error);
+    - a folder: everything visible in it, sorted by name, not recursive (files of every
+      extension, sub-folders and links whose target is gone are listed, so that a text file
+      named ``x.jpg``, a folder or a dangling link reaches :func:`decode_image` and is rejected
+      there with a reason; a video gives its frames, and a file named like a video that does
+      not open is kept as a photo to reject, not an error);
     - a glob pattern (``*``, ``?``, ``[``), sorted, hidden files skipped;
     - a single image file;
     - a video file (by extension, see :func:`is_video`): every frame;
@@ -302,6 +303,8 @@ def _open_checked(path, max_pixels: int, min_side: int) -> tuple[Image.Image, ob
     try:
         size, folder = storage.stat(path)
     except FileNotFoundError:
+        if not storage.is_url(path) and os.path.islink(path):
+            raise PhotoRejected(f"a link to {os.readlink(path)}, which does not exist") from None
         raise PhotoRejected(f"file not found: {path}") from None
     except OSError as e:
         raise PhotoRejected(f"cannot read file: {e.strerror or e}") from None

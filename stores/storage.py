@@ -155,11 +155,12 @@ def exists(path) -> bool:
     return _ask(path, os.path.exists, "exists")
 
 
-def files_in(folder) -> list:
-    """The files (not sub-folders) directly in ``folder``, sorted: Paths for a local folder, URLs for
-    a URL."""
+def entries_in(folder) -> list:
+    """What is directly in ``folder``, sorted: for a local folder every entry as a Path (files,
+    sub-folders, links whose target is gone: whatever is not a photo is rejected at ingest with its
+    reason, not passed over in silence); for a URL, its files' URLs."""
     if not is_url(folder):
-        return sorted(p for p in Path(folder).iterdir() if p.is_file())
+        return sorted(Path(folder).iterdir())
     fs, p = filesystem(folder)
     return sorted(fs.unstrip_protocol(e["name"]) for e in fs.ls(p, detail=True) if e["type"] == "file")
 

@@ -297,7 +297,7 @@ def test_resolve_folder_sorted_nonrecursive_hidden_skipped(tmp_path):
     _touch(tmp_path / "photos", "b.jpg", "a.png", "notes.txt", ".DS_Store", "c.JPG")
     _touch(tmp_path / "photos" / "sub", "z.jpg")
     srcs = media.resolve_sources("photos", tmp_path)
-    assert [s.id for s in srcs] == ["a", "b", "c", "notes"]
+    assert [s.id for s in srcs] == ["a", "b", "c", "notes", "sub"]  # the sub-folder a photo to reject, not opened
     assert all(Path(s.path).is_absolute() and s.frame is None for s in srcs)
     assert srcs[0] == Source(id="a", path=str(tmp_path / "photos" / "a.png"), frame=None)
 
@@ -690,3 +690,19 @@ def test_a_stray_video_in_a_folder_is_a_photo_to_reject_not_the_end_of_the_run(t
     assert len(media.resolve_sources("photos/*.mp4", tmp_path)) == len(named) - 2  # a glob alike
     with pytest.raises(InputError, match="stray.mp4"):
         media.resolve_sources("photos/stray.mp4", tmp_path)
+
+
+def test_a_folder_and_a_dangling_link_in_a_photo_folder_are_photos_rejected_with_their_reason(tmp_path):
+    """A sub-folder and a link whose target is gone, in a photo folder: each is listed, so that
+    ingest rejects it with a reason the user can act on, instead of passing over it in silence."""
+    folder = tmp_path / "photos"
+    folder.mkdir()
+    cv2.imwrite(str(folder / "a.png"), np.zeros((64, 64, 3), np.uint8))
+    (folder / "b.jpg").symlink_to(tmp_path / "gone" / "b.jpg")
+    (folder / "thumbs").mkdir()
+    sources = media.resolve_sources("photos", tmp_path)
+    assert [s.id for s in sources] == ["a", "b", "thumbs"]
+    with pytest.raises(PhotoRejected, match=r"a link to .*gone/b\.jpg, which does not exist"):
+        media.decode_image(sources[1].path)
+    with pytest.raises(PhotoRejected, match=r"not an image \(a folder\)"):
+        media.decode_image(sources[2].path)
