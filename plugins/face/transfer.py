@@ -102,7 +102,8 @@ class TransferParams(Params):
     corner_reach: float = Field(
         0.0, ge=0, description="canonical px beyond each mouth corner over which the skin's sideways "
         "motion is held at the corner's, fading to none at that distance (0: off; not in the paper; "
-        ":class:`FiducialFollow`)")
+        ":class:`FiducialFollow`; 30 raised Bush <- Obama's mouth-width gain 0.64 -> 0.70 on the "
+        "composite and lowered Powell <- woman's 0.75 -> 0.71: docs/expression.md)")
     small_motion: float = Field(
         0.3, ge=0, description="δ in canonical px: the displacement is w Δ̂ f* + (1 - w) Δ with "
         "w = min(1, |Δ|/δ), so that sub-pixel motions, whose nearest vertex is the point itself, pass "
