@@ -176,9 +176,11 @@ def _expand_string(text, base_dir: Path) -> list[tuple[str, int | None]]:
     path, where, check = _located(raw, base_dir)
     if storage.isdir(path):
         files = [p for p in storage.entries_in(path) if not _hidden(p)]
-        if not files:
+        if not any(storage.isfile(p) for p in files):
+            held = f" (it holds only {', '.join(Path(p).name for p in files[:3])}{', …' if len(files) > 3 else ''}; " \
+                   "sub-folders are not searched)" if files else ""
             raise InputError(
-                f"folder {where} is empty (no visible files): put photos in it or point to another folder"
+                f"folder {where} is empty (no visible files){held}: put photos in it or point to another folder"
             )
         return [entry for f in files for entry in _member(f)]
     if storage.isfile(path):

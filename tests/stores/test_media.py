@@ -706,3 +706,13 @@ def test_a_folder_and_a_dangling_link_in_a_photo_folder_are_photos_rejected_with
         media.decode_image(sources[1].path)
     with pytest.raises(PhotoRejected, match=r"not an image \(a folder\)"):
         media.decode_image(sources[2].path)
+
+
+def test_a_folder_of_folders_is_an_empty_folder_naming_what_it_holds(tmp_path):
+    """Pointed at the parent of photo folders: one clear error before any work, naming the
+    sub-folders, rather than a photo rejected per sub-folder."""
+    for name in ("bush", "powell"):
+        (tmp_path / "people" / name).mkdir(parents=True)
+    with pytest.raises(InputError, match=r"folder .*people\) is empty \(no visible files\) \(it holds only bush, "
+                                         r"powell; sub-folders are not searched\)"):
+        media.resolve_sources("people", tmp_path)
