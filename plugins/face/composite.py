@@ -48,12 +48,24 @@ def levels_for(mask: np.ndarray) -> int:
 def _level_weights(alpha: np.ndarray, levels: int) -> list[np.ndarray]:
     """The blending weight of each pyramid level 0..levels: the mask eroded by half the level's
     pixel (2^k / 2 px), then reduced to the level's size. The coarse levels' transitions lie inside
-    B's face, so B's tone does not spill as a halo into A's hair and background."""
+    B's face, so B's tone does not spill as a halo into A's hair and background.
+
+    From level 2 on, the erosion is done two levels above the level's own (the mask reduced k - 2
+    times, eroded there by 2 px, then reduced twice more): at full size the coarse levels' discs
+    (up to 129 px across on an HD face) cost most of the composite's time, and the weights differ
+    by a few hundredths where the mask's edge is steep (the composite by at most 6 levels, 0.06 on
+    average, on a 1600-px frame)."""
+    reduced = [alpha]
+    for _ in range(levels - 2):
+        reduced.append(cv2.pyrDown(reduced[-1]))
     weights = []
     for k in range(levels + 1):
-        r = 2 ** k // 2
-        w = cv2.erode(alpha, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))) if r else alpha
-        for _ in range(k):
+        above = max(k - 2, 0)
+        r = 2 ** k // 2 // 2 ** above
+        w = reduced[above]
+        if r:
+            w = cv2.erode(w, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1)))
+        for _ in range(k - above):
             w = cv2.pyrDown(w)
         weights.append(w)
     return weights

@@ -142,3 +142,21 @@ def test_blending_a_box_about_the_face_is_blending_the_whole_frame():
     boxed = composite.multiband(face, frame, alpha)
     assert np.array_equal(boxed, whole)
     assert np.array_equal(boxed[:, :100], frame[:, :100])  # far from the face: A's frame itself
+
+
+def test_each_levels_weight_is_the_mask_eroded_by_half_its_pixel():
+    """An oval face mask 540 x 680 px with a soft edge, on a 900 x 1600 frame (7 levels): each level's
+    weight is, to within 0.05 at any pixel and 0.005 on average (measured: 0.031 and 0.0021 at worst), the mask eroded at full size by a disc
+    of half the level's pixel and then reduced (the definition; computed faster two levels up)."""
+    alpha = np.zeros((900, 1600), np.float32)
+    cv2.ellipse(alpha, (800, 450), (270, 340), 0, 0, 360, 1.0, -1)
+    alpha = cv2.GaussianBlur(alpha, (0, 0), 2.0)
+    levels = composite.levels_for(alpha)
+    assert levels == 7
+    for k, got in enumerate(composite._level_weights(alpha, levels)):
+        r = 2 ** k // 2
+        want = cv2.erode(alpha, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))) if r else alpha
+        for _ in range(k):
+            want = cv2.pyrDown(want)
+        error = np.abs(got - want)
+        assert got.shape == want.shape and error.max() < 0.05 and error.mean() < 0.005, (k, error.max(), error.mean())
