@@ -139,8 +139,9 @@ class RaycastRender(RenderBackend):
                    "texture, at the driver's head pose (z-buffered, equal to ray casting pixel centres)")
     default = True
     uses_mesh = True
-    version = "3"  # 2: rgb is the face's own colour across its soft edge; no background param; 3: the mouth
-    # interior averaged to the gap's size and drawn by the share of each pixel it covers
+    version = "4"  # 2: rgb is the face's own colour across its soft edge; no background param; 3: the mouth
+    # interior averaged to the gap's size and drawn by the share of each pixel it covers; 4: the opening's
+    # outline rounded (mouth.rounded)
 
     class Params(Params):
         min_coverage: float = Field(0.3, ge=0, le=1, description="canonical pixels seen in fewer "

@@ -97,7 +97,8 @@ def test_a_gap_a_pixel_tall_shows_the_interiors_mean_colour_along_it_not_a_speck
     """An interior of alternating white (teeth) and black (cavity) rows, drawn into a gap 1.2 px tall
     and 60 px long whose height wanders by half a pixel, on light grey (200): along the gap's middle
     row every pixel has the same colour to within 8 levels (sampling the rows gave 46-250 from column
-    to column), between the interior's mean (127.5) and the grey, as the gap covers most of a pixel."""
+    to column), from the interior's mean (127.5, within rounding) towards the grey, as the gap covers
+    most of a pixel or all of it."""
     stripes = np.zeros((32, 64, 3), np.float32)
     stripes[::2] = 255
     out = np.full((60, 100, 3), 200, np.uint8)
@@ -107,4 +108,20 @@ def test_a_gap_a_pixel_tall_shows_the_interiors_mean_colour_along_it_not_a_speck
     mouth.draw(out, np.ones((60, 100), np.float32), stripes, curves)
     line = out[30, 35:66].astype(float).mean(axis=1)  # between the second and fourth nodes
     print(f"\nthe gap's middle row: {line.min():.0f}-{line.max():.0f}")
-    assert np.ptp(line) <= 8 and np.all((line > 127) & (line < 170))
+    assert np.ptp(line) <= 8 and np.all((line >= 127) & (line < 170))
+
+
+def test_a_round_mouth_is_drawn_round():
+    """Inner lips on a circle of radius 20 px (iBUG 60-64 and 64-60 every 45°, as an "O" puts them):
+    the drawn opening covers the circle's area to within 1 % (the polygon of the eight points would
+    cover 10 % less: an octagon), and its outline stays within 2 % of the circle."""
+    r, centre = 20.0, np.array([50.0, 50.0])
+    angles = np.deg2rad([180, 135, 90, 45, 0])
+    ring = np.c_[np.cos(angles), np.sin(angles)] * r
+    curves = np.stack([centre + ring * [1, -1], centre + ring])
+    out = np.zeros((100, 100, 3), np.uint8)
+    mouth.draw(out, np.ones((100, 100), np.float32), np.full((32, 64, 3), 255, np.float32), curves)
+    area = out[..., 0].sum() / 255
+    assert abs(area / (np.pi * r ** 2) - 1) < 0.01, area
+    radius = np.linalg.norm(mouth.rounded(curves) - centre, axis=2)
+    assert radius.min() > 0.98 * r and radius.max() < 1.02 * r
