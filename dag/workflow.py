@@ -18,6 +18,7 @@ from pydantic import BaseModel, ConfigDict, Field, SecretStr, ValidationError, f
 from persona.plugins.face.dynamics import POSE_SIGMA, DynamicsParams
 from persona.plugins.face.transfer import TransferParams
 from persona.plugins.manager import FlowChoice, Registry, default_registry, did_you_mean
+from persona.stores.media import MAX_PIXELS, MAX_SIDE, MIN_SIDE
 from persona.stores import storage
 from persona.stores.errors import PersonaError
 from persona.stores.layout import Cast
@@ -336,10 +337,12 @@ class Workflow(Strict):
 
 # Stage kinds that take params but no backend choice (their work lives in the DAG).
 class IngestParams(Strict):
-    max_side: int = Field(1600, ge=64, description="photos larger than this (px, longer side) are downscaled")
-    max_pixels: int = Field(64_000_000, ge=1, description="headers claiming more pixels are rejected "
+    max_side: int = Field(MAX_SIDE, ge=64, description="photos and video frames larger than this (px, longer "
+                          "side) are downscaled; 1920 keeps a 1080p clip at its own size, so the output videos "
+                          "are the driver's (was 1600, which made a 1080p drive 1600x900)")
+    max_pixels: int = Field(MAX_PIXELS, ge=1, description="headers claiming more pixels are rejected "
                             "as decompression bombs without decoding")
-    min_side: int = Field(32, ge=1, description="photos smaller than this (px, shorter side) are rejected")
+    min_side: int = Field(MIN_SIDE, ge=1, description="photos smaller than this (px, shorter side) are rejected")
 
 
 class ScreenParams(Strict):

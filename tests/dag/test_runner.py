@@ -666,3 +666,22 @@ def test_a_lost_scheduler_stops_the_run_clearly_and_a_new_one_resumes_it(tmp_pat
         second.close()
     run_workflow(load_workflow(local / "demo.yaml"), scheduler="sync", progress=False)
     assert_same_store(remote / "run.zarr", local / "run.zarr")
+
+
+def test_a_1080p_clip_keeps_its_size(tmp_path):
+    """The frames of a 1920 x 1080 video are stored at that size (the output videos are the driver's;
+    ingest's ``max_side`` was 1600, which made them 1600 x 900), and a larger one is brought down to it."""
+    from persona.dag.runner import Executor, Runner, resolve_inputs
+    from persona.stores import media
+
+    for name, (h, w) in (("hd.mp4", (1080, 1920)), ("qhd.mp4", (1440, 2560))):
+        frame = np.zeros((h, w, 3), np.uint8)
+        frame[:, : w // 2] = 200
+        media.write_video_mp4(tmp_path / name, [frame, frame], fps=25)
+    for name, expected in (("hd.mp4", [1080, 1920]), ("qhd.mp4", [1080, 1920])):
+        wf = load_workflow(write_workflow(tmp_path, {"video": name}))
+        runner = Runner(wf, Executor("sync", None), progress=False)
+        coll, video = runner.collection("puppet", resolve_inputs(wf)["puppet"])
+        runner.run_photo_stages(coll, video)
+        assert coll.attrs["canvas"] == expected
+        assert [list(s) for s in coll.array("photos/size")[:]] == [expected, expected]
