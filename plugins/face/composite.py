@@ -35,14 +35,20 @@ import cv2
 import numpy as np
 
 
+def _bounds(selected: np.ndarray) -> tuple[int, int, int, int] | None:
+    """(y0, y1, x0, x1): the bounding box of the True pixels of ``selected`` (h, w), None for none."""
+    x, y, w, h = cv2.boundingRect(np.asarray(selected, np.uint8))
+    return (y, y + h, x, x + w) if w else None
+
+
 def levels_for(mask: np.ndarray) -> int:
     """Pyramid levels for a face mask: until the coarsest level's pixel is about a quarter of the
     face's smaller side (at least 1)."""
-    ys, xs = np.nonzero(mask > 0.5)
-    if len(ys) == 0:
+    bounds = _bounds(mask > 0.5)
+    if bounds is None:
         return 1
-    side = min(ys.max() - ys.min() + 1, xs.max() - xs.min() + 1)
-    return int(max(1, np.floor(np.log2(max(side, 1) / 4))))
+    y0, y1, x0, x1 = bounds
+    return int(max(1, np.floor(np.log2(min(y1 - y0, x1 - x0) / 4))))
 
 
 def _level_weights(alpha: np.ndarray, levels: int) -> list[np.ndarray]:
@@ -84,38 +90,37 @@ def multiband(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, levels: in
     alpha = np.clip(np.asarray(alpha, np.float32), 0, 1)
     if levels is None:
         levels = levels_for(alpha)
-    ys, xs = np.nonzero(alpha > 0)
+    bounds = _bounds(alpha > 0)
     out = np.array(frame, dtype=np.uint8, copy=True)
-    if len(ys) == 0:
+    if bounds is None:
         return out
     step, reach = 2 ** levels, 4 * 2 ** levels
-    y0, x0 = max(ys.min() - reach, 0), max(xs.min() - reach, 0)
-    y0, x0 = y0 - y0 % step, x0 - x0 % step  # on the coarsest level's grid, as the whole frame's pyramid
-    box = np.s_[y0:ys.max() + reach + 1, x0:xs.max() + reach + 1]
+    y0, y1, x0, x1 = bounds
+    top, left = max(y0 - reach, 0), max(x0 - reach, 0)
+    top, left = top - top % step, left - left % step  # on the coarsest level's grid, as the whole frame's pyramid
+    box = np.s_[top:y1 + reach, left:x1 + reach]
     out[box] = _pyramid_blend(np.asarray(face)[box], out[box], alpha[box], levels)
     return out
 
 
 def _pyramid_blend(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, levels: int) -> np.ndarray:
-    """:func:`multiband` on the whole of the images given."""
-    a = alpha[..., None]
-    top = np.asarray(face, np.float32) * a + np.asarray(frame, np.float32) * (1 - a)
+    """:func:`multiband` on the whole of the images given. Each band k of the blend is the face's
+    (``alpha`` over the frame) weighted by the level's weight w_k plus the frame's by 1 - w_k, that is
+    the frame's band plus w_k times the band of their difference (the pyramid is linear): so the
+    result is the frame plus the difference's pyramid, weighted level by level and collapsed. One
+    pyramid instead of two."""
     bottom = np.asarray(frame, np.float32)
-    bands_top, bands_bottom = [], []
+    diff = (np.asarray(face, np.float32) - bottom) * alpha[..., None]
+    bands = []
     for _ in range(levels):
-        small_top, small_bottom = cv2.pyrDown(top), cv2.pyrDown(bottom)
-        size = (top.shape[1], top.shape[0])
-        bands_top.append(top - cv2.pyrUp(small_top, dstsize=size))
-        bands_bottom.append(bottom - cv2.pyrUp(small_bottom, dstsize=size))
-        top, bottom = small_top, small_bottom
+        small = cv2.pyrDown(diff)
+        bands.append(diff - cv2.pyrUp(small, dstsize=(diff.shape[1], diff.shape[0])))
+        diff = small
     weights = _level_weights(alpha, levels)
-    w = weights[levels][..., None]
-    out = top * w + bottom * (1 - w)
+    out = diff * weights[levels][..., None]
     for k in reversed(range(levels)):
-        out = cv2.pyrUp(out, dstsize=(bands_top[k].shape[1], bands_top[k].shape[0]))
-        w = weights[k][..., None]
-        out = out + bands_top[k] * w + bands_bottom[k] * (1 - w)
-    return np.clip(out, 0, 255).round().astype(np.uint8)
+        out = cv2.pyrUp(out, dstsize=(bands[k].shape[1], bands[k].shape[0])) + bands[k] * weights[k][..., None]
+    return np.clip(bottom + out, 0, 255).round().astype(np.uint8)
 
 
 def _robust_plane(xy: np.ndarray, values: np.ndarray, weight: np.ndarray, *, delta: float = 0.1,
@@ -136,13 +141,12 @@ def _robust_plane(xy: np.ndarray, values: np.ndarray, weight: np.ndarray, *, del
     return coef
 
 
-def _skin_likeness(logc: np.ndarray, centre: np.ndarray, tint: float, shade: float) -> np.ndarray:
-    """How much each pixel of ``logc`` (h, w, 3), log colour, looks like the skin at ``centre`` (a
-    mask of the face's middle): a Gaussian in chromaticity (σ ``tint``) and in brightness (σ ``shade``)
-    about their medians there."""
-    skin = np.median(logc[centre], axis=0)
-    brightness = logc.mean(axis=2, keepdims=True)
-    off = (np.sum((logc - brightness - (skin - skin.mean())) ** 2, axis=2) / tint ** 2
+def _skin_likeness(logc: np.ndarray, skin: np.ndarray, tint: float, shade: float) -> np.ndarray:
+    """How much each pixel of ``logc`` (..., 3), log colour, looks like ``skin`` (3,), the median log
+    colour of a face's middle: a Gaussian in chromaticity (σ ``tint``) and in brightness (σ ``shade``)
+    about the skin's."""
+    brightness = logc.mean(axis=-1, keepdims=True)
+    off = (np.sum((logc - brightness - (skin - skin.mean())) ** 2, axis=-1) / tint ** 2
            + (brightness[..., 0] - skin.mean()) ** 2 / shade ** 2)
     return np.exp(-off / 2)
 
@@ -168,12 +172,11 @@ def match_lighting(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, li
     the largest factor (and 1/factor the smallest) by which a channel may be scaled anywhere.
     Outside the mask the face is returned unchanged (the composite takes the frame there)."""
     inside = (np.asarray(alpha) > 0.5).astype(np.uint8)
-    if lighting <= 0 or not inside.any():
+    bounds = _bounds(inside)
+    if lighting <= 0 or bounds is None:
         return face
-    ys, xs = np.nonzero(inside)
-    side = min(ys.max() - ys.min() + 1, xs.max() - xs.min() + 1)
-    width = max(2.0, band * side)
-    y0, y1, x0, x1 = ys.min(), ys.max() + 1, xs.min(), xs.max() + 1
+    y0, y1, x0, x1 = bounds
+    width = max(2.0, band * min(y1 - y0, x1 - x0))
     box = np.s_[y0:y1, x0:x1]
     f = np.asarray(face, np.float32)[box]
     # the fit needs no more than a few thousand samples: at a scale where the band is about 2 px wide
@@ -188,7 +191,8 @@ def match_lighting(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, li
     b = np.log1p(shrink(f))
     middle = depth > 2 * width / q
     centre = middle if middle.any() else ring
-    weight = (_skin_likeness(a, centre, tint, shade) * _skin_likeness(b, centre, tint, shade))[ring]
+    weight = (_skin_likeness(a[ring], np.median(a[centre], axis=0), tint, shade)
+              * _skin_likeness(b[ring], np.median(b[centre], axis=0), tint, shade))
     if weight.sum() < 1e-3:  # nothing like skin under B's edge: nothing to match
         return face
     rows, cols = np.nonzero(ring)
@@ -197,10 +201,13 @@ def match_lighting(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, li
     coef = _robust_plane(xy, (a - b)[ring], weight)
     if tone < 1:  # B's own mean tone: leave out that part of the mean gain along the edge
         coef[0] -= (1 - tone) * (coef[0] + np.average(xy, axis=0, weights=weight) @ coef[1:])
-    gy, gx = np.mgrid[0:y1 - y0, 0:x1 - x0].astype(np.float32)
-    field = coef[0] + (gx[..., None] / (q * scale[0])) * coef[1] + (gy[..., None] / (q * scale[1])) * coef[2]
-    limit = np.log(max_gain)
-    gain = np.exp(lighting * np.clip(field, -limit, limit)).astype(np.float32)
+    # exp(lighting · clip(plane)) = clip(exp(lighting · plane)), and the exponential of a plane is the
+    # product of a column's and a row's: no exponential of the whole box
+    gx = np.arange(x1 - x0, dtype=np.float64)[None, :, None] / (q * scale[0])
+    gy = np.arange(y1 - y0, dtype=np.float64)[:, None, None] / (q * scale[1])
+    bound = max_gain ** lighting
+    gain = np.clip(np.exp(lighting * (coef[0] + gy * coef[2])).astype(np.float32)
+                   * np.exp(lighting * gx * coef[1]).astype(np.float32), 1 / bound, bound)
     matched = np.clip((f + 1) * gain - 1, 0, 255).round().astype(np.uint8)
     out = np.array(face, copy=True)
     out[box] = np.where((np.asarray(alpha)[box] > 0)[..., None], matched, out[box])
@@ -218,10 +225,10 @@ def hair_in_front(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, rea
     alpha = np.asarray(alpha, np.float32)
     inside = (alpha > 0.5).astype(np.uint8)
     out = np.zeros(alpha.shape, np.float32)
-    if not inside.any():
+    bounds = _bounds(inside)
+    if bounds is None:
         return out
-    ys, xs = np.nonzero(inside)
-    y0, y1, x0, x1 = ys.min(), ys.max() + 1, xs.min(), xs.max() + 1
+    y0, y1, x0, x1 = bounds
     side = min(y1 - y0, x1 - x0)
     depth = cv2.distanceTransform(inside[y0:y1, x0:x1], cv2.DIST_L2, 5)
     centre = depth > reach * side
@@ -229,10 +236,11 @@ def hair_in_front(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, rea
         return out
     edge = (alpha[y0:y1, x0:x1] > 0) & (depth <= reach * side)
     edge[int(round(upper * (y1 - y0))):] = False
-    a = np.log1p(np.asarray(frame, np.float32)[y0:y1, x0:x1])
-    b = np.log1p(np.asarray(face, np.float32)[y0:y1, x0:x1])
-    not_skin = np.clip((0.5 - _skin_likeness(a, centre, tint, shade)) / 0.4, 0, 1)
-    out[y0:y1, x0:x1] = not_skin * _skin_likeness(b, centre, tint, shade) * edge
+    box = np.s_[y0:y1, x0:x1]
+    a, b = np.asarray(frame, np.float32)[box], np.asarray(face, np.float32)[box]
+    skin_a, skin_b = (np.median(np.log1p(img[centre]), axis=0) for img in (a, b))
+    not_skin = np.clip((0.5 - _skin_likeness(np.log1p(a[edge]), skin_a, tint, shade)) / 0.4, 0, 1)
+    out[box][edge] = not_skin * _skin_likeness(np.log1p(b[edge]), skin_b, tint, shade)  # 0 off the edge
     return cv2.GaussianBlur(out, (0, 0), 1.0)
 
 
