@@ -14,7 +14,7 @@ import logging
 
 import numpy as np
 
-from persona.plugins.face.composite import alone
+from persona.plugins.face.composite import alone, steady_light
 from persona.plugins.face.dynamics import smooth_in_time
 from persona.plugins.face.fiducials import mean_shape
 from persona.plugins.face.tracks import bridge
@@ -62,12 +62,27 @@ def run_drive(runner, cast: Cast, output: str) -> Collection:
                                    "composite"]
     render = runner.prepare_stage(drive, stage, inputs)
     runner.run_stage_tasks(drive, [(stage.name, render.backend, render.params)])
-    composite = runner.prepare_stage(drive, st.COMPOSITE, {"render": render.key})
+    with runner.step("light", cast.drive):
+        light = _steady_light(runner, drive, render)
+    composite = runner.prepare_stage(drive, st.COMPOSITE, {"render": render.key, "light": light.key})
     runner.run_stage_tasks(drive, [("composite", composite.backend, composite.params)])
     every = runner.motion_params()["export_every"]
     if stage is st.RENDER_3D and every:
         export_meshes(runner, cast, output, every)
     return drive
+
+
+def _steady_light(runner, drive: Collection, render: Provenance) -> Provenance:
+    """``composite/light``: the light planes the render fitted on each frame (``render/light``), made
+    steady in time (``stages.composite.params.light_sigma``; composite.steady_light)."""
+    sigma = runner.wf.backendless("composite")["light_sigma"]
+    prov = Provenance.make(stage="light", backend="-", backend_version="1", params={"sigma": sigma},
+                           inputs={"render": render.key}, persona_version=runner.version)
+    if not drive.made_by("composite/light", prov):
+        planes = steady_light(drive.array("render/light")[:], sigma)
+        drive.create("composite/light", (4, 3), "float32", ("frame", "term", "channel"), prov, pending=True)[:] = planes
+        drive.mark_done("composite/light", prov)  # after the data: a run killed before this does it again
+    return prov
 
 
 def _retarget(runner, cast, drive, frames, puppet, found, prov, sigma: float, lips: str) -> None:

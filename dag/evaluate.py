@@ -111,6 +111,7 @@ def analyse_frames(url: str, start: int, stop: int, identity: tuple[str, dict], 
             "texture_change": texture_change, "driver_change": driver_change,
             **{f"seam_{k}": np.array(v).reshape(-1, 2) for k, v in seams.items()},
             "colour_output": ev.masked_mean_colours(rendered, masks),
+            "colour_composite": ev.masked_mean_colours(composites, masks),
             "colour_driver": ev.masked_mean_colours(original, masks)}
 
 
@@ -169,6 +170,9 @@ def evaluate(store: str, executor, *, identity: tuple[str, dict], threshold: flo
     stability["colour_change_driver"] = ev.flicker(joined["colour_driver"])
     stability["colour_change_output"] = ev.flicker(joined["colour_output"])
     stability["colour_change_ratio"] = _ratio(stability["colour_change_output"], stability["colour_change_driver"])
+    stability["colour_change_composite"] = ev.flicker(joined["colour_composite"])
+    stability["colour_change_ratio_composite"] = _ratio(stability["colour_change_composite"],
+                                                        stability["colour_change_driver"])
     stability["texture_change_output"] = _median(joined["texture_change"])
     stability["texture_change_driver"] = _median(joined["driver_change"])
     stability["texture_change_ratio"] = _ratio(stability["texture_change_output"], stability["texture_change_driver"])

@@ -92,6 +92,7 @@ def _table(rows: list[tuple]) -> str:
 _STABILITY = {"jitter_ratio": "lower is better; target ≤ 1 (the output as steady as the driver)",
               "jitter_ratio_composite": "the same on composite.mp4 (B's face in A's frame, A's jaw line)",
               "colour_change_ratio": "lower is better; target ≤ 1",
+              "colour_change_ratio_composite": "the same on composite.mp4, in A's light made steady in time",
               "texture_change_ratio": "lower is better; ≤ 1: B's texture changes no more than A's face does"}
 
 

@@ -24,6 +24,7 @@ import numpy as np
 
 from persona.plugins.base import Backend, Rejected
 from persona.plugins.face.collection_flow import collection_flow
+from persona.plugins.face.composite import blend, light_plane
 from persona.plugins.face.fiducials import median_shape, shape_distance
 from persona.plugins.face.template import CANONICAL_HEIGHT, CANONICAL_WIDTH, IDX49
 from persona.plugins.kinds import POSE_FIELDS, Pose, Puppet
@@ -229,9 +230,12 @@ def _render(backend, params, inputs, context):
     puppet = Puppet(appearance=inputs["texture/rgb"].astype(np.float32), coverage=context["coverage"],
                     fiducials=context["fiducials"], mesh=inputs.get("mesh"), mouth=context["mouth"],
                     lips=context["lips"])
-    out = backend.render(puppet, inputs["target"].astype(np.float64),
-                         Pose.from_vector(inputs["pose"]), inputs["@frames/photos/rgb"][:h, :w])
-    return {"render/rgb": out.rgb, "render/mask": np.round(out.mask * 255).astype(np.uint8)}
+    frame = inputs["@frames/photos/rgb"][:h, :w]
+    out = backend.render(puppet, inputs["target"].astype(np.float64), Pose.from_vector(inputs["pose"]), frame)
+    mask = np.round(out.mask * 255).astype(np.uint8)
+    # A's light at B's edge, fitted here where render and frame are at hand; the drive makes it steady in
+    # time before the composite applies it
+    return {"render/rgb": out.rgb, "render/mask": mask, "render/light": light_plane(out.rgb, frame, render_alpha(mask))}
 
 
 def render_alpha(mask: np.ndarray) -> np.ndarray:
@@ -242,6 +246,7 @@ def render_alpha(mask: np.ndarray) -> np.ndarray:
 _RENDER_OUTPUTS = (
     Output("render/rgb", (), "uint8", ("frame", "y", "x", "channel")),  # tail = the canvas
     Output("render/mask", (), "uint8", ("frame", "y", "x")),
+    Output("render/light", (4, 3), "float32", ("frame", "term", "channel")),  # composite.light_plane
 )
 _RENDER_INPUTS = ("target", "pose", "texture/rgb", "@frames/photos/rgb", "@frames/photos/size")
 
@@ -253,17 +258,17 @@ RENDER_3D = PhotoStage("render3d", "render", "retarget", (*_RENDER_INPUTS, "mesh
 
 
 def _composite(backend, params, inputs, context):
-    from persona.plugins.face.composite import blend
-
     h, w = inputs["@frames/photos/size"]
     return {"composite/rgb": blend(inputs["render/rgb"][:h, :w], inputs["@frames/photos/rgb"][:h, :w],
-                                   render_alpha(inputs["render/mask"][:h, :w]), **params)}
+                                   render_alpha(inputs["render/mask"][:h, :w]), plane=inputs["composite/light"],
+                                   lighting=params["lighting"], tone=params["tone"], hair=params["hair"])}
 
 
 #: B's rendered face blended into each driver frame (composite.mp4's frames; params: the workflow's
-#: stages.composite); a frame without a render is the driver's own
-COMPOSITE = PhotoStage("composite", None, None, ("render/rgb", "render/mask", "@frames/photos/rgb",
-                                                 "@frames/photos/size"),
+#: stages.composite), in the light made steady in time (``composite/light``, drive.steady_light); a frame
+#: without a render is the driver's own
+COMPOSITE = PhotoStage("composite", None, None, ("render/rgb", "render/mask", "composite/light",
+                                                 "@frames/photos/rgb", "@frames/photos/size"),
                        (Output("composite/rgb", (), "uint8", ("frame", "y", "x", "channel")),), _composite)
 
 
@@ -342,6 +347,8 @@ STAGES = {stage.name: stage for stage in (
     Stage("mouth", ("puppet",), ("render",), "the inside of B's mouth from its widest-open photos", "the client",
           mesh=True),
     Stage("render", ("drive",), ("render",), "the puppet's frames", photo=(RENDER, RENDER_3D)),
+    Stage("light", ("drive",), ("composite",), "A's light at B's edge (fitted with the render), made "
+          "steady over the frames around", "the client"),
     Stage("composite", ("drive",), ("composite",), "B's face blended into each of the driver's frames",
           photo=(COMPOSITE,)),
     Stage("videos", ("drive",), (), "puppet.mp4, side_by_side.mp4, composite.mp4 (encoded)", "the client"),

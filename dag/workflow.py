@@ -413,6 +413,11 @@ class CompositeParams(Strict):
     hair: float = Field(1.0, ge=0, le=1, description="how much of A's hair that falls inside the upper edge of B's "
                         "face (a fringe, strands at the temples) stays in front of it: 1 = all, 0 = B's face "
                         "covers it (docs/composite.md)")
+    light_sigma: float = Field(3.0, ge=0, le=25, description="σ (frames) over which the light B's face takes is made "
+                               "steady in time (a median over the frames within 2σ, then a Gaussian): fitted on "
+                               "each frame alone it jumps where hair, glasses or a turned head pass under B's edge "
+                               "(the face's colour from frame to frame on a driver with glasses: 1.8 -> 0.8 grey "
+                               "levels, median; docs/composite.md). 0 = each frame's own")
 
 
 BACKENDLESS = {"ingest": IngestParams, "screen": ScreenParams, "align": AlignParams, "motion": MotionParams,
