@@ -493,7 +493,7 @@ class Runner:
         changed, so that the stage starts over rather than mixing old and new results.
         ``choice`` = (backend, params) overrides the workflow's backend of the stage's kind."""
         if stage.kind is None:  # a stage without backends: its params are the workflow's stages.<name>
-            backend, params, version = "-", self.wf.backendless(stage.name), "1"
+            backend, params, version = "-", self.wf.backendless(stage.name), stage.version
         else:
             backend, params = choice or self.wf.stage(stage.kind)
             version = st.default_registry().get(stage.kind, backend).version

@@ -66,6 +66,8 @@ class PhotoStage:
     outputs: tuple[Output, ...]
     compute: Callable[..., dict] = field(repr=False)
     context: Callable[..., dict] | None = field(default=None, repr=False)
+    #: a stage without backends: the version in its cache key, raised when what it computes changes
+    version: str = "1"
 
 
 def _photo(inputs: dict) -> np.ndarray:
@@ -269,7 +271,8 @@ def _composite(backend, params, inputs, context):
 #: without a render is the driver's own
 COMPOSITE = PhotoStage("composite", None, None, ("render/rgb", "render/mask", "composite/light",
                                                  "@frames/photos/rgb", "@frames/photos/size"),
-                       (Output("composite/rgb", (), "uint8", ("frame", "y", "x", "channel")),), _composite)
+                       (Output("composite/rgb", (), "uint8", ("frame", "y", "x", "channel")),), _composite,
+                       version="2")  # 2: the hair in front fades out about half the face's height
 
 
 def driver_model(root, path) -> dict:

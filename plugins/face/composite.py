@@ -283,7 +283,10 @@ def hair_in_front(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, rea
     skin. It counts where A's frame is far from A's skin (skin likeness, as :func:`match_lighting`'s,
     under 0.1: all; over 0.5: none) and B's render near B's skin, only within ``reach`` (a fraction of
     the face's smaller side) of the mask's edge and in the ``upper`` part of the mask (hair falls
-    from above; the jaw, the chin and the collar below are left to B), softened over a pixel."""
+    from above; the jaw, the chin and the collar below are left to B), softened over a pixel. The
+    upper part fades out over a tenth of the mask's height on either side of ``upper``: a hard cut
+    drew a horizontal step across a turned head's cheek, A's background kept above it and B's cheek
+    drawn over it below."""
     alpha = np.asarray(alpha, np.float32)
     inside = (alpha > 0.5).astype(np.uint8)
     out = np.zeros(alpha.shape, np.float32)
@@ -297,12 +300,14 @@ def hair_in_front(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, rea
     if not centre.any():
         return out
     edge = (alpha[y0:y1, x0:x1] > 0) & (depth <= reach * side)
-    edge[int(round(upper * (y1 - y0))):] = False
+    height = (np.arange(y1 - y0, dtype=np.float32)[:, None] + 0.5) / (y1 - y0)
+    above = np.broadcast_to(np.clip((upper + 0.1 - height) / 0.2, 0, 1), edge.shape)
+    edge &= above > 0
     box = np.s_[y0:y1, x0:x1]
     a, b = np.asarray(frame, np.float32)[box], np.asarray(face, np.float32)[box]
     skin_a, skin_b = (np.median(np.log1p(img[centre]), axis=0) for img in (a, b))
     not_skin = np.clip((0.5 - _skin_likeness(np.log1p(a[edge]), skin_a, tint, shade)) / 0.4, 0, 1)
-    out[box][edge] = not_skin * _skin_likeness(np.log1p(b[edge]), skin_b, tint, shade)  # 0 off the edge
+    out[box][edge] = not_skin * _skin_likeness(np.log1p(b[edge]), skin_b, tint, shade) * above[edge]  # 0 off it
     return cv2.GaussianBlur(out, (0, 0), 1.0)
 
 
