@@ -267,7 +267,7 @@ def _composite(backend, params, inputs, context):
 
 
 #: B's rendered face blended into each driver frame (composite.mp4's frames; params: the workflow's
-#: stages.composite), in the light made steady in time (``composite/light``, drive.steady_light); a frame
+#: stages.composite), in the light made steady in time (``composite/light``: drive._steady_light); a frame
 #: without a render is the driver's own
 COMPOSITE = PhotoStage("composite", None, None, ("render/rgb", "render/mask", "composite/light",
                                                  "@frames/photos/rgb", "@frames/photos/size"),
