@@ -224,14 +224,15 @@ def _puppet(root, path) -> dict:
     group = puppet.group["aligned"]
     return {"coverage": group["coverage"][...], "fiducials": group["mean_fiducials"][...].astype(np.float64),
             "mouth": puppet.array("texture/mouth")[...].astype(np.float32) if puppet.has("texture/mouth") else None,
-            "lips": puppet.array("texture/lips")[...] if puppet.has("texture/lips") else None}
+            "lips": puppet.array("texture/lips")[...] if puppet.has("texture/lips") else None,
+            "mouth_gap": float(puppet.array("texture/mouth_gap")[0]) if puppet.has("texture/mouth_gap") else np.inf}
 
 
 def _render(backend, params, inputs, context):
     h, w = inputs["@frames/photos/size"]
     puppet = Puppet(appearance=inputs["texture/rgb"].astype(np.float32), coverage=context["coverage"],
                     fiducials=context["fiducials"], mesh=inputs.get("mesh"), mouth=context["mouth"],
-                    lips=context["lips"])
+                    lips=context["lips"], mouth_gap=context["mouth_gap"])
     frame = inputs["@frames/photos/rgb"][:h, :w]
     out = backend.render(puppet, inputs["target"].astype(np.float64), Pose.from_vector(inputs["pose"]), frame)
     mask = np.round(out.mask * 255).astype(np.uint8)

@@ -339,12 +339,13 @@ def stored_textures(url: str, path: str, name: str, params: dict, targets, start
 
 def run_mouth(runner, coll: Collection) -> Provenance:
     """The inside of B's mouth for the renderer (``mouth``, ``mouth_photos`` and ``mouth_min_gap``
-    of its params): the median of B's widest-open accepted photos between their inner lips, and B's
-    mean inner-lip curves in the canonical frame."""
+    of its params): the median of B's widest-open accepted photos between their inner lips, how far
+    apart their lips are (the median, canonical px), and B's mean inner-lip curves in the canonical
+    frame."""
     name, params = runner.wf.stage("render")
     chosen = st.default_registry().get("render", name)(params).params
     settings = {"photos": chosen.mouth_photos, "min_gap": chosen.mouth_min_gap}
-    prov = Provenance.make(stage="mouth", backend="-", backend_version="1", params=settings,
+    prov = Provenance.make(stage="mouth", backend="-", backend_version="2", params=settings,
                            inputs={"screen": coll.provenance("status/screen/state").key},
                            persona_version=runner.version)
     if coll.made_by("texture/lips", prov):
@@ -352,19 +353,23 @@ def run_mouth(runner, coll: Collection) -> Provenance:
     ok = np.flatnonzero(st.accepted(coll))
     points = coll.array("landmarks/points").oindex[ok].astype(np.float64)
     sizes = coll.array("photos/size").oindex[ok]
+    landmarks = coll.array("aligned/landmarks").oindex[ok].astype(np.float64)
+    chosen = mouth.widest(points, settings["photos"], settings["min_gap"])
     photos = []
-    for i in mouth.widest(points, settings["photos"], settings["min_gap"]):
+    for i in chosen:
         h, w = sizes[i]
         photos.append((coll.array("photos/rgb")[int(ok[i])][:h, :w], points[i]))
     interior = mouth.interior(photos)
     coll.remove("texture/mouth")  # an earlier run's
+    coll.remove("texture/mouth_gap")
     if interior is None:
         log.warning("%s: no photo with the lips %.2f inter-ocular distances apart; the puppet's mouth shows "
                     "no interior when it opens", coll.path, settings["min_gap"])
     else:
         coll.create_single("texture/mouth", interior.round().astype(np.uint8), ("mouth_t", "mouth_s", "channel"),
                            prov)
-    landmarks = coll.array("aligned/landmarks").oindex[ok].astype(np.float64)
+        gap = np.nanmedian(mouth.lip_gap(landmarks[chosen], per_iod=False))
+        coll.create_single("texture/mouth_gap", np.array([gap]), ("one",), prov)
     lips = mouth.lip_curves(np.nanmean(landmarks, axis=0))
     coll.create_single("texture/lips", lips, ("lip", "lip_node", "xy"), prov)
     return prov

@@ -121,6 +121,8 @@ class Puppet:
         open-mouth photos (:mod:`persona.plugins.face.mouth`); None when no photo shows it
     lips : ndarray, shape (2, 5, 2), or None — B's neutral inner-lip curves (upper, lower; canonical
         x, y), where the mesh's lips are
+    mouth_gap : float — how far apart (canonical px) the inner lips are in the photos ``mouth`` comes
+        from: the interior's own height (inf: unknown, the interior is stretched to any gap)
     """
 
     appearance: np.ndarray
@@ -129,6 +131,7 @@ class Puppet:
     mesh: np.ndarray | None = None
     mouth: np.ndarray | None = None
     lips: np.ndarray | None = None
+    mouth_gap: float = np.inf
 
 
 @dataclass(frozen=True)

@@ -42,13 +42,15 @@ def lip_curves(landmarks68: np.ndarray) -> np.ndarray:
     return np.stack([lm[list(UPPER)], lm[list(LOWER)]])
 
 
-def lip_gap(landmarks68: np.ndarray) -> np.ndarray:
+def lip_gap(landmarks68: np.ndarray, per_iod: bool = True) -> np.ndarray:
     """(n,) the mean distance between the inner lips (61-67, 62-66, 63-65) over the inter-ocular
-    distance, for landmarks (n, 68, 2); NaN where a point is missing."""
+    distance (in the landmarks' own units with ``per_iod`` False), for landmarks (n, 68, 2); NaN where
+    a point is missing."""
     lm = np.asarray(landmarks68, np.float64)
-    iod = np.linalg.norm(lm[:, 36:42].mean(axis=1) - lm[:, 42:48].mean(axis=1), axis=1)
     gap = np.linalg.norm(lm[:, [61, 62, 63]] - lm[:, [67, 66, 65]], axis=2).mean(axis=1)
-    return gap / iod
+    if not per_iod:
+        return gap
+    return gap / np.linalg.norm(lm[:, 36:42].mean(axis=1) - lm[:, 42:48].mean(axis=1), axis=1)
 
 
 def rounded(curves: np.ndarray, steps: int = STEPS) -> np.ndarray:
@@ -106,6 +108,26 @@ def widest(landmarks68: np.ndarray, count: int, min_gap: float) -> np.ndarray:
     return order[gap[order] >= min_gap][:count]
 
 
+#: the luma of an RGB colour
+LUMA = np.array([0.299, 0.587, 0.114], np.float32)
+
+
+def cavity(image: np.ndarray) -> np.ndarray:
+    """(3,) the colour of B's dark cavity: the mean of the interior ``image``'s darkest 5 %."""
+    luma = image @ LUMA
+    return image[luma <= np.percentile(luma, 5)].mean(axis=0)
+
+
+def depth(opening: np.ndarray, gap: float) -> np.ndarray:
+    """(h, w) float32 in [0, 1]: how far into the cavity each pixel of the ``opening`` (h, w, uint8,
+    nonzero inside) lies, for photos whose lips were ``gap`` px apart: 0 within ``gap / 2`` of the lips
+    (the teeth and tongue at the size B's photos show them), 1 from ``3 gap / 4`` in, smooth between.
+    An opening no taller than the photos' has no depth anywhere."""
+    inside = cv2.distanceTransform(np.pad(opening, 1), cv2.DIST_L2, 5)[1:-1, 1:-1] - 0.5  # from the pixel's centre
+    t = np.clip((inside - gap / 2) / (gap / 4), 0, 1)
+    return (t * t * (3 - 2 * t)).astype(np.float32)
+
+
 #: sub-pixels a side with which :func:`_area` measures a triangle's cover of each pixel
 SUPERSAMPLE = 4
 
@@ -127,10 +149,13 @@ def _area(triangle: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     return out
 
 
-def draw(out: np.ndarray, face: np.ndarray, image: np.ndarray, curves: np.ndarray) -> None:
+def draw(out: np.ndarray, face: np.ndarray, image: np.ndarray, curves: np.ndarray,
+         gap: float = np.inf) -> None:
     """Draw the interior ``image`` into the frame ``out`` (h, w, 3) uint8, in place, between the
     frame's inner-lip ``curves`` (2, 5, 2), :func:`rounded`, where the rendered ``face`` mask (h, w)
-    float is.
+    float is. ``gap``: how far apart (frame px) the lips of the photos the interior comes from were;
+    where the frame's lips are further apart, the middle of the opening turns to B's :func:`cavity`
+    colour by its :func:`depth`, as a jaw that drops shows the dark between the teeth (inf: never).
 
     Quad by quad between the outline's points, the image is first averaged down (area resampling) to
     the quad's own height and the mouth's length in pixels, so that a gap a pixel or two tall shows
@@ -178,6 +203,9 @@ def draw(out: np.ndarray, face: np.ndarray, image: np.ndarray, curves: np.ndarra
     if not cover.any():
         return
     colour = paint / np.maximum(cover, 1e-6)[..., None]
+    if np.isfinite(gap):
+        dark = depth((cover > 0.5).astype(np.uint8), gap)[..., None]
+        colour = colour * (1 - dark) + cavity(image) * dark
     alpha = (cover * face[y0:y1, x0:x1])[..., None]
     region = out[y0:y1, x0:x1].astype(np.float32)
     out[y0:y1, x0:x1] = np.clip(colour * alpha + region * (1 - alpha), 0, 255).round().astype(np.uint8)

@@ -125,3 +125,46 @@ def test_a_round_mouth_is_drawn_round():
     assert abs(area / (np.pi * r ** 2) - 1) < 0.01, area
     radius = np.linalg.norm(mouth.rounded(curves) - centre, axis=2)
     assert radius.min() > 0.98 * r and radius.max() < 1.02 * r
+
+
+
+def test_the_cavity_is_the_interiors_darkest_colour():
+    image = np.full((32, 64, 3), 255, np.float32)
+    image[12:16, :40] = [40, 10, 10]  # 160 of 2048 pixels: more than the darkest 5 %
+    np.testing.assert_allclose(mouth.cavity(image), [40, 10, 10])
+
+
+def test_depth_is_zero_within_half_the_photos_gap_of_the_lips():
+    """An opening 40 px tall for photos whose lips were 16 px apart: no depth within 8 px of its edge,
+    all of it from 12 px in, rising between; an opening 16 px tall has none."""
+    opening = np.zeros((60, 200), np.uint8)
+    opening[10:50, 20:180] = 1
+    depth = mouth.depth(opening, 16.0)
+    column = depth[:, 100]
+    assert (column[10:18] == 0).all() and (column[42:50] == 0).all()  # within 8 px of the lips
+    assert (column[22:38] == 1).all()  # 12 px in and more
+    assert np.all(np.diff(column[17:23]) >= 0) and 0 < column[20] < 1
+    assert not depth[:10].any() and not depth[50:].any()
+    short = np.zeros((60, 200), np.uint8)
+    short[20:36, 20:180] = 1
+    assert not mouth.depth(short, 16.0).any()
+
+
+def test_a_mouth_opened_further_than_its_photos_shows_the_cavity_between_its_teeth():
+    """An interior of white teeth only (B's photos show a grin), of photos whose lips were 16 px apart,
+    drawn on grey into a gap of 16 px and of 40 px: at 16 px it is all teeth, as the photos show; at
+    40 px the teeth stay along the lips (the 8 px next to each) and the middle is the cavity's colour."""
+    teeth = np.full((32, 64, 3), 255, np.float32)
+    teeth[:, :4] = [60, 20, 20]  # a dark rim at the corner (6 % of it): the cavity's colour
+
+    def column(height: float) -> np.ndarray:
+        out = np.full((100, 120, 3), 128, np.uint8)
+        xs = np.linspace(10, 110, 5)
+        curves = np.stack([np.c_[xs, [50, 30, 30, 30, 50]],
+                           np.c_[xs, [50, 30 + height, 30 + height, 30 + height, 50]]])
+        mouth.draw(out, np.ones((100, 120), np.float32), teeth, curves, gap=16.0)
+        return out[:, 60].astype(float)
+    grin, jaw = column(16.0), column(40.0)
+    assert (grin[31:45] > 240).all()  # (the rounded outline bulges a pixel past the nodes: 247 in its middle)
+    assert (jaw[31:37] > 250).all() and (jaw[63:69] > 250).all()  # the teeth along each lip
+    np.testing.assert_allclose(jaw[45:55], np.broadcast_to([60, 20, 20], (10, 3)), atol=1)
