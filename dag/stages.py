@@ -273,7 +273,8 @@ def _composite(backend, params, inputs, context):
 COMPOSITE = PhotoStage("composite", None, None, ("render/rgb", "render/mask", "composite/light",
                                                  "@frames/photos/rgb", "@frames/photos/size"),
                        (Output("composite/rgb", (), "uint8", ("frame", "y", "x", "channel")),), _composite,
-                       version="2")  # 2: the hair in front fades out about half the face's height
+                       version="3")  # 2: the hair in front fades out about half the face's height; 3: it reaches
+                       # down the sides to the jaw, all but the chin's sector
 
 
 def driver_model(root, path) -> dict:

@@ -410,9 +410,9 @@ class CompositeParams(Strict):
     tone: float = Field(1.0, ge=0, le=1, description="how much of A's mean skin tone B's face takes with the light: "
                         "1 = all (no colour step at the edge), 0 = B's own mean tone kept, only the way A's light "
                         "varies along the edge matched (the blend spreads the rest; docs/composite.md)")
-    hair: float = Field(1.0, ge=0, le=1, description="how much of A's hair that falls inside the upper edge of B's "
-                        "face (a fringe, strands at the temples) stays in front of it: 1 = all, 0 = B's face "
-                        "covers it (docs/composite.md)")
+    hair: float = Field(1.0, ge=0, le=1, description="how much of what is not A's skin inside B's edge stays in "
+                        "front of B's face: A's hair (a fringe, strands at the temples) and the background beside a "
+                        "turned head, all round but the chin: 1 = all, 0 = B's face covers it (docs/composite.md)")
     light_sigma: float = Field(3.0, ge=0, le=25, description="σ (frames) over which the light B's face takes is made "
                                "steady in time (a median over the frames within 2σ, then a Gaussian): fitted on "
                                "each frame alone it jumps where hair, glasses or a turned head pass under B's edge "

@@ -26,7 +26,8 @@ frame's plane (``light_plane``), makes them steady in time (``steady_light``: a 
 frames around, then a Gaussian), and applies those (``apply_light``).
 
 A's hair that falls inside the top of B's face (a fringe) is left in front of it
-(``hair_in_front``): B's face would otherwise cut a clean hairline through it.
+(``hair_in_front``): B's face would otherwise cut a clean hairline through it. So is the background
+beside A's cheek where A's head is turned or narrower than B's.
 
 The render's ``rgb`` is the face's own colour across its soft edge (see
 ``persona.plugins.kinds.Rendered``); ``alone`` shows it over grey as ``puppet.mp4`` does.
@@ -277,16 +278,17 @@ def steady_light(planes: np.ndarray, sigma: float) -> np.ndarray:
 
 
 def hair_in_front(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, reach: float = 0.12,
-                  upper: float = 0.5, tint: float = 0.1, shade: float = 0.5) -> np.ndarray:
-    """How much of A's frame stays in front of B's face (h, w) in [0, 1]: A's hair that falls inside
-    the edge of B's mask (a fringe over the forehead, strands at the temples), where B's render shows
-    skin. It counts where A's frame is far from A's skin (skin likeness, as :func:`match_lighting`'s,
+                  chin: float = 35.0, tint: float = 0.1, shade: float = 0.5) -> np.ndarray:
+    """How much of A's frame stays in front of B's face (h, w) in [0, 1]: what is not A's skin inside
+    the edge of B's mask, where B's render shows skin: A's hair that falls over it (a fringe, strands
+    at the temples) and, where A's head is turned or narrower than B's, the background beside A's
+    cheek. It counts where A's frame is far from A's skin (skin likeness, as :func:`match_lighting`'s,
     under 0.1: all; over 0.5: none) and B's render near B's skin, only within ``reach`` (a fraction of
-    the face's smaller side) of the mask's edge and in the ``upper`` part of the mask (hair falls
-    from above; the jaw, the chin and the collar below are left to B), softened over a pixel. The
-    upper part fades out over a tenth of the mask's height on either side of ``upper``: a hard cut
-    drew a horizontal step across a turned head's cheek, A's background kept above it and B's cheek
-    drawn over it below."""
+    the face's smaller side) of the mask's edge and outside the sector of the chin: the edge within
+    ``chin`` degrees of straight down from the mask's centre (its jaw, chin and the collar below are
+    left to B), fading in over the next 20 degrees; softened over a pixel. (The hair's first version
+    counted the upper half only, then faded it over a tenth of the height: B's cheek was drawn over
+    the wall beside a turned head as a soft band.)"""
     alpha = np.asarray(alpha, np.float32)
     inside = (alpha > 0.5).astype(np.uint8)
     out = np.zeros(alpha.shape, np.float32)
@@ -300,14 +302,16 @@ def hair_in_front(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, rea
     if not centre.any():
         return out
     edge = (alpha[y0:y1, x0:x1] > 0) & (depth <= reach * side)
-    height = (np.arange(y1 - y0, dtype=np.float32)[:, None] + 0.5) / (y1 - y0)
-    above = np.broadcast_to(np.clip((upper + 0.1 - height) / 0.2, 0, 1), edge.shape)
-    edge &= above > 0
+    m = cv2.moments(inside[y0:y1, x0:x1], binaryImage=True)
+    rows, cols = np.ogrid[0:y1 - y0, 0:x1 - x0]
+    down = np.degrees(np.arctan2(np.abs(cols - m["m10"] / m["m00"]), rows - m["m01"] / m["m00"]))  # 0: straight down
+    beside = np.clip((down - chin) / 20, 0, 1).astype(np.float32)  # 0 in the chin's sector
+    edge &= beside > 0
     box = np.s_[y0:y1, x0:x1]
     a, b = np.asarray(frame, np.float32)[box], np.asarray(face, np.float32)[box]
     skin_a, skin_b = (np.median(np.log1p(img[centre]), axis=0) for img in (a, b))
     not_skin = np.clip((0.5 - _skin_likeness(np.log1p(a[edge]), skin_a, tint, shade)) / 0.4, 0, 1)
-    out[box][edge] = not_skin * _skin_likeness(np.log1p(b[edge]), skin_b, tint, shade) * above[edge]  # 0 off it
+    out[box][edge] = not_skin * _skin_likeness(np.log1p(b[edge]), skin_b, tint, shade) * beside[edge]  # 0 off it
     return cv2.GaussianBlur(out, (0, 0), 1.0)
 
 
