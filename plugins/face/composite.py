@@ -207,8 +207,8 @@ def light_plane(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, band:
     ring = (depth > 0.5) & (depth <= 0.5 + width / q)
     if not ring.any():
         return nothing
-    a = np.log1p(shrink(np.asarray(frame, np.float32)[box]))
-    b = np.log1p(shrink(np.asarray(face, np.float32)[box]))
+    a = np.log1p(shrink(np.asarray(frame)[box].astype(np.float32)))
+    b = np.log1p(shrink(np.asarray(face)[box].astype(np.float32)))
     middle = depth > 2 * width / q
     centre = middle if middle.any() else ring
     weight = (_skin_likeness(a[ring], np.median(a[centre], axis=0), tint, shade)
@@ -243,7 +243,7 @@ def apply_light(face: np.ndarray, alpha: np.ndarray, plane: np.ndarray, *, light
     bound = max_gain ** lighting
     gain = np.clip(np.exp(lighting * (plane[0] + gy * plane[2])).astype(np.float32)
                    * np.exp(lighting * gx * plane[1]).astype(np.float32), 1 / bound, bound)
-    matched = np.clip((np.asarray(face, np.float32)[box] + 1) * gain - 1, 0, 255).round().astype(np.uint8)
+    matched = np.clip((np.asarray(face)[box].astype(np.float32) + 1) * gain - 1, 0, 255).round().astype(np.uint8)
     out = np.array(face, copy=True)
     out[box] = np.where((np.asarray(alpha)[box] > 0)[..., None], matched, out[box])
     return out
@@ -308,7 +308,7 @@ def hair_in_front(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, rea
     beside = np.clip((down - chin) / 20, 0, 1).astype(np.float32)  # 0 in the chin's sector
     edge &= beside > 0
     box = np.s_[y0:y1, x0:x1]
-    a, b = np.asarray(frame, np.float32)[box], np.asarray(face, np.float32)[box]
+    a, b = np.asarray(frame)[box].astype(np.float32), np.asarray(face)[box].astype(np.float32)
     skin_a, skin_b = (np.median(np.log1p(img[centre]), axis=0) for img in (a, b))
     not_skin = np.clip((0.5 - _skin_likeness(np.log1p(a[edge]), skin_a, tint, shade)) / 0.4, 0, 1)
     out[box][edge] = not_skin * _skin_likeness(np.log1p(b[edge]), skin_b, tint, shade) * beside[edge]  # 0 off it
