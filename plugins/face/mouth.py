@@ -20,12 +20,19 @@ it rendered: the stretched skin is hidden, the lips themselves stay (they lie ou
 Closed lips leave a gap of no area, so nothing is drawn. (The interior image itself is taken
 between the photos' straight curves: taken between rounded ones, it lowered dlib's mouth-opening
 gain on Bush <- Obama 0.82 -> 0.76; docs/expression.md.)
+
+**A jaw that drops further than B's photos.** The interior shows teeth and cavity at the size of
+the photos' gap. Where the frame's lips are further apart than that, the teeth keep their size
+along the lips and the middle of the opening turns to B's darkest interior colour
+(:func:`depth`, :func:`cavity`), rather than the teeth stretching with the jaw.
 """
 
 from __future__ import annotations
 
 import cv2
 import numpy as np
+
+from .texture import to_grey
 
 #: the iBUG-68 indices of the inner lips: upper curve and lower curve, corner to corner
 UPPER = (60, 61, 62, 63, 64)
@@ -108,21 +115,19 @@ def widest(landmarks68: np.ndarray, count: int, min_gap: float) -> np.ndarray:
     return order[gap[order] >= min_gap][:count]
 
 
-#: the luma of an RGB colour
-LUMA = np.array([0.299, 0.587, 0.114], np.float32)
-
-
 def cavity(image: np.ndarray) -> np.ndarray:
     """(3,) the colour of B's dark cavity: the mean of the interior ``image``'s darkest 5 %."""
-    luma = image @ LUMA
-    return image[luma <= np.percentile(luma, 5)].mean(axis=0)
+    grey = to_grey(image)
+    return image[grey <= np.percentile(grey, 5)].mean(axis=0)
 
 
 def depth(opening: np.ndarray, gap: float) -> np.ndarray:
     """(h, w) float32 in [0, 1]: how far into the cavity each pixel of the ``opening`` (h, w, uint8,
     nonzero inside) lies, for photos whose lips were ``gap`` px apart: 0 within ``gap / 2`` of the lips
     (the teeth and tongue at the size B's photos show them), 1 from ``3 gap / 4`` in, smooth between.
-    An opening no taller than the photos' has no depth anywhere."""
+    An opening no taller than the photos' has no depth anywhere (nor any opening, for a gap of 0)."""
+    if not gap > 0:
+        return np.zeros(opening.shape, np.float32)
     inside = cv2.distanceTransform(np.pad(opening, 1), cv2.DIST_L2, 5)[1:-1, 1:-1] - 0.5  # from the pixel's centre
     t = np.clip((inside - gap / 2) / (gap / 4), 0, 1)
     return (t * t * (3 - 2 * t)).astype(np.float32)
@@ -203,7 +208,7 @@ def draw(out: np.ndarray, face: np.ndarray, image: np.ndarray, curves: np.ndarra
     if not cover.any():
         return
     colour = paint / np.maximum(cover, 1e-6)[..., None]
-    if np.isfinite(gap):
+    if np.isfinite(gap):  # the photos' gap known: the dark between the teeth where the jaw dropped further
         dark = depth((cover > 0.5).astype(np.uint8), gap)[..., None]
         colour = colour * (1 - dark) + cavity(image) * dark
     alpha = (cover * face[y0:y1, x0:x1])[..., None]

@@ -148,6 +148,7 @@ def test_depth_is_zero_within_half_the_photos_gap_of_the_lips():
     short = np.zeros((60, 200), np.uint8)
     short[20:36, 20:180] = 1
     assert not mouth.depth(short, 16.0).any()
+    assert not mouth.depth(opening, 0.0).any()  # photos whose lips did not part: nothing to go by
 
 
 def test_a_mouth_opened_further_than_its_photos_shows_the_cavity_between_its_teeth():
