@@ -236,11 +236,9 @@ def _render(backend, params, inputs, context):
     frame = inputs["@frames/photos/rgb"][:h, :w]
     out = backend.render(puppet, inputs["target"].astype(np.float64), Pose.from_vector(inputs["pose"]), frame)
     mask = np.round(out.mask * 255).astype(np.uint8)
-    interior = np.zeros_like(mask) if out.interior is None else np.round(out.interior * 255).astype(np.uint8)
     # A's light at B's edge, fitted here where render and frame are at hand; the drive makes it steady in
     # time before the composite applies it
-    return {"render/rgb": out.rgb, "render/mask": mask, "render/interior": interior,
-            "render/light": light_plane(out.rgb, frame, render_alpha(mask))}
+    return {"render/rgb": out.rgb, "render/mask": mask, "render/light": light_plane(out.rgb, frame, render_alpha(mask))}
 
 
 def render_alpha(mask: np.ndarray) -> np.ndarray:
@@ -251,7 +249,6 @@ def render_alpha(mask: np.ndarray) -> np.ndarray:
 _RENDER_OUTPUTS = (
     Output("render/rgb", (), "uint8", ("frame", "y", "x", "channel")),  # tail = the canvas
     Output("render/mask", (), "uint8", ("frame", "y", "x")),
-    Output("render/interior", (), "uint8", ("frame", "y", "x")),  # the mouth's inside the renderer drew
     Output("render/light", (4, 3), "float32", ("frame", "term", "channel")),  # composite.light_plane
 )
 _RENDER_INPUTS = ("target", "pose", "texture/rgb", "@frames/photos/rgb", "@frames/photos/size")
@@ -267,18 +264,17 @@ def _composite(backend, params, inputs, context):
     h, w = inputs["@frames/photos/size"]
     return {"composite/rgb": blend(inputs["render/rgb"][:h, :w], inputs["@frames/photos/rgb"][:h, :w],
                                    render_alpha(inputs["render/mask"][:h, :w]), plane=inputs["composite/light"],
-                                   lighting=params["lighting"], tone=params["tone"], hair=params["hair"],
-                                   interior=render_alpha(inputs["render/interior"][:h, :w]))}
+                                   lighting=params["lighting"], tone=params["tone"], hair=params["hair"])}
 
 
 #: B's rendered face blended into each driver frame (composite.mp4's frames; params: the workflow's
 #: stages.composite), in the light made steady in time (``composite/light``: drive._steady_light); a frame
 #: without a render is the driver's own
-COMPOSITE = PhotoStage("composite", None, None, ("render/rgb", "render/mask", "render/interior", "composite/light",
+COMPOSITE = PhotoStage("composite", None, None, ("render/rgb", "render/mask", "composite/light",
                                                  "@frames/photos/rgb", "@frames/photos/size"),
                        (Output("composite/rgb", (), "uint8", ("frame", "y", "x", "channel")),), _composite,
-                       version="4")  # 2: the hair in front fades out about half the face's height; 3: it reaches
-                       # down the sides to the jaw, all but the chin's sector; 4: the mouth's inside without A's tone
+                       version="3")  # 2: the hair in front fades out about half the face's height; 3: it reaches
+                       # down the sides to the jaw, all but the chin's sector
 
 
 def driver_model(root, path) -> dict:
@@ -374,7 +370,7 @@ def output_tail(output: Output, canvas) -> tuple[int, ...]:
     """The per-photo shape of an output; frame-sized outputs take the collection's canvas."""
     if output.name in ("photos/rgb", "render/rgb", "composite/rgb"):
         return (*canvas, 3)
-    return tuple(canvas) if output.name in ("render/mask", "render/interior") else output.tail
+    return tuple(canvas) if output.name == "render/mask" else output.tail
 
 
 def _empty(output: Output, n: int, canvas) -> np.ndarray:

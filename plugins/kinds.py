@@ -140,13 +140,10 @@ class Rendered:
     pixel is the face. rgb is the face's own colour wherever mask > 0, its soft edge included, not
     blended with anything (grey, 128, where mask is 0): the composite blends it into the driver's
     frame and ``puppet.mp4`` over grey (``persona.plugins.face.composite.alone``). Blended already,
-    the soft edge would carry grey into the composite as a pale ring. interior (h, w) float32 in
-    [0, 1], or None: how much of each pixel is the inside of the mouth the renderer drew (teeth and
-    cavity), which the composite gives A's light but not A's skin tone."""
+    the soft edge would carry grey into the composite as a pale ring."""
 
     rgb: np.ndarray
     mask: np.ndarray
-    interior: np.ndarray | None = None
 
 
 class RenderBackend(Backend):

@@ -139,10 +139,9 @@ class RaycastRender(RenderBackend):
                    "texture, at the driver's head pose (z-buffered, equal to ray casting pixel centres)")
     default = True
     uses_mesh = True
-    version = "6"  # 2: rgb is the face's own colour across its soft edge; no background param; 3: the mouth
+    version = "5"  # 2: rgb is the face's own colour across its soft edge; no background param; 3: the mouth
     # interior averaged to the gap's size and drawn by the share of each pixel it covers; 4: the opening's
-    # outline rounded (mouth.rounded); 5: the middle of an opening taller than the photos' turns to the cavity (mouth.depth); 6: the interior's cover
-    # (Rendered.interior)
+    # outline rounded (mouth.rounded); 5: the middle of an opening taller than the photos' turns to the cavity (mouth.depth)
 
     class Params(Params):
         min_coverage: float = Field(0.3, ge=0, le=1, description="canonical pixels seen in fewer "
@@ -187,14 +186,13 @@ class RaycastRender(RenderBackend):
         mask[y0:y1, x0:x1] = part
         face = np.clip(rgb, 0, 255).round().astype(np.uint8)
         out[y0:y1, x0:x1] = np.where((part > 0)[..., None], face, out[y0:y1, x0:x1])
-        interior = None
         if self.params.mouth and puppet.mouth is not None and puppet.lips is not None:
             lips = np.asarray(puppet.lips, np.float32).reshape(1, -1, 2)
             xy, z = project(compose(np.asarray(puppet.mesh, np.float32), lips)[0], pose)  # the mesh at the lips
             if np.all(z > _NEAR):  # frame px per canonical unit at the lips: f / z
-                interior = mouth.draw(out, mask, np.asarray(puppet.mouth, np.float32), xy.reshape(2, -1, 2),
-                                      gap=puppet.mouth_gap * pose.camera[0, 0] / float(np.mean(z)))
-        return Rendered(rgb=out, mask=mask, interior=interior)
+                mouth.draw(out, mask, np.asarray(puppet.mouth, np.float32), xy.reshape(2, -1, 2),
+                           gap=puppet.mouth_gap * pose.camera[0, 0] / float(np.mean(z)))
+        return Rendered(rgb=out, mask=mask)
 
 @hookimpl
 def persona_register_backends(register):

@@ -225,13 +225,10 @@ def light_plane(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, band:
 
 
 def apply_light(face: np.ndarray, alpha: np.ndarray, plane: np.ndarray, *, lighting: float = 1.0,
-                tone: float = 1.0, max_gain: float = 2.0, interior: np.ndarray | None = None) -> np.ndarray:
+                tone: float = 1.0, max_gain: float = 2.0) -> np.ndarray:
     """``face`` times the gain exp(lighting · ``plane``) (:func:`light_plane`), less (1 - ``tone``)
     of its mean along the edge (B's own mean tone kept), each channel's factor within 1 / ``max_gain``
-    .. ``max_gain``, where the mask ``alpha`` is; unchanged where the plane is NaN or there is no mask.
-    Where ``interior`` (h, w) in [0, 1] is, the inside of the mouth, the gain is its channels' geometric
-    mean: A's light, but not the tint that makes B's skin A's (teeth tinted like skin turned yellow,
-    a tongue under a strong gain vivid red)."""
+    .. ``max_gain``, where the mask ``alpha`` is; unchanged where the plane is NaN or there is no mask."""
     bounds = _bounds(np.asarray(alpha) > 0.5)
     if lighting <= 0 or bounds is None or not np.all(np.isfinite(plane)):
         return face
@@ -246,12 +243,6 @@ def apply_light(face: np.ndarray, alpha: np.ndarray, plane: np.ndarray, *, light
     bound = max_gain ** lighting
     gain = np.clip(np.exp(lighting * (plane[0] + gy * plane[2])).astype(np.float32)
                    * np.exp(lighting * gx * plane[1]).astype(np.float32), 1 / bound, bound)
-    if interior is not None and (inner := _bounds(np.asarray(interior)[box] > 0)) is not None:
-        gain = np.broadcast_to(gain, (y1 - y0, x1 - x0, 3)).copy()
-        part = np.s_[inner[0]:inner[1], inner[2]:inner[3]]
-        k = np.asarray(interior, np.float32)[box][part][..., None]
-        grey = np.exp(np.log(gain[part]).mean(axis=-1, keepdims=True))
-        gain[part] = gain[part] * (1 - k) + grey * k
     matched = np.clip((np.asarray(face)[box].astype(np.float32) + 1) * gain - 1, 0, 255).round().astype(np.uint8)
     out = np.array(face, copy=True)
     out[box] = np.where((np.asarray(alpha)[box] > 0)[..., None], matched, out[box])
@@ -325,16 +316,15 @@ def hair_in_front(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, rea
 
 
 def blend(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, lighting: float = 1.0,
-          tone: float = 1.0, hair: float = 1.0, plane: np.ndarray | None = None,
-          interior: np.ndarray | None = None) -> np.ndarray:
+          tone: float = 1.0, hair: float = 1.0, plane: np.ndarray | None = None) -> np.ndarray:
     """The composite as ``composite.mp4`` shows it: B's face matched to A's light and tone at its edge
     (:func:`apply_light` of ``plane``, by ``lighting`` and ``tone`` in [0, 1]; by default the plane
     fitted on this frame, :func:`light_plane`; a drive gives its planes made steady in time,
-    :func:`steady_light`; the mouth's ``interior`` in A's light without A's tint), then blended band by
-    band (:func:`multiband`) through the mask less ``hair`` (in [0, 1]) times :func:`hair_in_front`."""
+    :func:`steady_light`), then blended band by band (:func:`multiband`) through the mask less ``hair``
+    (in [0, 1]) times :func:`hair_in_front`."""
     if plane is None:
         plane = light_plane(face, frame, alpha)
-    matched = apply_light(face, alpha, plane, lighting=lighting, tone=tone, interior=interior)
+    matched = apply_light(face, alpha, plane, lighting=lighting, tone=tone)
     if hair > 0:
         alpha = np.asarray(alpha, np.float32) * (1 - hair * hair_in_front(face, frame, alpha))
     return multiband(matched, frame, alpha)

@@ -155,7 +155,7 @@ def _area(triangle: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
 
 
 def draw(out: np.ndarray, face: np.ndarray, image: np.ndarray, curves: np.ndarray,
-         gap: float = np.inf) -> np.ndarray:
+         gap: float = np.inf) -> None:
     """Draw the interior ``image`` into the frame ``out`` (h, w, 3) uint8, in place, between the
     frame's inner-lip ``curves`` (2, 5, 2), :func:`rounded`, where the rendered ``face`` mask (h, w)
     float is. ``gap``: how far apart (frame px) the lips of the photos the interior comes from were;
@@ -166,20 +166,18 @@ def draw(out: np.ndarray, face: np.ndarray, image: np.ndarray, curves: np.ndarra
     the quad's own height and the mouth's length in pixels, so that a gap a pixel or two tall shows
     the interior's mean colour along it rather than whichever of its rows (teeth, cavity) the
     sampling happens to hit; each quad covers a pixel by the share of its area inside (:func:`_area`),
-    which also makes the gap's soft edge. Returns how much of each pixel (h, w) float32 is now the
-    interior."""
+    which also makes the gap's soft edge."""
     h, w = out.shape[:2]
-    drawn = np.zeros((h, w), np.float32)
     curves = np.asarray(curves, np.float64)
     if not np.all(np.isfinite(curves)):
-        return drawn
+        return
     curves = rounded(curves)
     lo = np.floor(curves.reshape(-1, 2).min(axis=0)).astype(int) - 2
     hi = np.ceil(curves.reshape(-1, 2).max(axis=0)).astype(int) + 3
     x0, y0 = max(lo[0], 0), max(lo[1], 0)
     x1, y1 = min(hi[0], w), min(hi[1], h)
     if x1 <= x0 or y1 <= y0:
-        return drawn
+        return
     rows, cols = image.shape[:2]
     nodes = curves.shape[1]
     length = np.linalg.norm(np.diff(curves, axis=1), axis=2).max(axis=0).sum()  # along the mouth, px
@@ -208,7 +206,7 @@ def draw(out: np.ndarray, face: np.ndarray, image: np.ndarray, curves: np.ndarra
             paint += warped * new[..., None]
             cover += new
     if not cover.any():
-        return drawn
+        return
     colour = paint / np.maximum(cover, 1e-6)[..., None]
     if np.isfinite(gap):  # the photos' gap known: the dark between the teeth where the jaw dropped further
         dark = depth((cover > 0.5).astype(np.uint8), gap)[..., None]
@@ -216,5 +214,3 @@ def draw(out: np.ndarray, face: np.ndarray, image: np.ndarray, curves: np.ndarra
     alpha = (cover * face[y0:y1, x0:x1])[..., None]
     region = out[y0:y1, x0:x1].astype(np.float32)
     out[y0:y1, x0:x1] = np.clip(colour * alpha + region * (1 - alpha), 0, 255).round().astype(np.uint8)
-    drawn[y0:y1, x0:x1] = alpha[..., 0]
-    return drawn
