@@ -250,7 +250,7 @@ def apply_light(face: np.ndarray, alpha: np.ndarray, plane: np.ndarray, *, light
 
 
 def steady_light(planes: np.ndarray, sigma: float) -> np.ndarray:
-    """The light planes (T, 3, 3) of consecutive frames (:func:`light_plane`; NaN where a frame has
+    """The light planes (T, 4, 3) of consecutive frames (:func:`light_plane`; NaN where a frame has
     none) made steady in time: each the median of the frames within 2σ, then a Gaussian (σ frames)
     average of those, both over the frames that have a plane. A fit thrown by hair, glasses or a hand
     under B's edge for a frame or two is outvoted; A's light changing over a second is followed. A
@@ -327,9 +327,8 @@ def blend(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, lighting: f
     fitted on this frame, :func:`light_plane`; a drive gives its planes made steady in time,
     :func:`steady_light`), then blended band by band (:func:`multiband`) through the mask less ``hair``
     (in [0, 1]) times :func:`hair_in_front`."""
-    if plane is None:
-        plane = light_plane(face, frame, alpha)
-    matched = apply_light(face, alpha, plane, lighting=lighting, tone=tone)
+    matched = (match_lighting(face, frame, alpha, lighting=lighting, tone=tone) if plane is None
+               else apply_light(face, alpha, plane, lighting=lighting, tone=tone))
     if hair > 0:
         alpha = np.asarray(alpha, np.float32) * (1 - hair * hair_in_front(face, frame, alpha))
     return multiband(matched, frame, alpha)
