@@ -90,14 +90,15 @@ def main():
     print(f"  reference in the same run: one read of the whole cache (the memory-bandwidth floor of a frame "
           f"that keeps every photo): median {floor:.1f} ms (runs {', '.join(f'{r:.1f}' for r in runs)})")
     targets = fiducials[np.linspace(0, len(fiducials) - 1, args.frames).astype(int)]
-    for label, skip, r, items in (("own fiducials, default skip, the paper's blend", backend.params.skip, 1.0, targets),
-                                  ("own fiducials, default skip, restore_detail 2 (a switch, off by default)",
-                                   backend.params.skip, 2.0, targets),
-                                  ("own fiducials, every photo kept", 0.0, 1.0, targets),
-                                  ("mean fiducials, default skip", backend.params.skip, 1.0,
-                                   np.repeat(fiducials.mean(axis=0)[None], args.frames, axis=0))):
-        def frame(target, skip=skip, r=r):
-            return cache.blend(expression_weights(fiducials, target, backend.params.sigma), skip=skip, restore=r)
+    share = backend.params.detail_share
+    for label, skip, rho, items in (("own fiducials, default skip and detail_share", backend.params.skip, share, targets),
+                                    ("own fiducials, default skip, the paper's blend (detail_share 0)",
+                                     backend.params.skip, 0.0, targets),
+                                    ("own fiducials, every photo kept", 0.0, share, targets),
+                                    ("mean fiducials, default skip", backend.params.skip, share,
+                                     np.repeat(fiducials.mean(axis=0)[None], args.frames, axis=0))):
+        def frame(target, skip=skip, rho=rho):
+            return cache.blend(expression_weights(fiducials, target, backend.params.sigma), skip=skip, share=rho)
 
         ms, runs = median_ms(frame, items, args.repeats)
         print(f"  per frame ({label}): median {ms:.1f} ms over {args.repeats} runs of {len(items)} frames "

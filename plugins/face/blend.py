@@ -127,10 +127,20 @@ def chosen(e: np.ndarray, skip: float) -> np.ndarray:
     return np.where((e >= skip * top) & (top > 0), e, 0.0).astype(np.float32)
 
 
+def given_back(band: np.ndarray, seen: np.ndarray, photo: float, share: float) -> float:
+    """The factor on a blended band (h, w, C) that gives back ``share`` of the energy it lost against
+    one photo's (``photo``, the mean over the pixels ``seen``): √(1 + share (E / e - 1)), e the band's
+    own mean energy there; 1 where the blend lost nothing."""
+    have = float(np.mean(band[seen] ** 2)) if seen.any() else 0.0
+    if have <= 0 or photo <= have:
+        return 1.0
+    return float(np.sqrt(1 + share * (photo / have - 1)))
+
+
 @dataclass
 class BlendTotals:
     """What Eq. 3 takes of every photo whatever the target, per level k: Σ_i P^i, Σ_i Q^i, and
-    Σ_i mean_c (P^i)² / Q^i (the numerator of the band energy one photo has, for ``restore``);
+    Σ_i mean_c (P^i)² / Q^i (the numerator of the band energy one photo has: :meth:`photo_energy`);
     and the uniform term's τ l^-β per level. Small (one pyramid each): a blend over photos held
     shard by shard needs only these of the others."""
 
@@ -160,12 +170,12 @@ class BlendTotals:
     def levels(self) -> int:
         return len(self.weighted)
 
-    def photo_energy(self, k: int) -> np.ndarray:
-        """(h_k, w_k) the band energy a photo has at level k about each pixel: the detail-weighted
-        mean over the photos of their band's squared value (mean over channels), smoothed over 2 px."""
+    def photo_energy(self, k: int) -> float:
+        """The band energy one photo has at level k, over every pixel a photo sees: the detail-weighted
+        mean over the photos of their band's squared value (mean over channels)."""
         den = self.detail[k][..., 0]
-        energy = np.divide(self.energy[k], den, out=np.zeros_like(self.energy[k]), where=den > 0)
-        return cv2.GaussianBlur(energy.astype(np.float32), (0, 0), 2.0)
+        seen = den > 0
+        return float(np.mean(self.energy[k][seen] / den[seen])) if seen.any() else 0.0
 
 
 @dataclass
@@ -192,15 +202,14 @@ class BlendSums:
                 for stack, out in ((weighted[k], self.num[k][t]), (detail[k], self.den[k][t])):
                     _gemv_rows(stack.reshape(len(stack), -1), rows, row[rows], out.reshape(-1))
 
-    def finish(self, totals: BlendTotals, *, restore: float = 1.0) -> np.ndarray:
+    def finish(self, totals: BlendTotals, *, share: float = 0.0) -> np.ndarray:
         """The blended images (f, H, W, C): per level (num + c Σ P) / (den + c Σ Q), Σ over all
         photos' totals; the coarsest level (c infinite) is the totals' own ratio.
 
-        ``restore`` > 1 (not in the paper): a weighted mean of photos whose fine detail does not
-        coincide (skin, pores, hair) has less of it than any one photo; each band but the two
-        coarsest is scaled back, pixel by pixel, towards the energy a photo has there
-        (:meth:`BlendTotals.photo_energy`; the blend's own smoothed over 2 px likewise), by a
-        factor between 1 and ``restore``."""
+        ``share`` > 0 (not in the paper): a weighted mean of photos whose fine detail does not
+        coincide (skin, pores, the exact place of a crease) has less of it than any one photo; each
+        band but the two coarsest is scaled by one factor that gives back that share of the energy
+        it lost against a photo's (:func:`given_back`, :meth:`BlendTotals.photo_energy`)."""
         images = []
         for t in range(len(self.num[0])):
             pyramid = []
@@ -212,10 +221,8 @@ class BlendSums:
                     num = self.num[k][t] + np.float32(c) * totals.weighted[k]
                     den = self.den[k][t] + np.float32(c) * totals.detail[k]
                 band = num / np.where(den > 0, den, np.inf)  # 0 where no photo sees the pixel
-                if restore > 1 and k < totals.levels - 2:
-                    have = cv2.GaussianBlur(np.mean(band ** 2, axis=-1), (0, 0), 2.0)
-                    gain = np.sqrt(np.divide(totals.photo_energy(k), have, out=np.ones_like(have), where=have > 0))
-                    band = band * np.clip(gain, 1.0, restore)[..., None]
+                if share > 0 and k < totals.levels - 2:
+                    band *= np.float32(given_back(band, den[..., 0] > 0, totals.photo_energy(k), share))
                 pyramid.append(band)
             images.append(collapse(pyramid))
         return np.stack(images)
@@ -276,13 +283,13 @@ class BlendCache:
     def levels(self) -> int:
         return len(self.weighted)
 
-    def blend(self, e: np.ndarray, *, skip: float = 1e-6, restore: float = 1.0) -> np.ndarray:
+    def blend(self, e: np.ndarray, *, skip: float = 1e-6, share: float = 0.0) -> np.ndarray:
         """The blended image (H, W, C) for expression weights e (n,): the photos whose e is below
-        ``skip`` × max(e) are left out of the sums (:func:`chosen`), ``restore`` as in
+        ``skip`` × max(e) are left out of the sums (:func:`chosen`), ``share`` as in
         :meth:`BlendSums.finish`."""
         sums = BlendSums.zeros(1, self.totals)
         sums.add(self.weighted, self.detail, chosen(e, skip))
-        return sums.finish(self.totals, restore=restore)[0]
+        return sums.finish(self.totals, share=share)[0]
 
     def weights(self, e: np.ndarray) -> list[np.ndarray]:
         """The normalised W̃^i_l per level, (n, h_k, w_k): for tests and pictures."""

@@ -467,7 +467,7 @@ def _cache_state(folder) -> dict:
 
 
 def test_a_frame_param_keeps_the_texture_cache_a_cache_param_builds_it_again(tmp_path, monkeypatch):
-    """Changing params that act only on the blend of each frame (``restore_detail``, ``sigma``: the
+    """Changing params that act only on the blend of each frame (``detail_share``, ``sigma``: the
     backend's ``frame_params``) leaves every array of the texture cache as it was (provenance and
     files), and the neutral texture and every frame's texture are those of a fresh store made with
     the new params. Changing cache params (``levels``, ``detail_blur``) builds the cache again, no
@@ -489,7 +489,7 @@ def test_a_frame_param_keeps_the_texture_cache_a_cache_param_builds_it_again(tmp
     neutral, textures = puppet.array("texture/neutral")[...], drive.array("texture/rgb")[:]
     made = puppet.provenance("texture/neutral").key, drive.provenance("texture/rgb").key
 
-    frame_only = {"restore_detail": 2.0, "sigma": 5.0}
+    frame_only = {"detail_share": 1.0, "sigma": 5.0}
     assert set(frame_only) <= MultiscaleTexture.frame_params
     _run_with(path, **frame_only)
     assert _cache_state(tmp_path / "a") == before

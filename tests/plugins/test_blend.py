@@ -4,7 +4,7 @@ import cv2
 import numpy as np
 import pytest
 
-from persona.plugins.face.blend import (BlendCache, collapse, expression_weights, gaussian_pyramid,
+from persona.plugins.face.blend import (BlendCache, collapse, expression_weights, gaussian_pyramid, given_back,
                                         laplacian_pyramid, level_bias)
 
 H, W = 244, 194
@@ -118,32 +118,47 @@ def test_confidence_takes_a_photo_out_where_it_failed_to_register():
     np.testing.assert_allclose(trusted[0][0, 200:, :], plain[0][0, 200:, :], atol=1e-5)  # untouched elsewhere
 
 
-def test_restore_gives_back_the_detail_the_mean_of_photos_loses():
-    """Eight photos: one shared face (a smooth ramp and a sharp dark bar, in every photo) plus each
-    its own fine grain (skin that does not coincide). Their blend has about an eighth of a photo's
-    grain; restoring scales the fine bands back towards a photo's, and leaves the coarse bands and
-    the shared bar as they were."""
+def _grainy_photos(n=8, h=96, w=80):
+    """n photos of one shared face (a smooth ramp and a sharp dark bar at x 39-41, in every photo),
+    each with its own fine grain (skin that does not coincide), and their cache (4 levels, α 0)."""
     rng = np.random.default_rng(3)
-    h, w, n = 96, 80, 8
-    ys, xs = np.mgrid[0:h, 0:w]
+    xs = np.mgrid[0:h, 0:w][1]
     shared = 100 + 0.5 * xs + 60.0 * ((xs > 38) & (xs < 42))
     grain = [cv2.GaussianBlur(rng.normal(0, 12, (h, w)).astype(np.float32), (0, 0), 0.7) for _ in range(n)]
     images = np.stack([np.repeat((shared + g)[..., None], 3, axis=2) for g in grain]).astype(np.float32)
-    cache = BlendCache.build(images, np.ones((n, h, w), bool), levels=4, alpha=0.0, beta=20, tau=1)
-    e = np.ones(n)
+    return images, BlendCache.build(images, np.ones((n, h, w), bool), levels=4, alpha=0.0, beta=20, tau=1)
 
-    def fine(image):  # the finest band's energy away from the bar and the border
-        band = laplacian_pyramid(image, 4)[0][8:-8, 8:30]
-        return float(np.mean(band ** 2))
 
-    one = np.mean([fine(image) for image in images])
-    plain, restored = cache.blend(e), cache.blend(e, restore=4.0)
-    print(f"\nfine energy: a photo {one:.2f}, the blend {fine(plain):.2f}, restored {fine(restored):.2f}")
-    assert fine(plain) < 0.25 * one  # the mean of eight loses most of it
-    assert 0.6 * one < fine(restored) < 1.4 * one  # restored to about a photo's
-    assert np.array_equal(cache.blend(e, restore=1.0), plain)
-    smooth = lambda image: cv2.GaussianBlur(image, (0, 0), 4.0)[8:-8, 8:-8]  # noqa: E731
-    assert np.abs(smooth(restored) - smooth(plain)).mean() < 1.0  # the low frequencies stay (grey levels)
-    bar = np.s_[10:-10, 39:42]  # the shared bar: as deep as in the photos (±10 %)
-    depth = lambda image: float(np.mean(image[10:-10, 30:36]) - np.mean(image[bar]))  # noqa: E731
-    assert abs(depth(restored) - depth(plain)) < 0.1 * abs(depth(plain))
+def test_given_back_is_a_share_of_the_energy_the_blend_lost():
+    """A band of amplitude 2 (energy 4) where one photo has energy 10: share 0 keeps it, share 1 gives
+    it the photo's 10, share 0.5 half of what it lost (7); a band that lost nothing is kept."""
+    band, seen = np.full((6, 5, 3), 2.0, np.float32), np.ones((6, 5), bool)
+    energy = lambda s: 4 * given_back(band, seen, 10.0, s) ** 2  # noqa: E731
+    assert energy(0.0) == pytest.approx(4) and energy(1.0) == pytest.approx(10) and energy(0.5) == pytest.approx(7)
+    assert given_back(band, seen, 3.0, 1.0) == 1.0 and given_back(band * 0, seen, 3.0, 1.0) == 1.0
+
+
+def test_detail_share_gives_back_a_share_of_the_fine_energy(monkeypatch):
+    """The grainy photos' blend with ``share`` s: each fine band is the plain blend's times one factor
+    (the shared bar sharpened as much as the grain), so that its mean energy is e + s (E - e) of the
+    plain band's e and a photo's E; the two coarsest bands, and every band at share 0, are as they were."""
+    import persona.plugins.face.blend as blend_module
+    images, cache = _grainy_photos()
+    e = np.ones(len(images))
+    pyramids = []
+    monkeypatch.setattr(blend_module, "collapse", lambda pyramid: pyramids.append(pyramid) or collapse(pyramid))
+    plain = cache.blend(e)
+    assert np.array_equal(cache.blend(e, share=0.0), plain)
+    photo = [np.mean([np.mean(laplacian_pyramid(image, cache.levels)[k] ** 2) for image in images])
+             for k in range(cache.levels)]
+    for s in (0.5, 1.0):
+        cache.blend(e, share=s)
+        before, after = pyramids[0], pyramids[-1]
+        for k in range(cache.levels - 2):
+            have = np.mean(before[k] ** 2)
+            assert have < 0.9 * photo[k]  # the mean of eight lost some of it
+            assert np.mean(after[k] ** 2) == pytest.approx(have + s * (photo[k] - have), rel=1e-4), (s, k)
+            factor = after[k][np.abs(before[k]) > 0.1] / before[k][np.abs(before[k]) > 0.1]
+            assert np.ptp(factor) < 1e-4 * factor.mean()  # one factor for the whole band
+        for k in range(cache.levels - 2, cache.levels):
+            np.testing.assert_array_equal(after[k], before[k])
