@@ -170,12 +170,15 @@ class BlendTotals:
     def levels(self) -> int:
         return len(self.weighted)
 
-    def photo_energy(self, k: int) -> float:
-        """The band energy one photo has at level k, over every pixel a photo sees: the detail-weighted
+    @functools.cached_property
+    def photo_energy(self) -> list[float]:
+        """Per level, the band energy one photo has, over every pixel a photo sees: the detail-weighted
         mean over the photos of their band's squared value (mean over channels)."""
-        den = self.detail[k][..., 0]
-        seen = den > 0
-        return float(np.mean(self.energy[k][seen] / den[seen])) if seen.any() else 0.0
+        out = []
+        for energy, detail in zip(self.energy, self.detail):
+            seen = detail[..., 0] > 0
+            out.append(float(np.mean(energy[seen] / detail[..., 0][seen])) if seen.any() else 0.0)
+        return out
 
 
 @dataclass
@@ -222,7 +225,7 @@ class BlendSums:
                     den = self.den[k][t] + np.float32(c) * totals.detail[k]
                 band = num / np.where(den > 0, den, np.inf)  # 0 where no photo sees the pixel
                 if share > 0 and k < totals.levels - 2:
-                    band *= np.float32(given_back(band, den[..., 0] > 0, totals.photo_energy(k), share))
+                    band *= np.float32(given_back(band, den[..., 0] > 0, totals.photo_energy[k], share))
                 pyramid.append(band)
             images.append(collapse(pyramid))
         return np.stack(images)
