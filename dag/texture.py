@@ -328,7 +328,7 @@ def stored_textures(url: str, path: str, name: str, params: dict, targets, start
     totals, fiducials = st.per_process(key, lambda: (_totals(source, backend.params),
                                                      source.array("aligned/fiducials")[:][ok].astype(np.float64)))
     keep = slice(start - first, stop - first)
-    weights = backend.expression(fiducials, around, keep)  # (targets, accepted photos)
+    weights = backend.weights(fiducials, around, keep)  # (targets and the backend's own rows, accepted photos)
     sums = BlendSums.zeros(len(weights), totals)
     for begin, end in source.shard_ranges():
         a, b = np.searchsorted(ok, [begin, end])

@@ -303,11 +303,12 @@ class TextureBackend(Backend):
         raise NotImplementedError
 
     # A drive reads the stored cache a shard of photos at a time: the blend of Eq. 3 as weights per
-    # photo (expression), sums over the shards (persona.plugins.face.blend.BlendSums) and a last step.
-    def expression(self, fiducials: np.ndarray, targets: np.ndarray) -> np.ndarray:
-        """The weights (f, n) of the photos (fiducials (n, 49, 2)) for targets (f, 49, 2)."""
+    # photo (weights), sums over the shards (persona.plugins.face.blend.BlendSums) and a last step.
+    def weights(self, fiducials: np.ndarray, targets: np.ndarray) -> np.ndarray:
+        """The weights (m, n) of the photos (fiducials (n, 49, 2)) for targets (f, 49, 2): a row per
+        target, then any further rows that :meth:`finish` uses."""
         raise NotImplementedError
 
     def finish(self, sums, totals, fiducials: np.ndarray, targets: np.ndarray) -> np.ndarray:
-        """The textures (f, H, W, 3) float32 from the weighted sums over every photo."""
+        """The textures (f, H, W, 3) float32 from the sums over every photo of its :meth:`weights`."""
         raise NotImplementedError

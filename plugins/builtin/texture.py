@@ -81,9 +81,9 @@ class MultiscaleTexture(TextureBackend):
     #: 2: the alignment confidence (stretch_scale, residual_scale); 3: its own flow (varref); 4: video mode
     #: aligns the collection with that flow too (video_alignment); 5: restore_detail, close_eyes; 6: the
     #: video-mode cache's totals are stored with it (a drive reads the cache a shard at a time); 7: time_sigma;
-    #: 8: close_eyes lowers the upper lid (was: a fade to skin from 65 %). (detail_share, which replaced
-    #: restore_detail, is a frame param: the cache is the same, and the param's change makes the rest again.)
-    version = "8"
+    #: 8: close_eyes lowers the upper lid (was: a fade to skin from 65 %); 9: detail_share (replaces
+    #: restore_detail), every frame's fine bands scaled by the factors of B's neutral blend
+    version = "9"
     #: what :meth:`expression` and :meth:`finish` read and :meth:`cache` does not (``tau`` is read by both)
     frame_params = frozenset({"sigma", "skip", "time_sigma", "detail_share", "close_eyes", "shut_from", "shut_at"})
 
@@ -182,12 +182,24 @@ class MultiscaleTexture(TextureBackend):
         e = np.stack([expression_weights(fiducials, t, p.sigma, relative=p.tau == 0) for t in targets])
         return chosen(smooth_in_time(e, p.time_sigma)[keep], p.skip)
 
+    def weights(self, fiducials: np.ndarray, targets: np.ndarray, keep: slice = slice(None)) -> np.ndarray:
+        """Video mode: the weights (f + 1, n) a drive sums the photos with: the :meth:`expression`
+        weights of the targets ``keep``, then those of B's neutral (the photos' mean fiducials), whose
+        blend sets how much fine detail :meth:`finish` gives back, in every frame alike."""
+        return np.vstack([self.expression(fiducials, targets, keep),
+                          self.expression(fiducials, mean_shape(fiducials)[None])])
+
     def finish(self, sums: BlendSums, totals: BlendTotals, fiducials: np.ndarray, targets: np.ndarray, *,
                close_eyes: bool | None = None) -> np.ndarray:
         """Video mode: the textures (f, H, W, 3) float32 in 0-255 of the targets (f, 49, 2) from the
-        sums over every photo (fiducials (n, 49, 2)) of their :meth:`expression` weights; with
+        sums over every photo (fiducials (n, 49, 2)) of their :meth:`weights` (f + 1 rows, B's neutral
+        last). Each fine band of every texture is multiplied by one factor, the one that gives back
+        ``detail_share`` of the energy the neutral's blend lost (BlendSums.detail_gains): the detail
+        given back does not change from frame to frame with the photos a frame takes. With
         ``close_eyes`` (default: the param), the eyes a target shuts drawn shut."""
-        textures = np.clip(sums.finish(totals, share=self.params.detail_share), 0, 255)
+        f = len(targets)
+        gains = sums.detail_gains(totals, self.params.detail_share, f)
+        textures = np.clip(sums.finish(totals, gains=gains, rows=range(f)), 0, 255)
         if self.params.close_eyes if close_eyes is None else close_eyes:
             neutral = mean_shape(fiducials)  # the texture's geometry is B's neutral: the photos' mean fiducials
             for texture, target in zip(textures, targets):
@@ -199,9 +211,10 @@ class MultiscaleTexture(TextureBackend):
               close_eyes: bool | None = None) -> np.ndarray:
         """Video mode with the whole cache in memory: the texture (H, W, 3) float32 for a target
         (49, 2), from a cache of photos aligned to their mean fiducials, whose own fiducials
-        (n, 49, 2) give the expression weights (:meth:`expression`, :meth:`finish`)."""
-        sums = BlendSums.zeros(1, cache.totals)
-        sums.add(cache.weighted, cache.detail, self.expression(fiducials, [target]))
+        (n, 49, 2) give the expression weights (:meth:`weights`, :meth:`finish`)."""
+        weights = self.weights(fiducials, [target])
+        sums = BlendSums.zeros(len(weights), cache.totals)
+        sums.add(cache.weighted, cache.detail, weights)
         return self.finish(sums, cache.totals, fiducials, [target], close_eyes=close_eyes)[0]
 
     def synthesize(self, photos, target, flow=None, reference=None):

@@ -205,28 +205,35 @@ class BlendSums:
                 for stack, out in ((weighted[k], self.num[k][t]), (detail[k], self.den[k][t])):
                     _gemv_rows(stack.reshape(len(stack), -1), rows, row[rows], out.reshape(-1))
 
-    def finish(self, totals: BlendTotals, *, share: float = 0.0) -> np.ndarray:
-        """The blended images (f, H, W, C): per level (num + c Σ P) / (den + c Σ Q), Σ over all
-        photos' totals; the coarsest level (c infinite) is the totals' own ratio.
+    def band(self, totals: BlendTotals, k: int, t: int) -> tuple[np.ndarray, np.ndarray]:
+        """Target t's level k, (h_k, w_k, C) (num + c Σ P) / (den + c Σ Q) with Σ over all photos'
+        totals (the coarsest, c infinite, the totals' own ratio; 0 where no photo sees the pixel),
+        and where a photo sees it (h_k, w_k) bool."""
+        c = totals.bias[k]
+        if np.isinf(c):  # l = 0: uniform, the expression weight drops out
+            num, den = totals.weighted[k], totals.detail[k]
+        else:
+            num = self.num[k][t] + np.float32(c) * totals.weighted[k]
+            den = self.den[k][t] + np.float32(c) * totals.detail[k]
+        return num / np.where(den > 0, den, np.inf), den[..., 0] > 0
 
-        ``share`` > 0 (not in the paper): a weighted mean of photos whose fine detail does not
-        coincide (skin, pores, the exact place of a crease) has less of it than any one photo; each
-        band but the two coarsest is scaled by one factor that gives back that share of the energy
-        it lost against a photo's (:func:`given_back`, :meth:`BlendTotals.photo_energy`)."""
+    def detail_gains(self, totals: BlendTotals, share: float, t: int) -> list[float]:
+        """Per level but the two coarsest, the factor that gives back ``share`` of the band energy
+        target t's blend lost against one photo's (:func:`given_back`); none for share 0."""
+        if share <= 0:
+            return []
+        return [given_back(*self.band(totals, k, t), totals.photo_energy[k], share) for k in range(totals.levels - 2)]
+
+    def finish(self, totals: BlendTotals, *, gains=(), rows=None) -> np.ndarray:
+        """The blended images (f, H, W, C) of the targets ``rows`` (default: all), each the collapse
+        of its levels (:meth:`band`). Not in the paper: level k multiplied by ``gains[k]`` where given
+        (:meth:`detail_gains`): a weighted mean of photos whose fine detail does not coincide (skin,
+        pores, the exact place of a crease) has less of it than any one photo."""
         images = []
-        for t in range(len(self.num[0])):
-            pyramid = []
-            for k in range(totals.levels):
-                c = totals.bias[k]
-                if np.isinf(c):  # l = 0: uniform, the expression weight drops out
-                    num, den = totals.weighted[k], totals.detail[k]
-                else:
-                    num = self.num[k][t] + np.float32(c) * totals.weighted[k]
-                    den = self.den[k][t] + np.float32(c) * totals.detail[k]
-                band = num / np.where(den > 0, den, np.inf)  # 0 where no photo sees the pixel
-                if share > 0 and k < totals.levels - 2:
-                    band *= np.float32(given_back(band, den[..., 0] > 0, totals.photo_energy[k], share))
-                pyramid.append(band)
+        for t in range(len(self.num[0])) if rows is None else rows:
+            pyramid = [self.band(totals, k, t)[0] for k in range(totals.levels)]
+            for k, gain in enumerate(gains):
+                pyramid[k] *= np.float32(gain)
             images.append(collapse(pyramid))
         return np.stack(images)
 
@@ -288,11 +295,11 @@ class BlendCache:
 
     def blend(self, e: np.ndarray, *, skip: float = 1e-6, share: float = 0.0) -> np.ndarray:
         """The blended image (H, W, C) for expression weights e (n,): the photos whose e is below
-        ``skip`` × max(e) are left out of the sums (:func:`chosen`), ``share`` as in
-        :meth:`BlendSums.finish`."""
+        ``skip`` × max(e) are left out of the sums (:func:`chosen`); ``share`` of the fine energy it
+        lost given back (:meth:`BlendSums.detail_gains`)."""
         sums = BlendSums.zeros(1, self.totals)
         sums.add(self.weighted, self.detail, chosen(e, skip))
-        return sums.finish(self.totals, share=share)[0]
+        return sums.finish(self.totals, gains=sums.detail_gains(self.totals, share, 0))[0]
 
     def weights(self, e: np.ndarray) -> list[np.ndarray]:
         """The normalised W̃^i_l per level, (n, h_k, w_k): for tests and pictures."""

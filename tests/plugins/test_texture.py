@@ -13,6 +13,8 @@ from persona.plugins.builtin.flow import DISFlow
 from persona.plugins.builtin.frontalize import TemplateFrontalize, frontalizing_map
 from persona.plugins.builtin.texture import MultiscaleTexture, PrewarpedTexture, StaticTexture, WeightedTexture
 from persona.plugins.face import synthetic
+from persona.plugins.face.blend import BlendSums
+from persona.plugins.face.fiducials import mean_shape
 from persona.plugins.face import texture as align
 from persona.plugins.face.template import IDX49, FaceIdentity, generic_template
 from persona.plugins.kinds import Pose, TexturePhotos
@@ -103,6 +105,27 @@ def test_video_mode_weights_alone_bring_the_crease(crease_set):
     smile = ours.blend(cache, photos.fiducials, _target(identity, SMILE))
     neutral = ours.blend(cache, photos.fiducials, _target(identity, NEUTRAL))
     assert _contrast(smile, inside, around) > 0.1 > 0.03 > abs(_contrast(neutral, inside, around))
+
+
+@pytest.mark.slow
+def test_the_detail_given_back_is_the_neutrals_in_every_frame(crease_set, monkeypatch):
+    """Video mode with ``detail_share``: every frame's fine bands are multiplied by the factors that
+    give back that share of what B's neutral blend lost (BlendSums.detail_gains of the neutral's
+    weights), whatever the frame's own target; at 0 there are none (the paper's blend)."""
+    identity, photos, _ = crease_set
+    ours = MultiscaleTexture({**SIGMA, "detail_share": 0.5})
+    cache = ours.cache(align.align(photos, photos.fiducials.mean(axis=0), DISFlow()))
+    used, finish = [], BlendSums.finish
+    monkeypatch.setattr(BlendSums, "finish", lambda self, totals, **kw: used.append(kw["gains"]) or finish(self, totals, **kw))
+    for expression in (SMILE, NEUTRAL):
+        ours.blend(cache, photos.fiducials, _target(identity, expression))
+    neutral = BlendSums.zeros(1, cache.totals)
+    neutral.add(cache.weighted, cache.detail, ours.expression(photos.fiducials, mean_shape(photos.fiducials)[None]))
+    gains = neutral.detail_gains(cache.totals, 0.5, 0)
+    assert len(gains) == cache.levels - 2 and min(gains) >= 1 < max(gains)
+    assert used == [gains, gains]
+    MultiscaleTexture({**SIGMA, "detail_share": 0.0}).blend(cache, photos.fiducials, _target(identity, SMILE))
+    assert used[-1] == []
 
 
 @pytest.mark.slow
