@@ -92,6 +92,37 @@ def project(points: np.ndarray, pose: Pose) -> tuple[np.ndarray, np.ndarray]:
     return xy, z
 
 
+#: footprints under 2^_LOD_FROM texels (1 % more than one) are sampled bilinearly, as at magnification
+_LOD_FROM = np.log2(1.01)
+
+
+def footprint_sample(texture: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """``texture`` (H, W, C) float32 at the float32 texel coordinates ``u``, ``v`` (h, w; NaN off the
+    surface), each pixel filtered to its footprint, as GPUs sample a mipmap: trilinearly between the
+    levels of the texture's Gaussian pyramid about log2 of how many texels one pixel spans (the
+    longer of its two sides). Bilinear samples alone alias where a face is rendered smaller than its
+    texture: a line one texel thin comes out as a row of dots, fine detail as moiré. A pixel that
+    spans a texel or less is the plain bilinear sample, to the bit; so is a pixel next to one off the
+    surface (NaN; 0 there), whose footprint is not known."""
+    span = np.maximum(np.hypot(np.gradient(u, axis=1), np.gradient(v, axis=1)),
+                      np.hypot(np.gradient(u, axis=0), np.gradient(v, axis=0)))
+    lod = np.nan_to_num(np.log2(np.maximum(span, 1.0)), nan=0.0)[..., None]
+    lod[lod < _LOD_FROM] = 0
+    u, v = np.nan_to_num(u, nan=-1.0), np.nan_to_num(v, nan=-1.0)  # off the texture: 0
+    out = cv2.remap(texture, u, v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+    level = texture
+    for m in range(1, int(np.ceil(lod.max())) + 1):  # level m: 2^m texels a pixel
+        if min(level.shape[:2]) < 2:
+            break
+        level = cv2.pyrDown(level)
+        s = np.float32(2.0 ** -m)
+        coarser = cv2.remap(level, (u + 0.5) * s - 0.5, (v + 0.5) * s - 0.5, cv2.INTER_LINEAR,
+                            borderMode=cv2.BORDER_CONSTANT)
+        t = np.clip(lod - (m - 1), 0, 1).astype(np.float32)
+        out = np.where(lod > m - 1, out * (1 - t) + coarser * t, out)
+    return out
+
+
 def surface_map(mesh: np.ndarray, pose: Pose, frame_size: tuple[int, int], pad: int = 0):
     """Where each frame pixel sees the mesh: its texture coordinate (u, v) and camera depth.
 
@@ -148,6 +179,13 @@ class RaycastRender(RenderBackend):
                                     "than this fraction of the puppet's photos are left out")
         feather: float = Field(3.0, ge=0, description="Gaussian σ (frame px) of the soft face edge "
                                "(inwards, as tps2d); 0 = hard edge")
+        filter_texture: bool = Field(False, description="where the face is drawn smaller than its texture "
+                                     "(a pixel spans more than a texel), filter the texture to each pixel's "
+                                     "footprint (footprint_sample, as GPUs sample a mipmap) rather than take one "
+                                     "bilinear sample, which aliases: a one-texel line comes out dotted. Not in the "
+                                     "paper, and off: on Bush <- Obama (1.4 texels a pixel) the shut lids' lash line "
+                                     "is whole, but the face is softer and the composite's eye gain falls 0.54 -> "
+                                     "0.51 (docs/composite.md)")
         mouth: bool = Field(True, description="draw the inside of B's mouth (from B's widest-open "
                             "photos) between B's inner lips where the mesh parts them, instead of the "
                             "stretched skin of a surface that cannot open (not in the paper; "
@@ -179,7 +217,11 @@ class RaycastRender(RenderBackend):
         seen = ((puppet.coverage >= self.params.min_coverage) & finite).astype(np.float32)
         texture = np.where(finite[..., None], texture, 0).astype(np.float32)
         u, v = hit_uv[..., 0], hit_uv[..., 1]
-        rgb = cv2.remap(texture, u, v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+        on = np.isfinite(depth)
+        if self.params.filter_texture:
+            rgb = footprint_sample(texture, np.where(on, u, np.nan), np.where(on, v, np.nan))
+        else:
+            rgb = cv2.remap(texture, u, v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
         part = cv2.remap(seen, u, v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT) * np.isfinite(depth)
         if feather > 0:
             part = cv2.GaussianBlur(part, (0, 0), feather) * (part > 0.5)

@@ -107,14 +107,14 @@ class MultiscaleTexture(TextureBackend):
             "faster, but it tears tight low-resolution crops; docs/texture.md)")
         skip: float = Field(1e-6, ge=0, lt=1, description="photos with e_i below skip · max(e) are left out of "
                             "the fine levels' sums (their share there is below this); 0 keeps every photo")
-        detail_share: float = Field(0.5, ge=0, le=1, description="ρ: the share of the fine energy the blend "
+        detail_share: float = Field(0.35, ge=0, le=1, description="ρ: the share of the fine energy the blend "
                                     "lost that is given back. A weighted mean of photos has less of the fine detail "
                                     "they do not share (skin, the exact place of a crease) than any one photo; each "
-                                    "band but the two coarsest is scaled by one factor, so that its mean energy is "
-                                    "e + ρ (E - e), e its own and E one photo's. Not in the paper (0 is its blend): "
-                                    "0.5 took the detail from 0.38 to 0.51 of B's photos on Bush <- Obama; 1 to 0.63, "
-                                    "but the self-reenactment's SSIM to 0.87998 and Powell <- woman's composite "
-                                    "jitter to 1.01 (docs/texture.md)")
+                                    "band but the two coarsest is scaled by one factor, the one that gives B's "
+                                    "neutral blend e + ρ (E - e), e its energy and E one photo's. Not in the paper "
+                                    "(0 is its blend): 0.35 takes the detail from 0.38 to 0.47 of B's photos on "
+                                    "Bush <- Obama; 0.5 to 0.51, but Obama <- woman's composite jitter to 1.01; 1 "
+                                    "to 0.63, but the self-reenactment's SSIM under 0.88 (docs/texture.md)")
         time_sigma: float = Field(0.0, ge=0, le=10, description="video mode: σ (frames) of a Gaussian over time "
                                   "taken of each photo's expression weight, so that the photos a frame's texture is "
                                   "made of change from frame to frame gradually rather than at once. Not in the "

@@ -9,10 +9,11 @@ over vertex colours there: about 0.2 grey levels on average, a few tens at the p
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
 
-from persona.plugins.builtin.render3d import RaycastRender, surface_map
+from persona.plugins.builtin.render3d import RaycastRender, footprint_sample, surface_map
 from persona.plugins.face import composite
 from persona.plugins.face.synthetic import Expression, Light, look_at_pose, make_face, render_photo
 from persona.plugins.kinds import Pose, Puppet
@@ -41,8 +42,10 @@ def truth(face, pose):
 
 
 def render(puppet, pose, **params):
+    """The render with a hard edge, and the texture sampled at a point per pixel as the ray cast
+    samples it (``filter_texture`` off; the filter has its own tests below)."""
     frame = np.zeros((*SIZE, 3), np.uint8)
-    return RaycastRender({"feather": 0.0, **params}).render(puppet, None, pose, frame)
+    return RaycastRender({"feather": 0.0, "filter_texture": False, **params}).render(puppet, None, pose, frame)
 
 
 def iou(a, b):
@@ -188,3 +191,62 @@ def test_registered_as_a_render_backend():
     registry = default_registry()
     assert registry.get("render", "mesh3d") is RaycastRender
     assert registry.default("render") == "mesh3d"
+
+
+def _stripes(h=244, w=194):
+    """A texture of one-texel vertical stripes, 200 and 50: its mean is 125."""
+    row = np.where(np.arange(w) % 2 == 0, 200.0, 50.0)
+    return np.repeat(np.repeat(row[None, :, None], h, axis=0), 3, axis=2).astype(np.float32)
+
+
+def test_a_face_smaller_than_its_texture_is_sampled_over_each_pixels_footprint():
+    """One-texel stripes seen two texels to a pixel: bilinear sampling at the pixel centres lands on
+    one stripe every time (200 throughout: aliasing); the footprint's filter gives their mean, 125."""
+    texture = _stripes()
+    ys, xs = np.mgrid[0:100, 0:80].astype(np.float32)
+    u, v = 2 * xs, 2 * ys
+    inside = np.s_[5:-5, 5:-5]
+    plain = cv2.remap(texture, u, v, cv2.INTER_LINEAR)
+    assert np.abs(plain[inside] - 125).min() > 70  # aliased: one stripe's value
+    sampled = footprint_sample(texture, u, v)
+    assert np.abs(sampled[inside] - 125).max() < 2
+
+
+def test_a_face_as_large_as_its_texture_or_larger_is_sampled_as_before():
+    """A pixel that spans a texel or less (the drives whose faces are larger than the canonical
+    grid) is the plain bilinear sample, to the bit; off the surface (NaN) it is 0."""
+    texture = _stripes()
+    ys, xs = np.mgrid[0:120, 0:100].astype(np.float32)
+    for scale in (1.0, 0.5):
+        u, v = scale * xs + 3.3, scale * ys + 1.7
+        plain = cv2.remap(texture, u, v, cv2.INTER_LINEAR)
+        u[:10] = np.nan
+        plain[:10] = 0
+        np.testing.assert_array_equal(footprint_sample(texture, u, v), plain)
+
+
+def test_the_footprint_filter_keeps_what_a_pixel_can_show():
+    """A smooth ramp seen 1.5 texels to a pixel comes out as bilinear sampling gives it (within a grey
+    level): the filter takes out only what is finer than a pixel."""
+    ys, xs = np.mgrid[0:244, 0:194].astype(np.float32)
+    texture = np.repeat((40 + 0.6 * xs + 0.3 * ys)[..., None], 3, axis=2).astype(np.float32)
+    ys, xs = np.mgrid[0:120, 0:100].astype(np.float32)
+    u, v = 1.5 * xs, 1.5 * ys
+    inside = np.s_[5:-5, 5:-5]
+    assert np.abs(footprint_sample(texture, u, v)[inside] - cv2.remap(texture, u, v, cv2.INTER_LINEAR)[inside]).max() < 1.0
+
+
+def test_the_render_filters_a_texture_it_draws_smaller():
+    """The synthetic face at 100 px between its temples, smaller than its texture, with one-texel
+    stripes for a texture: with ``filter_texture`` the face comes out about the stripes' mean, 125
+    (its darkest and lightest tenths within 20 levels of it); with point samples it is striped."""
+    face = make_face()
+    puppet = puppet_of(face)
+    puppet = Puppet(_stripes(*puppet.appearance.shape[:2]), puppet.coverage, puppet.fiducials, mesh=puppet.mesh)
+    pose, frame = posed(0, face_px=100.0), np.zeros((*SIZE, 3), np.uint8)
+    filtered = RaycastRender({"feather": 0.0, "filter_texture": True}).render(puppet, None, pose, frame)
+    points = RaycastRender({"feather": 0.0, "filter_texture": False}).render(puppet, None, pose, frame)
+    inner = cv2.erode((filtered.mask > 0.5).astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+    grey = lambda out: out.rgb[inner].mean(axis=-1)  # noqa: E731
+    assert np.abs(np.percentile(grey(filtered), [10, 90]) - 125).max() < 20
+    assert np.percentile(grey(points), 90) - np.percentile(grey(points), 10) > 60
