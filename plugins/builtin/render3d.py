@@ -222,7 +222,7 @@ class RaycastRender(RenderBackend):
             rgb = footprint_sample(texture, np.where(on, u, np.nan), np.where(on, v, np.nan))
         else:
             rgb = cv2.remap(texture, u, v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
-        part = cv2.remap(seen, u, v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT) * np.isfinite(depth)
+        part = cv2.remap(seen, u, v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT) * on
         if feather > 0:
             part = cv2.GaussianBlur(part, (0, 0), feather) * (part > 0.5)
         mask[y0:y1, x0:x1] = part
