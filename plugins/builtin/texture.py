@@ -84,7 +84,7 @@ class MultiscaleTexture(TextureBackend):
     #: 8: close_eyes lowers the upper lid (was: a fade to skin from 65 %); 9: detail_share (replaces
     #: restore_detail), every frame's fine bands scaled by the factors of B's neutral blend
     version = "9"
-    #: what :meth:`expression` and :meth:`finish` read and :meth:`cache` does not (``tau`` is read by both)
+    #: what :meth:`weights` and :meth:`finish` read and :meth:`cache` does not (``tau`` is read by both)
     frame_params = frozenset({"sigma", "skip", "time_sigma", "detail_share", "close_eyes", "shut_from", "shut_at"})
 
     class Params(_Alignment):
