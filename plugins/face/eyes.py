@@ -25,6 +25,25 @@ import numpy as np
 from .template import IDX49
 from .warp import FACING, gap
 
+#: the lid and its lashes are drawn this many times finer and averaged down, so each texel gets the share
+#: of it they cover: a lid that comes down a little further each frame moves smoothly, not in whole-texel
+#: steps, and the lash line is even, not dotted (OpenCV antialiases only 8-bit lines, and its filled
+#: polygons keep whole-texel steps)
+FINER = 8
+
+
+def _drawn(shape: tuple[int, int], points: np.ndarray, *, line: bool = False) -> np.ndarray:
+    """(H, W) float32 in [0, 1]: the share of each texel covered by the polygon ``points`` (x, y), or by
+    a line one texel wide through them if ``line``."""
+    canvas = np.zeros((shape[0] * FINER, shape[1] * FINER), np.uint8)
+    fine = [np.round((np.asarray(points, np.float64) + 0.5) * FINER - 0.5).astype(np.int32)]
+    if line:
+        cv2.polylines(canvas, fine, False, 255, FINER)
+    else:
+        cv2.fillPoly(canvas, fine, 255)
+    return cv2.resize(canvas, shape[::-1], interpolation=cv2.INTER_AREA).astype(np.float32) / 255
+
+
 #: per eye (the face's right, then left): its six fiducials among the 49 (iBUG 36-41, 42-47) and
 #: its facing lid pairs
 EYES = ((tuple(IDX49.index(i) for i in range(36, 42)), FACING[0:2]),
@@ -72,14 +91,11 @@ def lower(texture: np.ndarray, neutral: np.ndarray, visible: np.ndarray, *, grow
         # the lid: from the upper lid's points down to its new edge, 1 - v of the way to the lower lid's
         upper, lower_lid = polygon[1:3], polygon[[5, 4]]
         edge = np.vstack([polygon[0], upper + (1 - v) * (lower_lid - upper), polygon[3]])
-        lid = np.zeros(opening.shape, np.uint8)
-        cv2.fillPoly(lid, [np.round(np.vstack([polygon[:4], edge[::-1]])).astype(np.int32)], 1)
+        lid = _drawn(opening.shape, np.vstack([polygon[:4], edge[::-1]]))
         if grow:  # up over the old lid line too, which is the lid's crease now, not its edge
             lid = cv2.dilate(lid, np.ones((2 * grow + 1, 1), np.uint8)) * opening
-        lashes = np.zeros(opening.shape, np.float32)
-        cv2.polylines(lashes, [np.round(edge).astype(np.int32)], False, 1.0, 1, cv2.LINE_AA)
-        lashes = np.clip(cv2.GaussianBlur(lashes, (0, 0), 0.5) * 1.5, 0, 1)[..., None]
+        lashes = np.clip(cv2.GaussianBlur(_drawn(opening.shape, edge, line=True), (0, 0), 0.5) * 1.5, 0, 1)[..., None]
         skin = skin * (1 - lashes) + lash * lashes
-        weight = cv2.GaussianBlur(lid.astype(np.float32), (0, 0), 0.8)[..., None]
+        weight = cv2.GaussianBlur(lid, (0, 0), 0.8)[..., None]
         out[y0:y1, x0:x1] = out[y0:y1, x0:x1] * (1 - weight) + skin * weight
     return out

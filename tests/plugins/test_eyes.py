@@ -73,3 +73,14 @@ def test_the_upper_lid_comes_down_over_the_share_of_the_eye_a_real_one_would_cov
             edge = rows.min() + (1 - visible) * (rows.max() - rows.min())
             above = inside & (np.arange(244)[:, None] < edge - 1)  # the lid, over what was the dark eye
             assert above.any() and (lowered[above].sum(axis=1) > 3 * 100).mean() > 0.9
+
+
+def test_the_lid_comes_down_smoothly_not_in_whole_texel_steps():
+    # the lid's edge moves 1/40 of the eye's height (about a sixth of a texel) a step: drawn in whole
+    # texels, most steps changed nothing and a few a whole row at once
+    texture, neutral = texture_with_dark_eyes()
+    inside = eye_mask(neutral, eyes.EYES[0][0])
+    brightness = [eyes.lower(texture, neutral, np.full(2, v))[inside].mean() for v in np.arange(0.8, 0.3, -0.025)]
+    steps = np.diff(brightness)
+    print(f"\nthe eye's brightness a step: {np.round(steps, 2)}")
+    assert steps.min() > 0 and steps.max() < 3 * np.median(steps)
