@@ -32,13 +32,13 @@ from .warp import FACING, gap
 FINER = 8
 
 
-def _drawn(shape: tuple[int, int], points: np.ndarray, *, line: bool = False) -> np.ndarray:
+def _drawn(shape: tuple[int, int], points: np.ndarray, *, line: float = 0) -> np.ndarray:
     """(H, W) float32 in [0, 1]: the share of each texel covered by the polygon ``points`` (x, y), or by
-    a line one texel wide through them if ``line``."""
+    a line ``line`` texels wide through them if that is not 0."""
     canvas = np.zeros((shape[0] * FINER, shape[1] * FINER), np.uint8)
     fine = [np.round((np.asarray(points, np.float64) + 0.5) * FINER - 0.5).astype(np.int32)]
     if line:
-        cv2.polylines(canvas, fine, False, 255, FINER)
+        cv2.polylines(canvas, fine, False, 255, max(1, round(line * FINER)))
     else:
         cv2.fillPoly(canvas, fine, 255)
     return cv2.resize(canvas, shape[::-1], interpolation=cv2.INTER_AREA).astype(np.float32) / 255
@@ -63,9 +63,10 @@ def lowered(target: np.ndarray, neutral: np.ndarray, *, start: float = 0.85, end
 
 
 def lower(texture: np.ndarray, neutral: np.ndarray, visible: np.ndarray, *, grow: int = 1,
-          margin: int = 6) -> np.ndarray:
+          margin: int = 6, lashes: float = 2.0) -> np.ndarray:
     """``texture`` (H, W, 3) at the geometry of the fiducials ``neutral`` (49, 2), each eye k's upper
-    lid drawn down so that the share ``visible[k]`` (:func:`lowered`) of its opening stays uncovered."""
+    lid drawn down so that the share ``visible[k]`` (:func:`lowered`) of its opening stays uncovered,
+    its line of lashes ``lashes`` texels wide hanging from its edge."""
     if not np.any(visible < 1):
         return texture
     out = np.asarray(texture, np.float32).copy()
@@ -94,8 +95,9 @@ def lower(texture: np.ndarray, neutral: np.ndarray, visible: np.ndarray, *, grow
         lid = _drawn(opening.shape, np.vstack([polygon[:4], edge[::-1]]))
         if grow:  # up over the old lid line too, which is the lid's crease now, not its edge
             lid = cv2.dilate(lid, np.ones((2 * grow + 1, 1), np.uint8)) * opening
-        lashes = np.clip(cv2.GaussianBlur(_drawn(opening.shape, edge, line=True), (0, 0), 0.5) * 1.5, 0, 1)[..., None]
-        skin = skin * (1 - lashes) + lash * lashes
+        hanging = edge + [[0, 0], [0, lashes / 2], [0, lashes / 2], [0, 0]]  # from the lid's edge down
+        line = np.clip(cv2.GaussianBlur(_drawn(opening.shape, hanging, line=lashes), (0, 0), 0.5) * 1.5, 0, 1)[..., None]
+        skin = skin * (1 - line) + lash * line
         weight = cv2.GaussianBlur(lid, (0, 0), 0.8)[..., None]
         out[y0:y1, x0:x1] = out[y0:y1, x0:x1] * (1 - weight) + skin * weight
     return out

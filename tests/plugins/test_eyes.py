@@ -65,7 +65,8 @@ def test_the_upper_lid_comes_down_over_the_share_of_the_eye_a_real_one_would_cov
             inside = eye_mask(neutral, points)
             rows = np.flatnonzero(inside.any(axis=1))
             dark = (lowered.sum(axis=2) < 3 * 60) & inside  # the eye still seen, and the line of lashes
-            seen = np.flatnonzero(dark.any(axis=1))
+            x1, x2 = neutral[list(points)][1:3, 0]  # the upper lid's two points: between them, away from the
+            seen = np.flatnonzero(dark[:, int(np.ceil(x1)):int(x2) + 1].any(axis=1))  # corners, the edge is level
             # the dark part starts lower down (the lid's edge) and ends at the lower lid, as before
             top = (seen.min() - rows.min()) / (rows.max() - rows.min())
             print(f"\nvisible {visible}: dark from {top:.2f} of the eye's height down")
