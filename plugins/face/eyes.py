@@ -12,7 +12,7 @@ an eye whose lid points are r of their neutral distance apart shows φ(r) = star
 (start - end) of its opening below ``start`` (85 %), and all of it (φ = r) from there up: the
 target's own ratio, what the driver's eye showed. The mesh already squeezes the texture's eye to r;
 here the upper lid — the skin around the eye, inpainted from the lids, with a soft line of lashes
-the colour of the eye's darkest tenth at its edge — is drawn down over the top 1 - φ(r) / r of the
+the colour of the eye's darkest tenth hanging from its edge — is drawn down over the top 1 - φ(r) / r of the
 eye's opening (the polygon of its six fiducials at B's neutral, grown by a pixel) in the canonical
 texture. An eye open by ``start`` or more is left exactly as it was (docs/expression.md).
 """
@@ -27,8 +27,8 @@ from .warp import FACING, gap
 
 #: the lid and its lashes are drawn this many times finer and averaged down, so each texel gets the share
 #: of it they cover: a lid that comes down a little further each frame moves smoothly, not in whole-texel
-#: steps, and the lash line is even, not dotted (OpenCV antialiases only 8-bit lines, and its filled
-#: polygons keep whole-texel steps)
+#: steps, and the lash line is a smooth curve, not a stair of single texels (OpenCV antialiases only
+#: 8-bit lines, and its filled polygons keep whole-texel steps)
 FINER = 8
 
 
