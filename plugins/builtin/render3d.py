@@ -27,6 +27,7 @@ from pydantic import Field
 
 from ..base import Params
 from ..face import mouth
+from ..face.blend import gaussian_pyramid
 from ..face.composite import GREY
 from ..face.mesh import grid_triangles
 from ..face.warp import compose
@@ -110,11 +111,8 @@ def footprint_sample(texture: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.nd
     lod[lod < _LOD_FROM] = 0
     u, v = np.nan_to_num(u, nan=-1.0), np.nan_to_num(v, nan=-1.0)  # off the texture: 0
     out = cv2.remap(texture, u, v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
-    level = texture
-    for m in range(1, int(np.ceil(lod.max())) + 1):  # level m: 2^m texels a pixel
-        if min(level.shape[:2]) < 2:
-            break
-        level = cv2.pyrDown(level)
+    pyramid = gaussian_pyramid(texture, int(np.ceil(lod.max())) + 1)
+    for m, level in enumerate(pyramid[1:], start=1):  # level m: 2^m texels a pixel
         s = np.float32(2.0 ** -m)
         coarser = cv2.remap(level, (u + 0.5) * s - 0.5, (v + 0.5) * s - 0.5, cv2.INTER_LINEAR,
                             borderMode=cv2.BORDER_CONSTANT)

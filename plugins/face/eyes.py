@@ -97,7 +97,8 @@ def lower(texture: np.ndarray, neutral: np.ndarray, visible: np.ndarray, *, grow
             lid = cv2.dilate(lid, np.ones((2 * grow + 1, 1), np.uint8)) * opening
         hanging = edge + [[0, 0], [0, lashes / 2], [0, lashes / 2], [0, 0]]  # from the lid's edge down
         line = np.clip(cv2.GaussianBlur(_drawn(opening.shape, hanging, line=lashes), (0, 0), 0.5) * 1.5, 0, 1)
-        skin = skin * (1 - line[..., None]) + lash * line[..., None]
         weight = cv2.GaussianBlur(np.maximum(lid, line), (0, 0), 0.8)[..., None]  # the lashes, below the lid too
+        line = line[..., None]
+        skin = skin * (1 - line) + lash * line
         out[y0:y1, x0:x1] = out[y0:y1, x0:x1] * (1 - weight) + skin * weight
     return out
