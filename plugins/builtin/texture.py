@@ -84,8 +84,8 @@ class MultiscaleTexture(TextureBackend):
     #: 8: close_eyes lowers the upper lid (was: a fade to skin from 65 %); 9: detail_share (replaces
     #: restore_detail), every frame's fine bands scaled by the factors of B's neutral blend; 10: the lid
     #: drawn antialiased, its lashes two texels wide (plugins/face/eyes.py); 11: the lashes drawn below the
-    #: lid's edge too; 12: the lid covers the open eye's lid line too, its skin inpainted from above
-    version = "12"
+    #: lid's edge too
+    version = "11"
     #: what :meth:`weights` and :meth:`finish` read and :meth:`cache` does not (``tau`` is read by both)
     frame_params = frozenset({"sigma", "skip", "time_sigma", "detail_share", "close_eyes", "shut_from", "shut_at"})
 

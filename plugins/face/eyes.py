@@ -11,11 +11,10 @@ A real eye closes by its upper lid coming down over it. dlib's lid points of a s
 an eye whose lid points are r of their neutral distance apart shows φ(r) = start · (r - end) /
 (start - end) of its opening below ``start`` (85 %), and all of it (φ = r) from there up: the
 target's own ratio, what the driver's eye showed. The mesh already squeezes the texture's eye to r;
-here the upper lid — the skin above the eye, inpainted from above, with a soft line of lashes the
-colour of the eye's darkest tenth hanging from its edge — is drawn down over the top 1 - φ(r) / r of the
+here the upper lid — the skin around the eye, inpainted from the lids, with a soft line of lashes
+the colour of the eye's darkest tenth hanging from its edge — is drawn down over the top 1 - φ(r) / r of the
 eye's opening (the polygon of its six fiducials at B's neutral, grown by a pixel) in the canonical
-texture, and over the open eye's dark lid line above it, which would otherwise stay as a second
-line. An eye open by ``start`` or more is left exactly as it was (docs/expression.md).
+texture. An eye open by ``start`` or more is left exactly as it was (docs/expression.md).
 """
 
 from __future__ import annotations
@@ -63,19 +62,11 @@ def lowered(target: np.ndarray, neutral: np.ndarray, *, start: float = 0.85, end
     return out
 
 
-def _upward(mask: np.ndarray, below: int, above: int) -> np.ndarray:
-    """``mask`` (H, W) grown ``below`` texels down and ``above`` texels up (the largest value in that reach)."""
-    kernel = np.zeros((2 * max(below, above) + 1, 1), np.uint8)
-    kernel[max(below, above) - below: max(below, above) + above + 1] = 1
-    return cv2.dilate(mask, kernel)
-
-
-def lower(texture: np.ndarray, neutral: np.ndarray, visible: np.ndarray, *, grow: int = 1, up: int = 3,
+def lower(texture: np.ndarray, neutral: np.ndarray, visible: np.ndarray, *, grow: int = 1,
           margin: int = 6, lashes: float = 2.0) -> np.ndarray:
     """``texture`` (H, W, 3) at the geometry of the fiducials ``neutral`` (49, 2), each eye k's upper
     lid drawn down so that the share ``visible[k]`` (:func:`lowered`) of its opening stays uncovered,
-    its line of lashes ``lashes`` texels wide hanging from its edge. The lid reaches ``up`` texels
-    above the opening, over the open eye's dark lid line, and its skin is inpainted from above only."""
+    its line of lashes ``lashes`` texels wide hanging from its edge."""
     if not np.any(visible < 1):
         return texture
     out = np.asarray(texture, np.float32).copy()
@@ -95,20 +86,15 @@ def lower(texture: np.ndarray, neutral: np.ndarray, visible: np.ndarray, *, grow
         if grow:
             opening = cv2.dilate(opening, np.ones((2 * grow + 1, 2 * grow + 1), np.uint8))
         patch = np.clip(out[y0:y1, x0:x1], 0, 255).round().astype(np.uint8)
+        skin = cv2.inpaint(patch, opening, 3, cv2.INPAINT_TELEA).astype(np.float32)
         inside = patch[opening > 0].astype(np.float32)
         lash = inside[np.argsort(inside.sum(axis=1))[: max(1, len(inside) // 10)]].mean(axis=0)
-        # what the lid covers: the eye, and above it the open eye's dark lid line, which shut would
-        # be a second line over the lashes (the shut eye then reads as an almond: open)
-        covered = _upward(opening, 0, up)
-        # its skin from above only: the skin below the eye is paler than a lid, a pale band that
-        # reads as the white of an open eye; every texel of a column from the lid's top down is unknown
-        unknown = (np.cumsum(covered, axis=0) > 0).astype(np.uint8)
-        skin = cv2.inpaint(patch, unknown, 3, cv2.INPAINT_TELEA).astype(np.float32)
         # the lid: from the upper lid's points down to its new edge, 1 - v of the way to the lower lid's
         upper, lower_lid = polygon[1:3], polygon[[5, 4]]
         edge = np.vstack([polygon[0], upper + (1 - v) * (lower_lid - upper), polygon[3]])
         lid = _drawn(opening.shape, np.vstack([polygon[:4], edge[::-1]]))
-        lid = _upward(_upward(lid, grow, grow) * opening, 0, up)  # and up over the open eye's lid line
+        if grow:  # up over the old lid line too, which is the lid's crease now, not its edge
+            lid = cv2.dilate(lid, np.ones((2 * grow + 1, 1), np.uint8)) * opening
         hanging = edge + [[0, 0], [0, lashes / 2], [0, lashes / 2], [0, 0]]  # from the lid's edge down
         line = np.clip(cv2.GaussianBlur(_drawn(opening.shape, hanging, line=lashes), (0, 0), 0.5) * 1.5, 0, 1)
         weight = cv2.GaussianBlur(np.maximum(lid, line), (0, 0), 0.8)[..., None]  # the lashes, below the lid too

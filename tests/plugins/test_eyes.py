@@ -85,30 +85,3 @@ def test_the_lid_comes_down_smoothly_not_in_whole_texel_steps():
     steps = np.diff(brightness)
     print(f"\nthe eye's brightness a step: {np.round(steps, 2)}")
     assert steps.min() > 0 and steps.max() < 3 * np.median(steps)
-
-
-def test_a_shut_lid_covers_the_open_eyes_lid_line_with_the_skin_above_the_eye():
-    # the open eye's dark lid line lies just above its fiducials, and the skin below the eye is paler than
-    # the lid's: covered only up to the fiducials and inpainted from all around, a shut eye kept that line
-    # over a pale band over its lashes, an almond that reads as open
-    neutral = generic_template().fiducials3d[:, :2].astype(np.float64)
-    lid_skin, cheek = np.array((170, 125, 110)), np.array((215, 175, 155))
-    middle = np.mean([neutral[list(points), 1].mean() for points, _ in eyes.EYES])
-    texture = np.where(np.arange(244)[:, None, None] < middle, lid_skin, cheek).repeat(194, axis=1).astype(np.float32)
-    opening = np.any([eye_mask(neutral, points) for points, _ in eyes.EYES], axis=0)
-    texture[opening] = (30, 20, 20)
-    line = np.zeros((244, 194), np.uint8)  # two texels thick, from 1.5 above the upper lid's fiducials
-    for points, _ in eyes.EYES:
-        cv2.polylines(line, [np.round(neutral[list(points)][:4] - (0, 1.5)).astype(np.int32)], False, 1, 2)
-    line = (line > 0) & ~opening
-    texture[line] = (40, 25, 25)
-    closed = eyes.lower(texture, neutral, np.zeros(2))
-    print(f"\nthe old lid line: mean {texture[line].mean(axis=0)} -> {closed[line].mean(axis=0)}")
-    assert closed[line].sum(axis=1).mean() > 0.8 * lid_skin.sum()  # covered by skin
-    for points, _ in eyes.EYES:
-        inside = eye_mask(neutral, points)
-        rows = np.flatnonzero(inside.any(axis=1))
-        lid = inside & (np.arange(244)[:, None] < rows.min() + 0.6 * (rows.max() - rows.min()))  # above the lashes
-        colour = closed[lid].mean(axis=0)
-        print(f"the lid: mean {colour}, lid skin {lid_skin}, cheek {cheek}")
-        assert np.abs(colour - lid_skin).max() < 15 < np.abs(colour - cheek).max()
