@@ -338,13 +338,13 @@ def stored_textures(url: str, path: str, name: str, params: dict, targets, start
 
 
 def run_mouth(runner, coll: Collection) -> Provenance:
-    """The inside of B's mouth for the renderer (``mouth``, ``mouth_photos`` and ``mouth_min_gap``
-    of its params): the median of B's widest-open accepted photos between their inner lips, how far
-    apart their lips are (the median, canonical px), and B's mean inner-lip curves in the canonical
-    frame."""
+    """The inside of B's mouth for the renderer (``mouth``, ``mouth_photos``, ``mouth_min_gap`` and
+    ``mouth_choice`` of its params): the median of ``mouth_photos`` of B's open accepted photos between
+    their inner lips, the widest or the darkest there, how far apart their lips are (the median,
+    canonical px), and B's mean inner-lip curves in the canonical frame."""
     name, params = runner.wf.stage("render")
     chosen = st.default_registry().get("render", name)(params).params
-    settings = {"photos": chosen.mouth_photos, "min_gap": chosen.mouth_min_gap}
+    settings = {"photos": chosen.mouth_photos, "min_gap": chosen.mouth_min_gap, "choice": chosen.mouth_choice}
     prov = Provenance.make(stage="mouth", backend="-", backend_version="2", params=settings,
                            inputs={"screen": coll.provenance("status/screen/state").key},
                            persona_version=runner.version)
@@ -354,12 +354,16 @@ def run_mouth(runner, coll: Collection) -> Provenance:
     points = coll.array("landmarks/points").oindex[ok].astype(np.float64)
     sizes = coll.array("photos/size").oindex[ok]
     landmarks = coll.array("aligned/landmarks").oindex[ok].astype(np.float64)
-    chosen = mouth.widest(points, settings["photos"], settings["min_gap"])
-    photos = []
+    count = settings["photos"] if settings["choice"] == "widest" else len(ok)
+    chosen = mouth.widest(points, count, settings["min_gap"])  # the open photos, widest first
+    samples = []
     for i in chosen:
         h, w = sizes[i]
-        photos.append((coll.array("photos/rgb")[int(ok[i])][:h, :w], points[i]))
-    interior = mouth.interior(photos)
+        samples.append(mouth.sample(coll.array("photos/rgb")[int(ok[i])][:h, :w], points[i]))
+    if settings["choice"] == "darkest" and samples:
+        keep = mouth.darkest(np.stack(samples), settings["photos"])
+        chosen, samples = chosen[keep], [samples[k] for k in keep]
+    interior = mouth.interior(samples)
     coll.remove("texture/mouth")  # an earlier run's
     coll.remove("texture/mouth_gap")
     if interior is None:

@@ -20,6 +20,8 @@ mask are sampled bilinearly there.
 
 from __future__ import annotations
 
+from typing import Literal
+
 import cv2
 import numba
 import numpy as np
@@ -184,14 +186,18 @@ class RaycastRender(RenderBackend):
                                      "paper, and off: on Bush <- Obama (1.4 texels a pixel) the shut lids' lash line "
                                      "is whole, but the face is softer and the composite's eye gain falls 0.54 -> "
                                      "0.51 (docs/composite.md)")
-        mouth: bool = Field(True, description="draw the inside of B's mouth (from B's widest-open "
+        mouth: bool = Field(True, description="draw the inside of B's mouth (from B's open-mouth "
                             "photos) between B's inner lips where the mesh parts them, instead of the "
                             "stretched skin of a surface that cannot open (not in the paper; "
                             "persona.plugins.face.mouth)")
-        mouth_photos: int = Field(5, ge=1, le=100, description="how many of B's widest-open photos make "
-                                  "the mouth's interior (their per-pixel median)")
+        mouth_photos: int = Field(5, ge=1, le=100, description="how many of B's open photos make the "
+                                  "mouth's interior (their per-pixel median)")
         mouth_min_gap: float = Field(0.08, ge=0, description="a photo counts as open when its inner lips "
                                      "are this many inter-ocular distances apart")
+        mouth_choice: Literal["widest", "darkest"] = Field(
+            "widest", description="which of B's open photos make the mouth's interior: those whose lips are "
+            "furthest apart (mostly laughs: teeth and tongue), or those whose gap is darkest in its middle "
+            "(the cavity of an open mouth, as an 'O' shows it; docs/expression.md)")
 
     def render(self, puppet: Puppet, target: np.ndarray, pose: Pose, frame: np.ndarray) -> Rendered:
         """target is not used: the expression is already in ``puppet.mesh`` and ``puppet.appearance``."""

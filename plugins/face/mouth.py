@@ -8,9 +8,10 @@ of B's mouth as B's own open-mouth photos show it (issue 12, "lips that part").
 corner to the other: the upper lip through 60, 61, 62, 63, 64 and the lower through 60, 67, 66,
 65, 64. A point of the gap has a position ``s`` along the mouth (the five nodes at s = 0, 1/4,
 1/2, 3/4, 1, linear between them) and a height ``t`` from the upper curve (0) to the lower (1).
-B's photos whose inner lips are furthest apart (over ``min_gap`` inter-ocular distances) are
-resampled on that (s, t) rectangle, and the per-pixel median of the widest ``count`` is the
-interior image: teeth at the top, the dark cavity below, as in B's own photos.
+B's photos whose inner lips are over ``min_gap`` inter-ocular distances apart are resampled on
+that (s, t) rectangle (:func:`sample`), and the per-pixel median of ``count`` of them is the
+interior image: the widest (:func:`widest`; in a celebrity's collection mostly laughs, teeth and
+tongue), or those darkest in the gap's middle (:func:`darkest`: the cavity of an open mouth).
 
 **Drawing it.** In each output frame the renderer projects B's inner-lip curves as the frame's
 mesh moved them, rounds them into one smooth outline of the opening (:func:`rounded`: an "O" is
@@ -94,15 +95,19 @@ def _positions(curves: np.ndarray, size: tuple[int, int] = SIZE) -> np.ndarray:
     return upper[None] * (1 - t) + lower[None] * t
 
 
-def interior(photos) -> np.ndarray | None:
-    """The interior image (rows, cols, 3) float32 0-255: the per-pixel median over ``photos``, an
-    iterable of (rgb (h, w, 3), landmarks (68, 2) in that photo's pixels), of each photo's gap
-    resampled on the (s, t) rectangle; None for no photos. Choose them with :func:`widest`."""
-    samples = []
-    for rgb, landmarks in photos:
-        at = _positions(lip_curves(landmarks)).astype(np.float32)
-        samples.append(cv2.remap(np.asarray(rgb, np.float32), at[..., 0], at[..., 1], cv2.INTER_LINEAR,
-                                 borderMode=cv2.BORDER_REPLICATE))
+def sample(rgb: np.ndarray, landmarks68: np.ndarray) -> np.ndarray:
+    """(rows, cols, 3) float32: one photo ``rgb`` (h, w, 3) between its inner lips (its 68 landmarks
+    in its own pixels), resampled on the (s, t) rectangle."""
+    at = _positions(lip_curves(landmarks68)).astype(np.float32)
+    return cv2.remap(np.asarray(rgb, np.float32), at[..., 0], at[..., 1], cv2.INTER_LINEAR,
+                     borderMode=cv2.BORDER_REPLICATE)
+
+
+def interior(samples) -> np.ndarray | None:
+    """The interior image (rows, cols, 3) float32 0-255: the per-pixel median of photos' gaps, each
+    resampled on the (s, t) rectangle (:func:`sample`); None for none. Choose them with :func:`widest`
+    or :func:`darkest`."""
+    samples = list(samples)
     return np.median(np.stack(samples), axis=0).astype(np.float32) if samples else None
 
 
@@ -113,6 +118,16 @@ def widest(landmarks68: np.ndarray, count: int, min_gap: float) -> np.ndarray:
     gap = np.where(np.isfinite(gap), gap, -np.inf)
     order = np.argsort(-gap, kind="stable")
     return order[gap[order] >= min_gap][:count]
+
+
+def darkest(samples: np.ndarray, count: int) -> np.ndarray:
+    """Indices of the (at most) ``count`` of the photos' gaps ``samples`` (n, rows, cols, 3), each
+    from :func:`sample`, whose middle (the middle half of the mouth's length, the middle third of the
+    gap's height, away from the lips) is darkest, darkest first: photos that show the cavity of an open
+    mouth, not a row of teeth or a tongue."""
+    rows, cols = np.asarray(samples).shape[1:3]
+    middle = np.asarray(samples)[:, rows // 3: rows - rows // 3, cols // 4: cols - cols // 4]
+    return np.argsort([to_grey(m).mean() for m in middle], kind="stable")[:count]
 
 
 def cavity(image: np.ndarray) -> np.ndarray:

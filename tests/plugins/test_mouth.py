@@ -43,12 +43,26 @@ def test_gap_and_the_widest_photos():
 def test_interior_is_the_photos_gap():
     """The gap of a photo is black between its inner lips, white outside: the interior image is
     black in its middle columns from top to bottom, whatever the gap's size."""
-    image = mouth.interior([open_photo(24.0), open_photo(12.0), open_photo(30.0)])
+    image = mouth.interior(mouth.sample(*open_photo(gap)) for gap in (24.0, 12.0, 30.0))
     rows, cols = mouth.SIZE
     assert image.shape == (rows, cols, 3)
     middle = image[2:-2, int(cols * 0.3):int(cols * 0.7)]
     assert middle.max() < 40, middle.max()
     assert mouth.interior([]) is None
+
+
+def test_the_darkest_gaps_are_those_that_show_the_cavity():
+    # a laugh's gap is mostly teeth and tongue (bright), an open mouth's mostly cavity (dark); the lips'
+    # own colour at the gap's edges (its top and bottom rows) does not count
+    samples = []
+    for middle in (200, 30, 120, 10):
+        rgb, lm = open_photo(24.0)
+        rgb[100:121, 60:101] = middle  # the gap's middle rows: teeth, cavity, tongue
+        samples.append(mouth.sample(rgb, lm))
+    samples = np.stack(samples)
+    samples[1, :3] = 255  # bright lips at the top of the cavity's gap: no matter
+    assert list(mouth.darkest(samples, 2)) == [3, 1]
+    assert list(mouth.darkest(samples, 9)) == [3, 1, 2, 0]
 
 
 def test_draw_fills_the_gap_only_where_the_face_is():
