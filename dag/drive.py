@@ -14,6 +14,7 @@ import logging
 
 import numpy as np
 
+from persona.plugins.face import mouth
 from persona.plugins.face.composite import alone, steady_light
 from persona.plugins.face.dynamics import smooth_in_time
 from persona.plugins.face.fiducials import mean_shape
@@ -57,6 +58,8 @@ def run_drive(runner, cast: Cast, output: str) -> Collection:
             inputs["mesh"] = run_motion(runner, cast, prov).key
         with runner.step("mouth", cast.puppet):
             inputs["mouth"] = run_mouth(runner, puppet).key
+        with runner.step("teeth", cast.drive):
+            inputs["teeth"] = _teeth(runner, drive, frames, puppet, inputs["mouth"]).key
         stage = st.RENDER_3D
     drive.group.attrs["stages"] = ["retarget", *(["dynamics"] if stage is st.RENDER_3D else []), stage.name,
                                    "composite"]
@@ -82,6 +85,30 @@ def _steady_light(runner, drive: Collection, render: Provenance) -> Provenance:
         planes = steady_light(drive.array("render/light")[:], sigma)
         drive.create("composite/light", (4, 3), "float32", ("frame", "term", "channel"), prov, pending=True)[:] = planes
         drive.mark_done("composite/light", prov)  # after the data: a run killed before this does it again
+    return prov
+
+
+def _teeth(runner, drive: Collection, frames: Collection, puppet: Collection, mouth_key: str) -> Provenance:
+    """``mouth/teeth``: how much of B's teeth (rather than B's cavity) each frame's mouth shows, as the
+    driver's own mouth shows them there (mouth.teeth_share), made steady in time (the render's
+    ``mouth_sigma``); 1 in every frame unless the render draws it and the puppet has both interiors
+    (``mouth_choice: driver``)."""
+    name, params = runner.wf.stage("render")
+    params = st.default_registry().get("render", name)(params).params
+    sigma, both = params.mouth_sigma, params.mouth and puppet.has("texture/mouth_cavity")
+    prov = Provenance.make(stage="teeth", backend="-", backend_version="1", params={"sigma": sigma} if both else {},
+                           inputs={"mouth": mouth_key, "frames": frames.provenance("status/screen/state").key},
+                           persona_version=runner.version)
+    if not drive.made_by("mouth/teeth", prov):
+        share = np.ones(drive.n)
+        if both:
+            rgb, size, points = (frames.array(array) for array in ("photos/rgb", "photos/size", "landmarks/points"))
+            for start, stop in drive.shard_ranges():
+                for i, (image, (h, w), lm) in enumerate(zip(rgb[start:stop], size[start:stop], points[start:stop])):
+                    share[start + i] = mouth.teeth_share(image[:h, :w], lm)
+            share = smooth_in_time(share, sigma)
+        drive.create("mouth/teeth", (), "float32", ("frame",), prov, pending=True)[:] = share
+        drive.mark_done("mouth/teeth", prov)  # after the data: a run killed before this does it again
     return prov
 
 

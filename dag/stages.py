@@ -24,6 +24,7 @@ import numpy as np
 
 from persona.plugins.base import Backend, Rejected
 from persona.plugins.face.collection_flow import collection_flow
+from persona.plugins.face import mouth
 from persona.plugins.face.composite import blend, light_plane
 from persona.plugins.face.fiducials import median_shape, shape_distance
 from persona.plugins.face.template import CANONICAL_HEIGHT, CANONICAL_WIDTH, IDX49
@@ -225,15 +226,22 @@ def _puppet(root, path) -> dict:
     return {"coverage": group["coverage"][...], "fiducials": group["mean_fiducials"][...].astype(np.float64),
             "mouth": puppet.array("texture/mouth")[...].astype(np.float32) if puppet.has("texture/mouth") else None,
             "lips": puppet.array("texture/lips")[...] if puppet.has("texture/lips") else None,
-            "mouth_gap": float(puppet.array("texture/mouth_gap")[0]) if puppet.has("texture/mouth_gap") else np.inf}
+            "mouth_gap": float(puppet.array("texture/mouth_gap")[0]) if puppet.has("texture/mouth_gap") else np.inf,
+            "mouth_cavity": (puppet.array("texture/mouth_cavity")[...].astype(np.float32),
+                             float(puppet.array("texture/mouth_cavity_gap")[0]))
+            if puppet.has("texture/mouth_cavity") else None}
 
 
 def _render(backend, params, inputs, context):
     h, w = inputs["@frames/photos/size"]
-    puppet = Puppet(appearance=inputs["texture/rgb"].astype(np.float32), coverage=context["coverage"],
-                    fiducials=context["fiducials"], mesh=inputs.get("mesh"), mouth=context["mouth"],
-                    lips=context["lips"], mouth_gap=context["mouth_gap"])
     frame = inputs["@frames/photos/rgb"][:h, :w]
+    interior, gap = context["mouth"], context["mouth_gap"]
+    if context["mouth_cavity"] is not None:  # B's teeth or B's cavity, as A's own mouth shows them
+        interior, gap = mouth.for_frame(interior, context["mouth_cavity"][0], (gap, context["mouth_cavity"][1]),
+                                        float(inputs["mouth/teeth"]))
+    puppet = Puppet(appearance=inputs["texture/rgb"].astype(np.float32), coverage=context["coverage"],
+                    fiducials=context["fiducials"], mesh=inputs.get("mesh"), mouth=interior,
+                    lips=context["lips"], mouth_gap=gap)
     out = backend.render(puppet, inputs["target"].astype(np.float64), Pose.from_vector(inputs["pose"]), frame)
     mask = np.round(out.mask * 255).astype(np.uint8)
     # A's light at B's edge, fitted here where render and frame are at hand; the drive makes it steady in
@@ -255,9 +263,10 @@ _RENDER_INPUTS = ("target", "pose", "texture/rgb", "@frames/photos/rgb", "@frame
 
 #: the puppet performing the driver's video: one "photo" per driver frame, in the ``drive`` collection
 RENDER = PhotoStage("render", "render", "retarget", _RENDER_INPUTS, _RENDER_OUTPUTS, _render, _puppet)
-#: the same for renderers of the 3D puppet: B's mesh of each frame (``mesh``, from the motion step) too
-RENDER_3D = PhotoStage("render3d", "render", "retarget", (*_RENDER_INPUTS, "mesh"), _RENDER_OUTPUTS, _render,
-                       _puppet)
+#: the same for renderers of the 3D puppet: B's mesh of each frame (``mesh``, from the motion step) too, and
+#: how much of B's teeth its mouth shows (``mouth/teeth``, from the teeth step)
+RENDER_3D = PhotoStage("render3d", "render", "retarget", (*_RENDER_INPUTS, "mesh", "mouth/teeth"),
+                       _RENDER_OUTPUTS, _render, _puppet)
 
 
 def _composite(backend, params, inputs, context):
@@ -349,8 +358,10 @@ STAGES = {stage.name: stage for stage in (
     Stage("frame textures", ("drive",), ("texture",), "B's face for each frame's expression"),
     Stage("dynamics", ("drive",), ("flow", "motion"), "the driver's per-frame 3D flow", mesh=True, photo=(DYNAMICS,)),
     Stage("motion", ("drive",), ("motion", "denoise"), "A's meshes, then B's by deformation transfer", mesh=True),
-    Stage("mouth", ("puppet",), ("render",), "the inside of B's mouth from its widest-open photos", "the client",
+    Stage("mouth", ("puppet",), ("render",), "the inside of B's mouth from its open photos", "the client",
           mesh=True),
+    Stage("teeth", ("drive",), ("render",), "how much of B's teeth each frame shows, as the driver's mouth "
+          "shows them (mouth_choice: driver)", "the client", mesh=True),
     Stage("render", ("drive",), ("render",), "the puppet's frames", photo=(RENDER, RENDER_3D)),
     Stage("light", ("drive",), ("composite",), "A's light at B's edge (fitted with the render), made "
           "steady over the frames around", "the client"),

@@ -340,8 +340,9 @@ def stored_textures(url: str, path: str, name: str, params: dict, targets, start
 def run_mouth(runner, coll: Collection) -> Provenance:
     """The inside of B's mouth for the renderer (``mouth``, ``mouth_photos``, ``mouth_min_gap`` and
     ``mouth_choice`` of its params): the median of ``mouth_photos`` of B's open accepted photos between
-    their inner lips, the widest or the darkest there, how far apart their lips are (the median,
-    canonical px), and B's mean inner-lip curves in the canonical frame."""
+    their inner lips, the widest (``texture/mouth``) or the darkest there, or both (``driver``: the
+    darkest as ``texture/mouth_cavity``), how far apart their lips are (the median, canonical px), and
+    B's mean inner-lip curves in the canonical frame."""
     name, params = runner.wf.stage("render")
     chosen = st.default_registry().get("render", name)(params).params
     settings = {"photos": chosen.mouth_photos, "min_gap": chosen.mouth_min_gap, "choice": chosen.mouth_choice}
@@ -355,25 +356,27 @@ def run_mouth(runner, coll: Collection) -> Provenance:
     sizes = coll.array("photos/size").oindex[ok]
     landmarks = coll.array("aligned/landmarks").oindex[ok].astype(np.float64)
     count = settings["photos"] if settings["choice"] == "widest" else len(ok)
-    chosen = mouth.widest(points, count, settings["min_gap"])  # the open photos, widest first
+    open_ = mouth.widest(points, count, settings["min_gap"])  # the open photos, widest first
     samples = []
-    for i in chosen:
+    for i in open_:
         h, w = sizes[i]
         samples.append(mouth.sample(coll.array("photos/rgb")[int(ok[i])][:h, :w], points[i]))
-    if settings["choice"] == "darkest" and samples:
-        keep = mouth.darkest(np.stack(samples), settings["photos"])
-        chosen, samples = chosen[keep], [samples[k] for k in keep]
-    interior = mouth.interior(samples)
-    coll.remove("texture/mouth")  # an earlier run's
-    coll.remove("texture/mouth_gap")
-    if interior is None:
+    darkest = mouth.darkest(np.stack(samples), settings["photos"]) if samples else np.zeros(0, int)
+    sets = {"widest": {"texture/mouth": np.arange(min(len(open_), settings["photos"]))},
+            "darkest": {"texture/mouth": darkest},
+            "driver": {"texture/mouth": np.arange(min(len(open_), settings["photos"])),
+                       "texture/mouth_cavity": darkest}}[settings["choice"]]
+    for array in ("texture/mouth", "texture/mouth_gap", "texture/mouth_cavity", "texture/mouth_cavity_gap"):
+        coll.remove(array)  # an earlier run's
+    if not samples:
         log.warning("%s: no photo with the lips %.2f inter-ocular distances apart; the puppet's mouth shows "
                     "no interior when it opens", coll.path, settings["min_gap"])
-    else:
-        coll.create_single("texture/mouth", interior.round().astype(np.uint8), ("mouth_t", "mouth_s", "channel"),
-                           prov)
-        gap = np.nanmedian(mouth.lip_gap(landmarks[chosen], per_iod=False))
-        coll.create_single("texture/mouth_gap", np.array([gap]), ("one",), prov)
+    for array, keep in sets.items():
+        if len(keep):
+            interior = mouth.interior(samples[k] for k in keep)
+            coll.create_single(array, interior.round().astype(np.uint8), ("mouth_t", "mouth_s", "channel"), prov)
+            gap = np.nanmedian(mouth.lip_gap(landmarks[open_[keep]], per_iod=False))
+            coll.create_single(f"{array}_gap", np.array([gap]), ("one",), prov)
     lips = mouth.lip_curves(np.nanmean(landmarks, axis=0))
     coll.create_single("texture/lips", lips, ("lip", "lip_node", "xy"), prov)
     return prov

@@ -194,10 +194,13 @@ class RaycastRender(RenderBackend):
                                   "mouth's interior (their per-pixel median)")
         mouth_min_gap: float = Field(0.08, ge=0, description="a photo counts as open when its inner lips "
                                      "are this many inter-ocular distances apart")
-        mouth_choice: Literal["widest", "darkest"] = Field(
-            "widest", description="which of B's open photos make the mouth's interior: those whose lips are "
-            "furthest apart (mostly laughs: teeth and tongue), or those whose gap is darkest in its middle "
-            "(the cavity of an open mouth, as an 'O' shows it; docs/expression.md)")
+        mouth_choice: Literal["widest", "darkest", "driver"] = Field(
+            "driver", description="which of B's open photos make the mouth's interior: those whose lips are "
+            "furthest apart (mostly laughs: teeth and tongue), those whose gap is darkest in its middle (the "
+            "cavity of an open mouth, as an 'O' shows it), or both, each frame taking B's teeth or B's cavity "
+            "as the driver's own mouth shows teeth or cavity there (mouth.teeth_share; docs/expression.md)")
+        mouth_sigma: float = Field(1.5, ge=0, description="mouth_choice driver: how much of B's teeth each frame "
+                                   "shows, smoothed in time by a Gaussian of this many frames (0: each frame's own)")
 
     def render(self, puppet: Puppet, target: np.ndarray, pose: Pose, frame: np.ndarray) -> Rendered:
         """target is not used: the expression is already in ``puppet.mesh`` and ``puppet.appearance``."""

@@ -120,14 +120,44 @@ def widest(landmarks68: np.ndarray, count: int, min_gap: float) -> np.ndarray:
     return order[gap[order] >= min_gap][:count]
 
 
+def _middle_grey(sample: np.ndarray) -> float:
+    """The mean grey (0-1) of a gap's middle, away from the lips: the middle half of the mouth's
+    length and the middle third of the gap's height of a :func:`sample`."""
+    rows, cols = sample.shape[:2]
+    return float(to_grey(sample[rows // 3: rows - rows // 3, cols // 4: cols - cols // 4]).mean())
+
+
 def darkest(samples: np.ndarray, count: int) -> np.ndarray:
     """Indices of the (at most) ``count`` of the photos' gaps ``samples`` (n, rows, cols, 3), each
-    from :func:`sample`, whose middle (the middle half of the mouth's length, the middle third of the
-    gap's height, away from the lips) is darkest, darkest first: photos that show the cavity of an open
-    mouth, not a row of teeth or a tongue."""
-    rows, cols = np.asarray(samples).shape[1:3]
-    middle = np.asarray(samples)[:, rows // 3: rows - rows // 3, cols // 4: cols - cols // 4]
-    return np.argsort([to_grey(m).mean() for m in middle], kind="stable")[:count]
+    from :func:`sample`, whose middle (:func:`_middle_grey`) is darkest, darkest first: photos that
+    show the cavity of an open mouth, not a row of teeth or a tongue."""
+    return np.argsort([_middle_grey(sample) for sample in samples], kind="stable")[:count]
+
+
+def teeth_share(rgb: np.ndarray, landmarks68: np.ndarray, *, cavity: float = 0.2, teeth: float = 0.7,
+                min_gap: float = 2.0) -> float:
+    """How much a frame's open mouth shows teeth rather than the dark cavity, in [0, 1]: the grey of
+    its gap's middle (:func:`_middle_grey`) over the median grey of its nose below the bridge (iBUG
+    29-33, between the nostrils 31 and 35), 0 at ``cavity`` or less, 1 at ``teeth`` or more, smooth
+    between. 0 where its inner lips are under ``min_gap`` px apart, or a point is missing: where closed
+    lips meet, a line of B's cavity, the dark between them."""
+    lm = np.asarray(landmarks68, np.float64)
+    if not np.isfinite(lm).all() or lip_gap(lm[None], per_iod=False)[0] < min_gap:
+        return 0.0
+    h, w = rgb.shape[:2]
+    x0, x1 = int(np.clip(lm[31, 0], 0, w - 1)), int(np.clip(lm[35, 0], 1, w))
+    y0, y1 = int(np.clip(lm[29, 1], 0, h - 1)), int(np.clip(lm[33, 1], 1, h))
+    nose = np.asarray(rgb, np.float32)[y0:max(y1, y0 + 1), x0:max(x1, x0 + 1)]
+    ratio = _middle_grey(sample(rgb, lm)) / max(float(np.median(to_grey(nose))), 1e-3)
+    t = float(np.clip((ratio - cavity) / (teeth - cavity), 0, 1))
+    return t * t * (3 - 2 * t)
+
+
+def for_frame(teeth: np.ndarray, cavity: np.ndarray, gaps: tuple[float, float], share: float):
+    """The interior image and its photos' gap for a frame whose mouth shows ``share`` teeth
+    (:func:`teeth_share`): the ``teeth`` interior (from the widest photos) and the ``cavity`` one
+    (from the darkest), and their ``gaps``, weighed by it."""
+    return teeth * share + cavity * (1 - share), gaps[0] * share + gaps[1] * (1 - share)
 
 
 def cavity(image: np.ndarray) -> np.ndarray:

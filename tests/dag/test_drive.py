@@ -59,8 +59,8 @@ def test_the_plan_shows_every_stage_the_run_runs(drive_run, capsys):
             plan.setdefault(where, []).append(re.match(r"(frame textures|\S+)", line[4:]).group(1))
     for record in report["stages"]:
         assert record["stage"].replace("render3d", "render") in plan[record["collection"]], record
-    assert plan["drive"] == ["retarget", "frame textures", "dynamics", "motion", "render", "light", "composite", "videos",
-                             "evaluate"]
+    assert plan["drive"] == ["retarget", "frame textures", "dynamics", "motion", "teeth", "render", "light", "composite",
+                             "videos", "evaluate"]
     assert plan["puppet"][-4:] == ["align", "shape", "texture", "mouth"]
 
 

@@ -65,6 +65,26 @@ def test_the_darkest_gaps_are_those_that_show_the_cavity():
     assert list(mouth.darkest(samples, 9)) == [3, 1, 2, 0]
 
 
+def test_the_driver_shows_teeth_or_the_cavity_against_its_own_nose():
+    def frame(middle: int, gap: float = 24.0):
+        rgb, lm = open_photo(gap)
+        rgb[:] = 150  # skin, the nose's grey too
+        top, bottom = int(round(110 - gap / 2)), int(round(110 + gap / 2))
+        rgb[top:bottom + 1, 65:96] = middle
+        lm[[29, 30, 31, 32, 33, 34, 35]] = [[80, 70], [80, 78], [72, 86], [76, 87], [80, 88], [84, 87], [88, 86]]
+        return rgb, lm
+    cavity, teeth, half = (mouth.teeth_share(*frame(m)) for m in (15, 150, 0.45 * 150))
+    print(f"\nteeth share: cavity {cavity:.2f}, teeth {teeth:.2f}, half way {half:.2f}")
+    assert cavity == 0 and teeth == 1 and abs(half - 0.5) < 0.02  # grey over the nose's: 0.1, 1, 0.45 (0.2 -> 0, 0.7 -> 1)
+    assert mouth.teeth_share(*frame(150, gap=1.0)) == 0  # closed lips: the dark line where they meet
+    rgb, lm = frame(150)
+    lm[62] = np.nan
+    assert mouth.teeth_share(rgb, lm) == 0
+    image, gap = mouth.for_frame(np.full((2, 2, 3), 200.0), np.full((2, 2, 3), 20.0), (30.0, 10.0), 0.25)
+    np.testing.assert_allclose(image, 65.0)
+    assert gap == 15.0
+
+
 def test_draw_fills_the_gap_only_where_the_face_is():
     out = np.full((100, 120, 3), 200, np.uint8)
     face = np.ones((100, 120), np.float32)
