@@ -13,6 +13,11 @@ that (s, t) rectangle (:func:`sample`), and the per-pixel median of ``count`` of
 interior image: the widest (:func:`widest`; in a celebrity's collection mostly laughs, teeth and
 tongue), or those darkest in the gap's middle (:func:`darkest`: the cavity of an open mouth).
 
+**Teeth or cavity, as the driver shows them.** A round "O" shows the dark of the mouth, a smile
+its teeth. B keeps both interiors, and each frame weighs them by how much the driver's own mouth
+shows teeth there (:func:`teeth_share`: the grey of its gap's middle over that of its nose, so
+that the light does not count; :func:`for_frame`).
+
 **Drawing it.** In each output frame the renderer projects B's inner-lip curves as the frame's
 mesh moved them, rounds them into one smooth outline of the opening (:func:`rounded`: an "O" is
 drawn round, not as a hexagon with pointed corners), and maps the interior image into the gap
