@@ -23,8 +23,8 @@ import cv2
 import numpy as np
 
 from persona.plugins.base import Backend, Rejected
-from persona.plugins.face.collection_flow import collection_flow
 from persona.plugins.face import mouth
+from persona.plugins.face.collection_flow import collection_flow
 from persona.plugins.face.composite import blend, light_plane
 from persona.plugins.face.fiducials import median_shape, shape_distance
 from persona.plugins.face.template import CANONICAL_HEIGHT, CANONICAL_WIDTH, IDX49
