@@ -93,8 +93,7 @@ def _teeth(runner, drive: Collection, frames: Collection, puppet: Collection, mo
     driver's own mouth shows them there (mouth.teeth_share), made steady in time (the render's
     ``mouth_sigma``); 1 in every frame unless the render draws it and the puppet has both interiors
     (``mouth_choice: driver``)."""
-    name, params = runner.wf.stage("render")
-    params = st.default_registry().get("render", name)(params).params
+    params = runner.render_params()
     sigma, both = params.mouth_sigma, params.mouth and puppet.has("texture/mouth_cavity")
     prov = Provenance.make(stage="teeth", backend="-", backend_version="1", params={"sigma": sigma} if both else {},
                            inputs={"mouth": mouth_key, "frames": frames.provenance("status/screen/state").key},

@@ -434,6 +434,11 @@ class Runner:
     def motion_params(self) -> dict:
         return self.wf.backendless("motion")
 
+    def render_params(self):
+        """The render backend's params, validated and with its defaults (the mouth and teeth steps read them)."""
+        name, params = self.wf.stage("render")
+        return st.default_registry().get("render", name)(params).params
+
     def collection(self, path: str, sources: list[media.Source]) -> tuple[Collection, bool]:
         """Open (or create anew, when its sources or ingest params changed) a collection of the
         resolved ``sources`` (:func:`resolve_inputs`)."""

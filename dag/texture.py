@@ -343,8 +343,7 @@ def run_mouth(runner, coll: Collection) -> Provenance:
     their inner lips, the widest (``texture/mouth``) or the darkest there, or both (``driver``: the
     darkest as ``texture/mouth_cavity``), how far apart their lips are (the median, canonical px), and
     B's mean inner-lip curves in the canonical frame."""
-    name, params = runner.wf.stage("render")
-    chosen = st.default_registry().get("render", name)(params).params
+    chosen = runner.render_params()
     settings = {"photos": chosen.mouth_photos, "min_gap": chosen.mouth_min_gap, "choice": chosen.mouth_choice}
     prov = Provenance.make(stage="mouth", backend="-", backend_version="2", params=settings,
                            inputs={"screen": coll.provenance("status/screen/state").key},
@@ -361,11 +360,11 @@ def run_mouth(runner, coll: Collection) -> Provenance:
     for i in open_:
         h, w = sizes[i]
         samples.append(mouth.sample(coll.array("photos/rgb")[int(ok[i])][:h, :w], points[i]))
-    darkest = mouth.darkest(np.stack(samples), settings["photos"]) if samples else np.zeros(0, int)
-    sets = {"widest": {"texture/mouth": np.arange(min(len(open_), settings["photos"]))},
+    widest = np.arange(min(len(open_), settings["photos"]))  # open_ is widest first
+    darkest = mouth.darkest(np.stack(samples), settings["photos"]) if samples else widest
+    sets = {"widest": {"texture/mouth": widest},
             "darkest": {"texture/mouth": darkest},
-            "driver": {"texture/mouth": np.arange(min(len(open_), settings["photos"])),
-                       "texture/mouth_cavity": darkest}}[settings["choice"]]
+            "driver": {"texture/mouth": widest, "texture/mouth_cavity": darkest}}[settings["choice"]]
     for array in ("texture/mouth", "texture/mouth_gap", "texture/mouth_cavity", "texture/mouth_cavity_gap"):
         coll.remove(array)  # an earlier run's
     if not samples:
