@@ -21,6 +21,14 @@ def default_camera(image_size: tuple[int, int], focal_factor: float) -> np.ndarr
     return np.array([[f, 0, (w - 1) / 2], [0, f, (h - 1) / 2], [0, 0, 1.0]])
 
 
+#: the landmarks (iBUG 68 indices) each choice of ``points`` poses a face from. The paper's 49 fiducials
+#: hold the mouth, the lids and the brows, which the expression moves: on a video of a woman opening her
+#: mouth, PnP on them pitches her head back by about 40° per inter-ocular distance of opening. "rigid" is
+#: the nose and the eyes' corners (docs/expression.md, "The head's pose from the nose and the eyes' corners:
+#: tried, a switch")
+POINTS = {"fiducials49": list(IDX49), "all68": list(range(68)), "rigid": [36, 39, 42, 45, *range(27, 36)]}
+
+
 def solve_pose(points3d: np.ndarray, points2d: np.ndarray, camera: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """rvec, tvec mapping points3d (n, 3) onto points2d (n, 2): EPnP, then Levenberg-Marquardt."""
     obj = np.ascontiguousarray(points3d, dtype=np.float64)
@@ -42,15 +50,17 @@ class PnPPose(PoseBackend):
     class Params(Params):
         focal_factor: float = Field(1.2, gt=0.2, le=10, description="focal length as a multiple "
                                     "of the photo's longer side (unknown Internet cameras)")
-        points: Literal["fiducials49", "all68"] = Field(
-            "fiducials49", description="landmarks used: the paper's 49 fiducials (no jaw contour, "
-            "which slides with the view) or all 68")
+        points: Literal["fiducials49", "rigid", "all68"] = Field(
+            "fiducials49", description="landmarks the pose is solved from: the paper's 49 fiducials (no jaw "
+            "contour, which slides with the view), whose mouth and brows tilt the head as they move; 'rigid', the "
+            "nose and the eyes' corners, which the expression moves least (not in the paper; steadier drives by a "
+            "woman's open mouth, but worse from tight 112-px crops: docs/expression.md); or all 68 (POINTS)")
         max_rms: float = Field(0.2, gt=0, description="reject poses whose landmark reprojection "
                                "RMS exceeds this fraction of the inter-ocular distance")
 
     def estimate(self, landmarks, image_size):
         template = generic_template()
-        idx = list(IDX49) if self.params.points == "fiducials49" else list(range(68))
+        idx = POINTS[self.params.points]
         camera = default_camera(image_size, self.params.focal_factor)
         rvec, tvec = solve_pose(template.landmarks3d[idx], landmarks[idx], camera)
         rotation = cv2.Rodrigues(rvec)[0]
