@@ -23,7 +23,7 @@ def default_camera(image_size: tuple[int, int], focal_factor: float) -> np.ndarr
 
 #: the landmarks (iBUG 68 indices) each choice of ``points`` poses a face from. The paper's 49 fiducials
 #: hold the mouth, the lids and the brows, which the expression moves: on a video of a woman opening her
-#: mouth, PnP on them pitches her head back by about 40° per inter-ocular distance of opening. "rigid" is
+#: mouth, PnP on them pitches her head back by 51° per inter-ocular distance of opening. "rigid" is
 #: the nose and the eyes' corners (docs/expression.md, "The head's pose from the nose and the eyes' corners:
 #: tried, a switch")
 POINTS = {"fiducials49": list(IDX49), "all68": list(range(68)), "rigid": [36, 39, 42, 45, *range(27, 36)]}
