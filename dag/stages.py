@@ -220,25 +220,27 @@ FRAMES = "@frames/"
 
 
 def _puppet(root, path) -> dict:
-    """The context of the render stages: the drive's puppet's average face, fiducials and mouth."""
+    """The context of the render stages: the drive's puppet's average face, fiducials and mouth (each
+    interior of B's mouth as its image and its photos' gap, or None)."""
     puppet = Collection(root, Cast.of(root, path).puppet)
     group = puppet.group["aligned"]
+
+    def interior(name):
+        return ((puppet.array(name)[...].astype(np.float32), float(puppet.array(f"{name}_gap")[0]))
+                if puppet.has(name) else None)
+
     return {"coverage": group["coverage"][...], "fiducials": group["mean_fiducials"][...].astype(np.float64),
-            "mouth": puppet.array("texture/mouth")[...].astype(np.float32) if puppet.has("texture/mouth") else None,
             "lips": puppet.array("texture/lips")[...] if puppet.has("texture/lips") else None,
-            "mouth_gap": float(puppet.array("texture/mouth_gap")[0]) if puppet.has("texture/mouth_gap") else np.inf,
-            "mouth_cavity": (puppet.array("texture/mouth_cavity")[...].astype(np.float32),
-                             float(puppet.array("texture/mouth_cavity_gap")[0]))
-            if puppet.has("texture/mouth_cavity") else None}
+            "mouth": interior("texture/mouth"), "mouth_cavity": interior("texture/mouth_cavity")}
 
 
 def _render(backend, params, inputs, context):
     h, w = inputs["@frames/photos/size"]
     frame = inputs["@frames/photos/rgb"][:h, :w]
-    interior, gap = context["mouth"], context["mouth_gap"]
+    interior, gap = context["mouth"] or (None, np.inf)
     if context["mouth_cavity"] is not None:  # B's teeth or B's cavity, as A's own mouth shows them
-        interior, gap = mouth.for_frame(interior, context["mouth_cavity"][0], (gap, context["mouth_cavity"][1]),
-                                        float(inputs["mouth/teeth"]))
+        cavity, cavity_gap = context["mouth_cavity"]
+        interior, gap = mouth.for_frame(interior, cavity, (gap, cavity_gap), float(inputs["mouth/teeth"]))
     puppet = Puppet(appearance=inputs["texture/rgb"].astype(np.float32), coverage=context["coverage"],
                     fiducials=context["fiducials"], mesh=inputs.get("mesh"), mouth=interior,
                     lips=context["lips"], mouth_gap=gap)
