@@ -41,7 +41,7 @@ def run_drive(runner, cast: Cast, output: str) -> Collection:
               "puppet": puppet.provenance("aligned/mean").key}
     motion = runner.motion_params()
     sigma, lips = motion["pose_sigma"], motion["lips"]
-    # lips at the paper's default is left out of the key: stores made before it existed stay valid
+    # lips at the paper's 'mean' is left out of the key: stores made before the switch existed stay valid
     prov = Provenance.make(stage="retarget", backend="-", backend_version="2",
                            params={"pose_sigma": sigma, **({"lips": lips} if lips != "mean" else {})},
                            inputs=inputs, persona_version=runner.version)

@@ -381,11 +381,12 @@ class MotionParams(Strict):
     pose_sigma: float = Field(POSE_SIGMA, ge=0, le=10, description="σ (frames) of the Gaussian smoothing of the "
                               "driver's head pose over time (ALGORITHMS §9.2.1; not in the paper); 0 = none. "
                               "1.5 lagged the head's real motion (docs/expression.md)")
-    lips: Literal["mean", "closed"] = Field("mean", description="how the driver's lips move the puppet's "
-                                            "(retargeting): 'mean', the paper's, by the driver's offsets about the "
-                                            "puppet's mean mouth; 'closed', the driver's own gap between the inner "
-                                            "lips, scaled, so that its closed lips close the puppet's "
-                                            "(docs/expression.md)")
+    lips: Literal["mean", "parted", "closed"] = Field(
+        "parted", description="how the driver's lips move the puppet's (retargeting): 'mean', the paper's, by the "
+        "driver's offsets about the puppet's mean mouth; 'closed', the driver's own gap between the inner lips, "
+        "scaled, so that its closed lips close the puppet's; 'parted' (not in the paper), the paper's but never less "
+        "open than 'closed': a driver whose mean mouth is more open than the puppet's (one who smiles or talks "
+        "through the clip) no longer shuts the puppet's lips while its own are apart (docs/expression.md)")
     dynamics: DynamicsParams = Field(default_factory=DynamicsParams, description="the driver's per-frame "
                                      "3D flow (ALGORITHMS §9), used by 3D renderers")
     flow: FlowChoice = Field(default_factory=FlowChoice, description="the 2D flow of the per-frame 3D flow "

@@ -164,6 +164,9 @@ def retarget(driver: np.ndarray, driver_neutral: np.ndarray, puppet_neutral: np.
         at rest. "closed": the gap between the inner lips is the driver's own, scaled by the faces'
         proportions, so the driver's closed lips close the puppet's; the upper and the lower lip
         each move by half the difference (their thickness kept), the corners as in "mean".
+        "parted": as "mean", but never less open than "closed": where the driver's mean mouth is
+        more open than the puppet's (a driver who smiles or talks through most of the clip), the
+        paper's offsets shut the puppet's lips while the driver's are still apart.
 
     driver : (n, 49, 2); driver_neutral, puppet_neutral : (49, 2) -> (n, 49, 2)
     """
@@ -174,12 +177,13 @@ def retarget(driver: np.ndarray, driver_neutral: np.ndarray, puppet_neutral: np.
     if np.isfinite(ratio) and ratio > 0:
         scale[eyes, 1] = np.clip(ratio, 1 / max_eye_ratio, max_eye_ratio)
     target = puppet_neutral + (driver - driver_neutral) * scale
-    if lips == "closed":
+    if lips not in ("mean", "parted", "closed"):
+        raise ValueError(f'lips: "mean", "parted" or "closed", not "{lips}"')
+    if lips != "mean":
         shift = lip_gap(target) - sizes[1] * lip_gap(driver)  # how much more open than the driver's, scaled
+        shift = np.nan_to_num(np.minimum(shift, 0) if lips == "parted" else shift)
         target[..., UPPER_LIP, 1] += shift[..., None] / 2
         target[..., LOWER_LIP, 1] -= shift[..., None] / 2
-    elif lips != "mean":
-        raise ValueError(f'lips: "mean" or "closed", not "{lips}"')
     return close_no_further(target)
 
 

@@ -203,3 +203,30 @@ def test_retarget_lips_closed_closes_a_puppet_whose_mean_mouth_is_open():
                                np.delete(paper, UPPER_LIP + LOWER_LIP, axis=1))  # nothing else moves
     with pytest.raises(ValueError, match="lips"):
         retarget(frames, driver_neutral, puppet_neutral, lips="open")
+
+
+def test_retarget_lips_parted_opens_a_puppet_whose_mean_mouth_is_more_closed_than_the_drivers():
+    """A driver who smiles through most of a clip, its mean mouth 8 px open, and a puppet whose mean
+    mouth is 2 px open: the paper's offsets ("mean") shut the puppet's lips as soon as the driver's
+    are under 6 px apart, so its 4 px opening gives the puppet nothing; "parted" gives the puppet
+    the driver's own gap in its proportion (as "closed"), and leaves alone a puppet whose mean mouth
+    is the more open (as "mean")."""
+    def open_by(face, px):  # each inner lip point `px` below the one facing it
+        for upper, lower in FACING[4:]:
+            face[lower, 1] = face[upper, 1] + px
+        return face
+
+    driver_neutral = open_by(generic_template().landmarks3d[list(IDX49), :2].copy(), 8.0)  # the driver's mean
+    puppet_neutral = open_by(driver_neutral * [1.0, 1.1] + [3.0, -2.0], 2.0)  # the puppet's: 2 px
+    sy = eye_mouth_scale(puppet_neutral)[1] / eye_mouth_scale(driver_neutral)[1]
+    frames = np.stack([driver_neutral + 0.0, driver_neutral + 0.0, driver_neutral + 0.0])
+    for frame, gap_px in zip(frames, (0.0, 4.0, 12.0)):
+        frame[list(LOWER_LIP), 1] += gap_px - 8.0
+    np.testing.assert_allclose(lip_gap(retarget(frames, driver_neutral, puppet_neutral)),
+                               [0.0, 0.0, 2.0 + 4.0 * sy], atol=1e-9)
+    parted = retarget(frames, driver_neutral, puppet_neutral, lips="parted")
+    np.testing.assert_allclose(lip_gap(parted), [0.0, 4.0 * sy, 12.0 * sy], atol=1e-9)
+    np.testing.assert_allclose(parted, retarget(frames, driver_neutral, puppet_neutral, lips="closed"))
+    wide = open_by(puppet_neutral.copy(), 14.0)  # a puppet whose mean mouth is 14 px open: the paper's offsets
+    np.testing.assert_allclose(retarget(frames, driver_neutral, wide, lips="parted"),
+                               retarget(frames, driver_neutral, wide))
