@@ -340,14 +340,12 @@ def stored_textures(url: str, path: str, name: str, params: dict, targets, start
 def run_mouth(runner, coll: Collection) -> Provenance:
     """The inside of B's mouth for the renderer (``mouth``, ``mouth_photos``, ``mouth_min_gap`` and
     ``mouth_choice`` of its params): the median of ``mouth_photos`` of B's open accepted photos between
-    their inner lips, the widest (``texture/mouth``) or the darkest there, or both kinds a driver's
-    mouth shows (``driver``: those that show the most teeth as ``texture/mouth``, the darkest as
-    ``texture/mouth_cavity``), how far apart their lips are (the median, canonical px), and B's mean
-    inner-lip curves in the canonical frame."""
+    their inner lips, the widest (``texture/mouth``) or the darkest there, or both (``driver``: the
+    darkest as ``texture/mouth_cavity``), how far apart their lips are (the median, canonical px), and
+    B's mean inner-lip curves in the canonical frame."""
     chosen = runner.render_params()
     settings = {"photos": chosen.mouth_photos, "min_gap": chosen.mouth_min_gap, "choice": chosen.mouth_choice}
-    # 3: driver's teeth from the photos that show the most teeth, no longer the widest
-    prov = Provenance.make(stage="mouth", backend="-", backend_version="3", params=settings,
+    prov = Provenance.make(stage="mouth", backend="-", backend_version="2", params=settings,
                            inputs={"screen": coll.provenance("status/screen/state").key},
                            persona_version=runner.version)
     if coll.made_by("texture/lips", prov):
@@ -358,18 +356,15 @@ def run_mouth(runner, coll: Collection) -> Provenance:
     landmarks = coll.array("aligned/landmarks").oindex[ok].astype(np.float64)
     count = settings["photos"] if settings["choice"] == "widest" else len(ok)
     open_ = mouth.widest(points, count, settings["min_gap"])  # the open photos, widest first
-    samples, shares = [], []
+    samples = []
     for i in open_:
         h, w = sizes[i]
-        rgb = coll.array("photos/rgb")[int(ok[i])][:h, :w]
-        samples.append(mouth.sample(rgb, points[i]))
-        shares.append(mouth.teeth_share(rgb, points[i]))
+        samples.append(mouth.sample(coll.array("photos/rgb")[int(ok[i])][:h, :w], points[i]))
     widest = np.arange(min(len(open_), settings["photos"]))  # open_ is widest first
     darkest = mouth.darkest(np.stack(samples), settings["photos"]) if samples else widest
     sets = {"widest": {"texture/mouth": widest},
             "darkest": {"texture/mouth": darkest},
-            "driver": {"texture/mouth": mouth.most_teeth(shares, settings["photos"]),
-                       "texture/mouth_cavity": darkest}}[settings["choice"]]
+            "driver": {"texture/mouth": widest, "texture/mouth_cavity": darkest}}[settings["choice"]]
     for array in ("texture/mouth", "texture/mouth_gap", "texture/mouth_cavity", "texture/mouth_cavity_gap"):
         coll.remove(array)  # an earlier run's
     if not samples:

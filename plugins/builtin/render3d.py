@@ -197,9 +197,8 @@ class RaycastRender(RenderBackend):
         mouth_choice: Literal["widest", "darkest", "driver"] = Field(
             "driver", description="which of B's open photos make the mouth's interior: those whose lips are "
             "furthest apart (mostly laughs: teeth and tongue), those whose gap is darkest in its middle (the "
-            "cavity of an open mouth, as an 'O' shows it), or (driver) the open photos that show the most teeth "
-            "and the darkest, each frame taking B's teeth or B's cavity as the driver's own mouth shows teeth or "
-            "cavity there (mouth.teeth_share; docs/expression.md)")
+            "cavity of an open mouth, as an 'O' shows it), or both, each frame taking B's teeth or B's cavity "
+            "as the driver's own mouth shows teeth or cavity there (mouth.teeth_share; docs/expression.md)")
         mouth_sigma: float = Field(1.5, ge=0, description="mouth_choice driver: how much of B's teeth each frame "
                                    "shows, smoothed in time by a Gaussian of this many frames (0: each frame's own)")
 

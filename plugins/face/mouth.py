@@ -139,13 +139,6 @@ def darkest(samples: np.ndarray, count: int) -> np.ndarray:
     return np.argsort([_middle_grey(sample) for sample in samples], kind="stable")[:count]
 
 
-def most_teeth(shares, count: int) -> np.ndarray:
-    """Indices of the (at most) ``count`` photos whose open mouths show the most teeth, by their
-    :func:`teeth_share` ``shares``, in their given order (widest first) among equal shares: the
-    interior a frame takes where the driver's mouth shows teeth (a grin), not a shout's dark."""
-    return np.argsort(-np.asarray(shares, np.float64), kind="stable")[:count]
-
-
 def teeth_share(rgb: np.ndarray, landmarks68: np.ndarray, *, cavity: float = 0.2, teeth: float = 0.7,
                 min_gap: float = 2.0) -> float:
     """How much a frame's open mouth shows teeth rather than the dark cavity, in [0, 1]: the grey of
@@ -167,8 +160,8 @@ def teeth_share(rgb: np.ndarray, landmarks68: np.ndarray, *, cavity: float = 0.2
 
 def for_frame(teeth: np.ndarray, cavity: np.ndarray, gaps: tuple[float, float], share: float):
     """The interior image and its photos' gap for a frame whose mouth shows ``share`` teeth
-    (:func:`teeth_share`): the ``teeth`` interior (from the photos that show most teeth) and the
-    ``cavity`` one (from the darkest), and their ``gaps``, weighed by it."""
+    (:func:`teeth_share`): the ``teeth`` interior (from the widest photos) and the ``cavity`` one
+    (from the darkest), and their ``gaps``, weighed by it."""
     return teeth * share + cavity * (1 - share), gaps[0] * share + gaps[1] * (1 - share)
 
 

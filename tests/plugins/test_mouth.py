@@ -203,21 +203,3 @@ def test_a_mouth_opened_further_than_its_photos_shows_the_cavity_between_its_tee
     assert (grin[31:45] > 240).all()  # (the rounded outline bulges a pixel past the nodes: 247 in its middle)
     assert (jaw[31:37] > 250).all() and (jaw[63:69] > 250).all()  # the teeth along each lip
     np.testing.assert_allclose(jaw[45:55], np.broadcast_to([60, 20, 20], (10, 3)), atol=1)
-
-
-def test_the_teeth_interior_comes_from_the_photos_that_show_most_teeth():
-    """A shout's gap is dark, a grin's bright: the teeth a frame shows come from the photos whose gap is
-    brightest against their nose, not from the widest; among equal shares the order given (widest
-    first) stands."""
-    photos = []
-    for middle, gap in ((20, 40.0), (230, 16.0), (120, 30.0), (230, 20.0)):  # shout, grin, tongue, grin
-        rgb, lm = open_photo(gap)
-        lm[29:36] = [[80, 70 + 2 * k] for k in range(7)]  # the nose, on the photo's white
-        top, bottom = int(round(110 - gap / 2)) + 2, int(round(110 + gap / 2)) - 2
-        rgb[top:bottom, 60:101] = middle
-        photos.append((rgb, lm))
-    shares = [mouth.teeth_share(rgb, lm) for rgb, lm in photos]
-    assert shares[0] == 0 and shares[1] == shares[3] == 1 and 0 < shares[2] < 1, shares
-    order = [0, 3, 2, 1]  # widest first: 40, 30, 20, 16 px
-    assert [order[k] for k in mouth.most_teeth([shares[k] for k in order], 2)] == [3, 1]
-    assert list(mouth.most_teeth(shares, 9)) == [1, 3, 2, 0]
