@@ -430,9 +430,10 @@ def test_a_run_killed_during_the_frame_textures_resumes_to_complete_textures(tmp
     assert textures.reshape(len(textures), -1).max(axis=1).min() > 0  # no black frame
     cache, fiducials = texture_module.load_cache(puppet)
     backend = texture_module.texture_backend(type("R", (), {"wf": load_workflow(path)})())[2]
-    for t in (1, 5, 7):
-        expect = backend.blend(cache, fiducials, drive.array("target")[t]).round().astype(np.uint8)
-        np.testing.assert_array_equal(textures[t], expect)
+    for t in (1, 5, 7):  # the stored bytes are the backend's blend rounded; the drive sums the photos a shard at
+        # a time, so a value within float32 noise (1e-4) of a half level may round the other way
+        exact = backend.blend(cache, fiducials, drive.array("target")[t])
+        assert np.abs(textures[t] - exact).max() <= 0.5 + 1e-3
 
 
 def _small_run(folder, **texture):
