@@ -27,8 +27,17 @@ done
 if [ ${#missing[@]} -gt 0 ]; then
   SUDO=""; [ "$(id -u)" -eq 0 ] || SUDO="sudo"
   echo "installing system packages: ${missing[*]}"
-  $SUDO apt-get update -qq
-  DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq "${missing[@]}"
+  apt_get() {  # apt-get, waiting (up to 10 minutes) while another apt or dpkg holds its lock
+    local out
+    for _ in $(seq 120); do
+      if out=$($SUDO env DEBIAN_FRONTEND=noninteractive apt-get "$@" 2>&1); then return 0; fi
+      grep -q "Could not get lock" <<<"$out" || { echo "$out" >&2; return 1; }
+      echo "apt-get $1: another apt-get or dpkg holds its lock; waiting" >&2; sleep 5
+    done
+    echo "$out" >&2; return 1
+  }
+  apt_get update -qq
+  apt_get install -y -qq "${missing[@]}"
 fi
 
 [ -x .venv/bin/python ] || "$PYTHON" -m venv .venv
