@@ -241,14 +241,21 @@ def _render(backend, params, inputs, context):
     if context["mouth_cavity"] is not None:  # B's teeth or B's cavity, as A's own mouth shows them
         cavity, cavity_gap = context["mouth_cavity"]
         interior, gap = mouth.for_frame(interior, cavity, (gap, cavity_gap), float(inputs["mouth/teeth"]))
+    pose, drivers = Pose.from_vector(inputs["pose"]), None
+    if getattr(backend.params, "mouth_choice", None) == "frame" and interior is not None:
+        drivers = mouth.from_frame(frame, inputs["@frames/landmarks/points"])  # A's own interior, where A's lips part
+        if drivers is not None:  # its gap from frame px to canonical at the head's distance (the renderer's f / z)
+            interior, gap = drivers[0], drivers[1] * float(pose.tvec[2]) / float(pose.camera[0, 0])
     puppet = Puppet(appearance=inputs["texture/rgb"].astype(np.float32), coverage=context["coverage"],
                     fiducials=context["fiducials"], mesh=inputs.get("mesh"), mouth=interior,
-                    lips=context["lips"], mouth_gap=gap)
-    out = backend.render(puppet, inputs["target"].astype(np.float64), Pose.from_vector(inputs["pose"]), frame)
+                    lips=context["lips"], mouth_gap=gap, mouth_own=drivers is not None)
+    out = backend.render(puppet, inputs["target"].astype(np.float64), pose, frame)
     mask = np.round(out.mask * 255).astype(np.uint8)
+    own = np.zeros_like(mask) if out.own is None else np.round(out.own * 255).astype(np.uint8)
     # A's light at B's edge, fitted here where render and frame are at hand; the drive makes it steady in
     # time before the composite applies it
-    return {"render/rgb": out.rgb, "render/mask": mask, "render/light": light_plane(out.rgb, frame, render_alpha(mask))}
+    return {"render/rgb": out.rgb, "render/mask": mask, "render/own": own,
+            "render/light": light_plane(out.rgb, frame, render_alpha(mask))}
 
 
 def render_alpha(mask: np.ndarray) -> np.ndarray:
@@ -259,6 +266,7 @@ def render_alpha(mask: np.ndarray) -> np.ndarray:
 _RENDER_OUTPUTS = (
     Output("render/rgb", (), "uint8", ("frame", "y", "x", "channel")),  # tail = the canvas
     Output("render/mask", (), "uint8", ("frame", "y", "x")),
+    Output("render/own", (), "uint8", ("frame", "y", "x")),  # Rendered.own: the driver's own pixels, not relit
     Output("render/light", (4, 3), "float32", ("frame", "term", "channel")),  # composite.light_plane
 )
 _RENDER_INPUTS = ("target", "pose", "texture/rgb", "@frames/photos/rgb", "@frames/photos/size")
@@ -267,7 +275,8 @@ _RENDER_INPUTS = ("target", "pose", "texture/rgb", "@frames/photos/rgb", "@frame
 RENDER = PhotoStage("render", "render", "retarget", _RENDER_INPUTS, _RENDER_OUTPUTS, _render, _puppet)
 #: the same for renderers of the 3D puppet: B's mesh of each frame (``mesh``, from the motion step) too, and
 #: how much of B's teeth its mouth shows (``mouth/teeth``, from the teeth step)
-RENDER_3D = PhotoStage("render3d", "render", "retarget", (*_RENDER_INPUTS, "mesh", "mouth/teeth"),
+RENDER_3D = PhotoStage("render3d", "render", "retarget", (*_RENDER_INPUTS, "mesh", "mouth/teeth",
+                                                          "@frames/landmarks/points"),
                        _RENDER_OUTPUTS, _render, _puppet)
 
 
@@ -275,17 +284,18 @@ def _composite(backend, params, inputs, context):
     h, w = inputs["@frames/photos/size"]
     return {"composite/rgb": blend(inputs["render/rgb"][:h, :w], inputs["@frames/photos/rgb"][:h, :w],
                                    render_alpha(inputs["render/mask"][:h, :w]), plane=inputs["composite/light"],
-                                   lighting=params["lighting"], tone=params["tone"], hair=params["hair"])}
+                                   lighting=params["lighting"], tone=params["tone"], hair=params["hair"],
+                                   own=render_alpha(inputs["render/own"][:h, :w]))}
 
 
 #: B's rendered face blended into each driver frame (composite.mp4's frames; params: the workflow's
 #: stages.composite), in the light made steady in time (``composite/light``: drive._steady_light); a frame
 #: without a render is the driver's own
-COMPOSITE = PhotoStage("composite", None, None, ("render/rgb", "render/mask", "composite/light",
+COMPOSITE = PhotoStage("composite", None, None, ("render/rgb", "render/mask", "render/own", "composite/light",
                                                  "@frames/photos/rgb", "@frames/photos/size"),
                        (Output("composite/rgb", (), "uint8", ("frame", "y", "x", "channel")),), _composite,
-                       version="3")  # 2: the hair in front fades out about half the face's height; 3: it reaches
-                       # down the sides to the jaw, all but the chin's sector
+                       version="4")  # 2: the hair in front fades out about half the face's height; 3: it reaches
+                       # down the sides to the jaw, all but the chin's sector; 4: the driver's own pixels not relit
 
 
 def driver_model(root, path) -> dict:
@@ -383,7 +393,7 @@ def output_tail(output: Output, canvas) -> tuple[int, ...]:
     """The per-photo shape of an output; frame-sized outputs take the collection's canvas."""
     if output.name in ("photos/rgb", "render/rgb", "composite/rgb"):
         return (*canvas, 3)
-    return tuple(canvas) if output.name == "render/mask" else output.tail
+    return tuple(canvas) if output.name in ("render/mask", "render/own") else output.tail
 
 
 def _empty(output: Output, n: int, canvas) -> np.ndarray:

@@ -354,7 +354,7 @@ def run_mouth(runner, coll: Collection) -> Provenance:
     points = coll.array("landmarks/points").oindex[ok].astype(np.float64)
     sizes = coll.array("photos/size").oindex[ok]
     landmarks = coll.array("aligned/landmarks").oindex[ok].astype(np.float64)
-    count = settings["photos"] if settings["choice"] == "widest" else len(ok)
+    count = settings["photos"] if settings["choice"] in ("widest", "frame") else len(ok)
     open_ = mouth.widest(points, count, settings["min_gap"])  # the open photos, widest first
     samples = []
     for i in open_:
@@ -362,7 +362,7 @@ def run_mouth(runner, coll: Collection) -> Provenance:
         samples.append(mouth.sample(coll.array("photos/rgb")[int(ok[i])][:h, :w], points[i]))
     widest = np.arange(min(len(open_), settings["photos"]))  # open_ is widest first
     darkest = mouth.darkest(np.stack(samples), settings["photos"]) if samples else widest
-    sets = {"widest": {"texture/mouth": widest},
+    sets = {"widest": {"texture/mouth": widest}, "frame": {"texture/mouth": widest},  # frame: where A's lips close
             "darkest": {"texture/mouth": darkest},
             "driver": {"texture/mouth": widest, "texture/mouth_cavity": darkest}}[settings["choice"]]
     for array in ("texture/mouth", "texture/mouth_gap", "texture/mouth_cavity", "texture/mouth_cavity_gap"):

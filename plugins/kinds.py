@@ -123,6 +123,9 @@ class Puppet:
         x, y), where the mesh's lips are
     mouth_gap : float — how far apart (canonical px) the inner lips are in the photos ``mouth`` comes
         from: the interior's own height (inf: unknown, the interior is stretched to any gap)
+    mouth_own : bool — ``mouth`` is the driver's own, from this frame (``mouth_choice: frame``): sharp and
+        already in the frame's light, its rows nearest the lips keep their size and the composite leaves
+        it as it is (Rendered.own)
     """
 
     appearance: np.ndarray
@@ -132,6 +135,7 @@ class Puppet:
     mouth: np.ndarray | None = None
     lips: np.ndarray | None = None
     mouth_gap: float = np.inf
+    mouth_own: bool = False
 
 
 @dataclass(frozen=True)
@@ -140,10 +144,13 @@ class Rendered:
     pixel is the face. rgb is the face's own colour wherever mask > 0, its soft edge included, not
     blended with anything (grey, 128, where mask is 0): the composite blends it into the driver's
     frame and ``puppet.mp4`` over grey (``persona.plugins.face.composite.alone``). Blended already,
-    the soft edge would carry grey into the composite as a pale ring."""
+    the soft edge would carry grey into the composite as a pale ring. ``own`` (h, w) float32 in [0, 1],
+    or None: how much of each pixel shows the driver's own frame (its mouth interior, Puppet.mouth_own),
+    already in the frame's light, which the composite does not relight."""
 
     rgb: np.ndarray
     mask: np.ndarray
+    own: np.ndarray | None = None
 
 
 class RenderBackend(Backend):

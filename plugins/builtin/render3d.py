@@ -170,9 +170,10 @@ class RaycastRender(RenderBackend):
                    "texture, at the driver's head pose (z-buffered, equal to ray casting pixel centres)")
     default = True
     uses_mesh = True
-    version = "5"  # 2: rgb is the face's own colour across its soft edge; no background param; 3: the mouth
+    version = "6"  # 2: rgb is the face's own colour across its soft edge; no background param; 3: the mouth
     # interior averaged to the gap's size and drawn by the share of each pixel it covers; 4: the opening's
-    # outline rounded (mouth.rounded); 5: the middle of an opening taller than the photos' turns to the cavity (mouth.depth)
+    # outline rounded (mouth.rounded); 5: the middle of an opening taller than the photos' turns to the cavity
+    # (mouth.depth); 6: the driver's own interior (mouth_choice frame, the default) and where it is (render/own)
 
     class Params(Params):
         min_coverage: float = Field(0.3, ge=0, le=1, description="canonical pixels seen in fewer "
@@ -194,11 +195,18 @@ class RaycastRender(RenderBackend):
                                   "mouth's interior (their per-pixel median)")
         mouth_min_gap: float = Field(0.08, ge=0, description="a photo counts as open when its inner lips "
                                      "are this many inter-ocular distances apart")
-        mouth_choice: Literal["widest", "darkest", "driver"] = Field(
-            "driver", description="which of B's open photos make the mouth's interior: those whose lips are "
-            "furthest apart (mostly laughs: teeth and tongue), those whose gap is darkest in its middle (the "
-            "cavity of an open mouth, as an 'O' shows it), or both, each frame taking B's teeth or B's cavity "
-            "as the driver's own mouth shows teeth or cavity there (mouth.teeth_share; docs/expression.md)")
+        mouth_choice: Literal["frame", "widest", "darkest", "driver"] = Field(
+            "frame", description="what the mouth's interior is made of. `frame` (the default): the driver's "
+            "own mouth interior in each frame (A's teeth, tongue and cavity, between A's inner lips; "
+            "mouth.from_frame), drawn into B's gap, its rows nearest each lip at their own size; B's widest "
+            "photos where A's lips are closed. Or B's own open photos: those whose lips are furthest apart "
+            "(mostly laughs: teeth and tongue), those whose gap is darkest in its middle (the cavity of an open "
+            "mouth, as an 'O' shows it), or both, each frame taking B's teeth or B's cavity as the driver's own "
+            "mouth shows teeth or cavity there (`driver`, mouth.teeth_share). B's own is what the expression "
+            "issue asked for; but celebrity photos at ~100 px between the ears show blurred teeth or none "
+            "(Bush's widest are shouts, dark inside), and B's opening was a dark hole where the driver showed "
+            "teeth: with A's own, Bush <- Obama's composite mouth-opening gain rose 0.81 -> 1.13 and its width "
+            "0.68 -> 0.74 (docs/expression.md)")
         mouth_sigma: float = Field(1.5, ge=0, description="mouth_choice driver: how much of B's teeth each frame "
                                    "shows, smoothed in time by a Gaussian of this many frames (0: each frame's own)")
 
@@ -239,8 +247,11 @@ class RaycastRender(RenderBackend):
             lips = np.asarray(puppet.lips, np.float32).reshape(1, -1, 2)
             xy, z = project(compose(np.asarray(puppet.mesh, np.float32), lips)[0], pose)  # the mesh at the lips
             if np.all(z > _NEAR):  # frame px per canonical unit at the lips: f / z
-                mouth.draw(out, mask, np.asarray(puppet.mouth, np.float32), xy.reshape(2, -1, 2),
-                           gap=puppet.mouth_gap * pose.camera[0, 0] / float(np.mean(z)))
+                drawn = mouth.draw(out, mask, np.asarray(puppet.mouth, np.float32), xy.reshape(2, -1, 2),
+                                   gap=puppet.mouth_gap * pose.camera[0, 0] / float(np.mean(z)),
+                                   keep_rows=puppet.mouth_own)
+                if puppet.mouth_own:
+                    return Rendered(rgb=out, mask=mask, own=drawn)
         return Rendered(rgb=out, mask=mask)
 
 @hookimpl

@@ -321,14 +321,20 @@ def hair_in_front(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, rea
 
 
 def blend(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, lighting: float = 1.0,
-          tone: float = 1.0, hair: float = 1.0, plane: np.ndarray | None = None) -> np.ndarray:
+          tone: float = 1.0, hair: float = 1.0, plane: np.ndarray | None = None,
+          own: np.ndarray | None = None) -> np.ndarray:
     """The composite as ``composite.mp4`` shows it: B's face matched to A's light and tone at its edge
     (:func:`apply_light` of ``plane``, by ``lighting`` and ``tone`` in [0, 1]; by default the plane
     fitted on this frame, :func:`light_plane`; a drive gives its planes made steady in time,
-    :func:`steady_light`), then blended band by band (:func:`multiband`) through the mask less ``hair``
-    (in [0, 1]) times :func:`hair_in_front`."""
+    :func:`steady_light`), but for ``own`` (h, w) in [0, 1], the share of each pixel that is the
+    driver's own already (its mouth interior drawn into B's gap, Rendered.own), which keeps its colour;
+    then blended band by band (:func:`multiband`) through the mask less ``hair`` (in [0, 1]) times
+    :func:`hair_in_front`."""
     matched = (match_lighting(face, frame, alpha, lighting=lighting, tone=tone) if plane is None
                else apply_light(face, alpha, plane, lighting=lighting, tone=tone))
+    if own is not None and np.any(own > 0):
+        kept = np.asarray(own, np.float32)[..., None]
+        matched = np.round(face * kept + matched * (1 - kept)).astype(np.uint8)
     if hair > 0:
         alpha = np.asarray(alpha, np.float32) * (1 - hair * hair_in_front(face, frame, alpha))
     return multiband(matched, frame, alpha)

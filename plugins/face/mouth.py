@@ -18,6 +18,13 @@ its teeth. B keeps both interiors, and each frame weighs them by how much the dr
 shows teeth there (:func:`teeth_share`: the grey of its gap's middle over that of its nose, so
 that the light does not count; :func:`for_frame`).
 
+**Or the driver's own (``mouth_choice: frame``, not B's).** Celebrity photos at ~100 px between
+the ears rarely show teeth sharply, and some collections not at all (Bush's widest photos are
+shouts, dark inside). The driver's video shows A's mouth interior in every frame, at the frame's
+resolution, in the frame's light, moving as the lips do: :func:`from_frame` takes it between A's
+inner lips as :func:`sample` does B's, a little inside the lip points (``inset``) so that A's lips,
+which dlib's inner-lip points sit on, do not line the gap.
+
 **Drawing it.** In each output frame the renderer projects B's inner-lip curves as the frame's
 mesh moved them, rounds them into one smooth outline of the opening (:func:`rounded`: an "O" is
 drawn round, not as a hexagon with pointed corners), and maps the interior image into the gap
@@ -88,24 +95,41 @@ def rounded(curves: np.ndarray, steps: int = STEPS) -> np.ndarray:
     return np.stack([upper, lower])
 
 
-def _positions(curves: np.ndarray, size: tuple[int, int] = SIZE) -> np.ndarray:
-    """(rows, cols, 2): the image point (x, y) of every (s, t) cell of the interior rectangle."""
+def _positions(curves: np.ndarray, size: tuple[int, int] = SIZE, inset: float = 0.0) -> np.ndarray:
+    """(rows, cols, 2): the image point (x, y) of every (s, t) cell of the interior rectangle, t from
+    ``inset`` to 1 - ``inset`` of the way from the upper curve to the lower."""
     rows, cols = size
     s = np.linspace(0, 1, cols) * (curves.shape[1] - 1)
     k = np.minimum(np.floor(s).astype(int), curves.shape[1] - 2)
     a = (s - k)[:, None]
     upper = curves[0, k] * (1 - a) + curves[0, k + 1] * a  # (cols, 2)
     lower = curves[1, k] * (1 - a) + curves[1, k + 1] * a
-    t = np.linspace(0, 1, rows)[:, None, None]
+    t = np.linspace(inset, 1 - inset, rows)[:, None, None]
     return upper[None] * (1 - t) + lower[None] * t
 
 
-def sample(rgb: np.ndarray, landmarks68: np.ndarray) -> np.ndarray:
+def sample(rgb: np.ndarray, landmarks68: np.ndarray, inset: float = 0.0) -> np.ndarray:
     """(rows, cols, 3) float32: one photo ``rgb`` (h, w, 3) between its inner lips (its 68 landmarks
-    in its own pixels), resampled on the (s, t) rectangle."""
-    at = _positions(lip_curves(landmarks68)).astype(np.float32)
+    in its own pixels), resampled on the (s, t) rectangle (its rows from ``inset`` of the gap below the
+    upper lip to as far above the lower)."""
+    at = _positions(lip_curves(landmarks68), inset=inset).astype(np.float32)
     return cv2.remap(np.asarray(rgb, np.float32), at[..., 0], at[..., 1], cv2.INTER_LINEAR,
                      borderMode=cv2.BORDER_REPLICATE)
+
+
+def from_frame(rgb: np.ndarray, landmarks68: np.ndarray, *, inset: float = 0.15,
+               min_gap: float = 2.0) -> tuple[np.ndarray, float] | None:
+    """The driver's own mouth interior in one frame (``mouth_choice: frame``): its :func:`sample`
+    between A's inner lips, ``inset`` inside them, and how far apart A's lips are (frame px: beyond it
+    :func:`draw` turns to the cavity); None where A's lips are under ``min_gap`` px apart or a point
+    is missing (the renderer then draws B's own interior, as the other choices do)."""
+    lm = np.asarray(landmarks68, np.float64)
+    if not np.isfinite(lm).all():
+        return None
+    gap = lip_gap(lm[None], per_iod=False)[0]
+    if not gap >= min_gap:
+        return None
+    return sample(rgb, lm, inset), float(gap)
 
 
 def interior(samples) -> np.ndarray | None:
@@ -204,13 +228,29 @@ def _area(triangle: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     return out
 
 
+def _rows_kept(image: np.ndarray, height: float, gap: float) -> np.ndarray:
+    """The interior ``image`` for lips ``height`` px apart where its own were ``gap`` apart: all of it
+    where they are as far apart or further; closer, only its rows nearest each lip, at their own
+    size (as many as the height takes), its middle left out: the upper teeth hang from the upper
+    lip and the lower ones sit on the lower, and a mouth that opens less shows less between them."""
+    rows = image.shape[0]
+    if not height < gap:
+        return image
+    keep = max(int(round(rows * height / gap)), 2)
+    return np.concatenate([image[:(keep + 1) // 2], image[rows - keep // 2:]])
+
+
 def draw(out: np.ndarray, face: np.ndarray, image: np.ndarray, curves: np.ndarray,
-         gap: float = np.inf) -> None:
+         gap: float = np.inf, keep_rows: bool = False) -> np.ndarray:
     """Draw the interior ``image`` into the frame ``out`` (h, w, 3) uint8, in place, between the
     frame's inner-lip ``curves`` (2, 5, 2), :func:`rounded`, where the rendered ``face`` mask (h, w)
     float is. ``gap``: how far apart (frame px) the lips of the photos the interior comes from were;
     where the frame's lips are further apart, the middle of the opening turns to B's :func:`cavity`
     colour by its :func:`depth`, as a jaw that drops shows the dark between the teeth (inf: never).
+    ``keep_rows``: where they are closer, the image's rows nearest the lips keep their size and its
+    middle is left out (:func:`_rows_kept`; the driver's own interior, whose teeth are sharp), rather
+    than the whole image squeezed into the gap. Returns how much of each pixel of ``out`` (h, w) float32
+    the interior covers.
 
     Quad by quad between the outline's points, the image is first averaged down (area resampling) to
     the quad's own height and the mouth's length in pixels, so that a gap a pixel or two tall shows
@@ -218,16 +258,17 @@ def draw(out: np.ndarray, face: np.ndarray, image: np.ndarray, curves: np.ndarra
     sampling happens to hit; each quad covers a pixel by the share of its area inside (:func:`_area`),
     which also makes the gap's soft edge."""
     h, w = out.shape[:2]
+    drawn = np.zeros((h, w), np.float32)
     curves = np.asarray(curves, np.float64)
     if not np.all(np.isfinite(curves)):
-        return
+        return drawn
     curves = rounded(curves)
     lo = np.floor(curves.reshape(-1, 2).min(axis=0)).astype(int) - 2
     hi = np.ceil(curves.reshape(-1, 2).max(axis=0)).astype(int) + 3
     x0, y0 = max(lo[0], 0), max(lo[1], 0)
     x1, y1 = min(hi[0], w), min(hi[1], h)
     if x1 <= x0 or y1 <= y0:
-        return
+        return drawn
     rows, cols = image.shape[:2]
     nodes = curves.shape[1]
     length = np.linalg.norm(np.diff(curves, axis=1), axis=2).max(axis=0).sum()  # along the mouth, px
@@ -238,8 +279,9 @@ def draw(out: np.ndarray, face: np.ndarray, image: np.ndarray, curves: np.ndarra
     for k in range(nodes - 1):
         height = np.linalg.norm(curves[1, k:k + 2] - curves[0, k:k + 2], axis=1).mean()
         rows_px = int(np.clip(np.ceil(height), 1, rows))
-        small = image if (rows_px, cols_px) == (rows, cols) else cv2.resize(image, (cols_px, rows_px),
-                                                                            interpolation=cv2.INTER_AREA)
+        kept = _rows_kept(image, height, gap) if keep_rows else image
+        small = kept if (rows_px, cols_px) == kept.shape[:2] else cv2.resize(kept, (cols_px, rows_px),
+                                                                             interpolation=cv2.INTER_AREA)
         left, right = k * (cols_px - 1) / (nodes - 1), (k + 1) * (cols_px - 1) / (nodes - 1)
         top, bottom = -0.5, rows_px - 0.5  # the image's pixel edges onto the lips
         quad_dst = np.array([curves[0, k], curves[0, k + 1], curves[1, k + 1], curves[1, k]]) - offset
@@ -256,11 +298,12 @@ def draw(out: np.ndarray, face: np.ndarray, image: np.ndarray, curves: np.ndarra
             paint += warped * new[..., None]
             cover += new
     if not cover.any():
-        return
+        return drawn
     colour = paint / np.maximum(cover, 1e-6)[..., None]
     if np.isfinite(gap):  # the photos' gap known: the dark between the teeth where the jaw dropped further
         dark = depth((cover > 0.5).astype(np.uint8), gap)[..., None]
         colour = colour * (1 - dark) + cavity(image) * dark
-    alpha = (cover * face[y0:y1, x0:x1])[..., None]
-    region = out[y0:y1, x0:x1].astype(np.float32)
+    drawn[y0:y1, x0:x1] = alpha = cover * face[y0:y1, x0:x1]
+    region, alpha = out[y0:y1, x0:x1].astype(np.float32), alpha[..., None]
     out[y0:y1, x0:x1] = np.clip(colour * alpha + region * (1 - alpha), 0, 255).round().astype(np.uint8)
+    return drawn

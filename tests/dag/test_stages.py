@@ -1,7 +1,13 @@
 """The one list of stages (persona.dag.stages.STAGES) that the plan, the progress lines, the hooks
 and the per-photo tasks read."""
 
+import numpy as np
+
 from persona.dag import stages as st
+from persona.plugins.builtin.render3d import RaycastRender
+from persona.plugins.face import mouth
+from persona.plugins.face.synthetic import Expression, look_at_pose, make_face
+from persona.plugins.kinds import Pose
 from persona.dag.workflow import BACKENDLESS
 from persona.plugins.manager import default_registry
 
@@ -19,3 +25,42 @@ def test_every_stage_is_one_record_in_run_order_with_its_per_photo_work_and_its_
     for stage in st.STAGES.values():
         assert stage.where and set(stage.where) <= {"puppet", "driver", "video", "drive"}, stage.name
         assert set(stage.settings) <= kinds, (stage.name, stage.settings)
+
+
+def test_the_render_draws_the_drivers_own_mouth_interior_into_the_puppets_gap():
+    """``mouth_choice: frame`` (the default): the render step samples the driver's frame between the
+    driver's own inner lips and draws that into the gap of the puppet's open mouth; with ``widest`` the
+    gap shows B's interior; where the driver's lips are closed, B's interior is drawn in both."""
+    face, neutral = make_face(expression=Expression(open=1.0)), make_face()
+    size = (260, 240)
+    rvec, tvec, camera = look_at_pose(0.0, 0.0, 0.0, face_px=170.0, image_size=size)
+    frame = np.zeros((*size, 3), np.uint8)
+    frame[100:140, 80:160] = (0, 200, 0)  # the driver's mouth: green between its lips
+    driver = np.zeros((68, 2))
+    driver[36:42], driver[42:48] = (90, 80), (150, 80)
+    xs = np.linspace(90, 150, 5)
+    driver[[60, 61, 62, 63, 64]] = np.c_[xs, [120, 105, 105, 105, 120]]
+    driver[[60, 67, 66, 65, 64]] = np.c_[xs, [120, 135, 135, 135, 120]]
+    blue = np.broadcast_to(np.float32([0, 0, 255]), (32, 64, 3)).copy()  # B's own interior
+    context = {"coverage": np.ones(face.vert_mask.shape, np.float32), "fiducials": neutral.fiducials3d[:, :2],
+               "lips": mouth.lip_curves(neutral.landmarks3d[:, :2]), "mouth": (blue, 10.0), "mouth_cavity": None}
+    inputs = {"@frames/photos/size": np.array(size), "@frames/photos/rgb": frame, "@frames/landmarks/points": driver,
+              "texture/rgb": (face.vert_albedo * 255).astype(np.uint8), "target": neutral.fiducials3d[:, :2],
+              "pose": Pose(rvec, tvec, camera, 0.0).as_vector(), "mouth/teeth": np.float32(1),
+              "mesh": np.where(face.vert_mask[..., None], face.verts, np.nan).astype(np.float32)}
+
+    def colours(choice, points=driver):
+        out = st._render(RaycastRender({"mouth_choice": choice}), {}, {**inputs, "@frames/landmarks/points": points},
+                         context)
+        rgb = out["render/rgb"].astype(int)
+        green = (rgb[..., 1] > 150) & (rgb[..., 0] < 60) & (rgb[..., 2] < 60)
+        blue = (rgb[..., 2] > 180) & (rgb[..., 0] < 60) & (rgb[..., 1] < 60)
+        return np.count_nonzero(green), np.count_nonzero(blue), np.count_nonzero(out["render/own"] > 127)
+
+    # the driver's interior, and the composite told where it is (render/own: A's own pixels, not relit)
+    green, blue, own = colours("frame")
+    assert green > 300 and blue == 0 and green <= own < 1.3 * green
+    assert colours("widest")[0] == 0 and colours("widest")[1] > 300 and colours("widest")[2] == 0
+    closed = driver.copy()
+    closed[[61, 62, 63, 65, 66, 67], 1] = 120
+    assert colours("frame", closed)[0] == 0 and colours("frame", closed)[1] > 300 and colours("frame", closed)[2] == 0

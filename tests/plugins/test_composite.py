@@ -89,6 +89,27 @@ def test_matching_the_light_removes_the_step_and_keeps_the_detail():
     assert abs(centre.std() / centre.mean() - own.std() / own.mean()) < 0.05 * own.std() / own.mean()
 
 
+def test_the_drivers_own_pixels_keep_their_colour_where_b_takes_a_light():
+    """Pixels the renderer marks as the driver's own (its mouth interior, ``own``) are A's already:
+    under a gain that darkens B's lighter face by a third, a white patch of teeth marked own stays
+    white (within 2 levels), where unmarked it darkens with the face; the rest of the face is relit as
+    before."""
+    face, frame, alpha = lit_scene()
+    face[110:120, 85:115] = 235  # teeth, in the lower middle of the face
+    own = np.zeros(alpha.shape, np.float32)
+    own[110:120, 85:115] = 1
+    teeth = np.s_[112:118, 88:112]
+    relit = composite.blend(face, frame, alpha, hair=0)[teeth].astype(float)
+    kept = composite.blend(face, frame, alpha, hair=0, own=own)[teeth].astype(float)
+    print(f"\nteeth relit {relit.mean(axis=(0, 1))}, kept {kept.mean(axis=(0, 1))}")
+    assert relit.mean() < 200 and np.abs(kept.mean(axis=(0, 1)) - 235).max() <= 2
+    rest = alpha > 0  # the face away from the patch is relit as before (the blend's coarse bands spread a little)
+    rest[95:135, 70:130] = False
+    change = np.abs(composite.blend(face, frame, alpha, hair=0, own=own)[rest].astype(float)
+                    - composite.blend(face, frame, alpha, hair=0)[rest])
+    assert change.mean() < 0.5 and change.max() <= 3
+
+
 def test_hair_under_the_edge_does_not_darken_the_face():
     face, frame, alpha = lit_scene()
     clear = composite.match_lighting(face, frame, alpha)

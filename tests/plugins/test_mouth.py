@@ -203,3 +203,44 @@ def test_a_mouth_opened_further_than_its_photos_shows_the_cavity_between_its_tee
     assert (grin[31:45] > 240).all()  # (the rounded outline bulges a pixel past the nodes: 247 in its middle)
     assert (jaw[31:37] > 250).all() and (jaw[63:69] > 250).all()  # the teeth along each lip
     np.testing.assert_allclose(jaw[45:55], np.broadcast_to([60, 20, 20], (10, 3)), atol=1)
+
+
+def test_the_drivers_own_interior_is_taken_inside_its_lips():
+    """``mouth_choice: frame``: the driver's gap, sampled a little inside its inner-lip points, which sit
+    on the lips' edge: a red lip line 2 px thick along each of them lines the plain sample's first and
+    last rows, not the driver's interior, whose middle is the gap's (black) and whose gap is the lips'."""
+    rgb, lm = open_photo(20.0)
+    for y in (100, 120):  # the upper and lower inner-lip curves of a 20 px gap about y = 110
+        rgb[y - 1:y + 2, 40:121] = (200, 30, 30)
+    red = lambda rows: (rows[..., 0] > 120) & (rows[..., 1] < 80)
+    plain = mouth.sample(rgb, lm)
+    assert red(plain[0, 16:48]).all() and red(plain[-1, 16:48]).all()
+    interior, gap = mouth.from_frame(rgb, lm)
+    assert interior.shape == (*mouth.SIZE, 3)
+    assert not red(interior[:, 16:48]).any()
+    assert interior[2:-2, 16:48].max() < 40
+    assert gap == 20.0
+    closed = open_photo(1.0)
+    assert mouth.from_frame(*closed) is None  # lips under 2 px apart: B's own interior is drawn
+    lm[66] = np.nan
+    assert mouth.from_frame(rgb, lm) is None
+
+
+def test_lips_closer_than_the_interiors_own_keep_its_teeth_at_their_size():
+    """An interior whose top and bottom 10 of 32 rows are teeth (white) and middle cavity (black), from
+    lips 20 px apart, drawn between lips 10 px apart: squeezed, the gap's middle row is the cavity;
+    with ``keep_rows`` the rows nearest each lip keep their size and the middle is left out, so the
+    gap shows the teeth from lip to lip. Lips as far apart as the interior's own show all of it."""
+    image = np.zeros((32, 64, 3), np.float32)
+    image[:10] = image[-10:] = 255
+    xs = np.linspace(20, 80, 5)
+    curves = np.stack([np.c_[xs, np.full(5, 25.0)], np.c_[xs, np.full(5, 35.0)]])  # 10 px apart
+
+    def middle_row(keep_rows, gap):
+        out = np.full((60, 100, 3), 128, np.uint8)
+        mouth.draw(out, np.ones((60, 100), np.float32), image, curves, gap=gap, keep_rows=keep_rows)
+        return out[30, 35:66].astype(float).mean()
+
+    assert middle_row(False, 20.0) < 40
+    assert middle_row(True, 20.0) > 215
+    assert middle_row(True, 10.0) < 40  # the interior's own gap: nothing left out
