@@ -344,7 +344,9 @@ def run_mouth(runner, coll: Collection) -> Provenance:
     darkest as ``texture/mouth_cavity``), how far apart their lips are (the median, canonical px), and
     B's mean inner-lip curves in the canonical frame."""
     chosen = runner.render_params()
-    settings = {"photos": chosen.mouth_photos, "min_gap": chosen.mouth_min_gap, "choice": chosen.mouth_choice}
+    # mouth_choice frame draws the driver's own interior, B's only where the driver's lips are closed: the widest
+    choice = "widest" if chosen.mouth_choice == "frame" else chosen.mouth_choice
+    settings = {"photos": chosen.mouth_photos, "min_gap": chosen.mouth_min_gap, "choice": choice}
     prov = Provenance.make(stage="mouth", backend="-", backend_version="2", params=settings,
                            inputs={"screen": coll.provenance("status/screen/state").key},
                            persona_version=runner.version)
@@ -354,7 +356,7 @@ def run_mouth(runner, coll: Collection) -> Provenance:
     points = coll.array("landmarks/points").oindex[ok].astype(np.float64)
     sizes = coll.array("photos/size").oindex[ok]
     landmarks = coll.array("aligned/landmarks").oindex[ok].astype(np.float64)
-    count = settings["photos"] if settings["choice"] in ("widest", "frame") else len(ok)
+    count = settings["photos"] if settings["choice"] == "widest" else len(ok)
     open_ = mouth.widest(points, count, settings["min_gap"])  # the open photos, widest first
     samples = []
     for i in open_:
@@ -362,7 +364,7 @@ def run_mouth(runner, coll: Collection) -> Provenance:
         samples.append(mouth.sample(coll.array("photos/rgb")[int(ok[i])][:h, :w], points[i]))
     widest = np.arange(min(len(open_), settings["photos"]))  # open_ is widest first
     darkest = mouth.darkest(np.stack(samples), settings["photos"]) if samples else widest
-    sets = {"widest": {"texture/mouth": widest}, "frame": {"texture/mouth": widest},  # frame: where A's lips close
+    sets = {"widest": {"texture/mouth": widest},
             "darkest": {"texture/mouth": darkest},
             "driver": {"texture/mouth": widest, "texture/mouth_cavity": darkest}}[settings["choice"]]
     for array in ("texture/mouth", "texture/mouth_gap", "texture/mouth_cavity", "texture/mouth_cavity_gap"):
