@@ -76,16 +76,37 @@ def plots(series: dict, threshold: float, fps: float) -> dict[str, str]:
     return out
 
 
+def met(value, target) -> bool | None:
+    """Whether ``value`` lies within ``target`` (lo, hi), either end None for open; None where there is no
+    target or no value."""
+    if target is None or not isinstance(value, (int, float)) or value != value:
+        return None
+    lo, hi = target
+    return (lo is None or value >= lo) and (hi is None or value <= hi)
+
+
 def _table(rows: list[tuple]) -> str:
-    """Rows of (label, value) or (label, value, what is good): a table, the guide in a third column."""
+    """Rows of (label, value), (label, value, what is good) or (label, value, what is good, target): a
+    table, the guide in a third column and, where a row has a target, whether it is met in a fourth."""
     def fmt(v):
         if isinstance(v, float):
             return f"{v:.3f}"
         return html.escape(str(v))
 
+    marks = {True: "<td style='color:#070'>met</td>", False: "<td style='color:#b00'><b>not met</b></td>",
+             None: "<td></td>"}
     body = "".join(f"<tr><th>{html.escape(r[0])}</th><td>{fmt(r[1])}</td>"
-                   + (f"<td>{html.escape(r[2])}</td>" if len(r) > 2 else "") + "</tr>" for r in rows)
+                   + (f"<td>{html.escape(r[2])}</td>" if len(r) > 2 else "")
+                   + (marks[met(r[1], r[3])] if len(r) > 3 else "") + "</tr>" for r in rows)
     return f"<table>{body}</table>"
+
+
+def targets_summary(rows: list[tuple]) -> str:
+    """One line over :func:`figure_rows`: how many of its targets are met, and which are not."""
+    judged = [(r[0], r[1], r[3]) for r in rows if met(r[1], r[3]) is not None]
+    missed = [f"{label} {value:.2f}" for label, value, target in judged if not met(value, target)]
+    line = f"{len(judged) - len(missed)} of {len(judged)} targets met"
+    return line + (f"; not met: {'; '.join(missed)}." if missed else ".")
 
 
 #: what is good for each stability figure, and its target where there is one
@@ -94,43 +115,62 @@ _STABILITY = {"jitter_ratio": "lower is better; target ≤ 1 (the output as stea
               "colour_change_ratio": "lower is better; target ≤ 1",
               "colour_change_ratio_composite": "the same on composite.mp4, in A's light made steady in time",
               "texture_change_ratio": "lower is better; ≤ 1: B's texture changes no more than A's face does"}
+#: the driver's eye openness must range over more than this (IOD, 5th-95th percentile) for its gain to
+#: have a target: below it the signal is dlib's noise (issue 12)
+EYE_RANGE = 0.05
+
+
+def _gain_rows(where: str, amplitudes: dict) -> list[tuple]:
+    rows = []
+    for k, a in amplitudes.items():
+        counted = k != "eye_open" or a.get("driver_range", 1.0) > EYE_RANGE
+        guide = ("1 = the driver's amplitude; target 0.7-1.4" if counted else
+                 f"1 = the driver's amplitude; no target: the driver's eyes range over "
+                 f"{a['driver_range']:.3f} IOD, under {EYE_RANGE}")
+        rows.append((f"expression gain {where}: {k.replace('_', ' ')}", a["gain"], guide,
+                     (0.7, 1.4) if counted else None))
+    return rows
 
 
 def figure_rows(ev: dict) -> list[tuple]:
-    """The evaluation's figures as (label, value, what is good / target) rows."""
+    """The evaluation's figures as (label, value, what is good / target, target) rows; the target is
+    (lo, hi), either end None for open, or None where the figure has none."""
     identity = ev["identity"]
-    rows = [("frames", ev["frames"], ""),
-            ("frames bridged (no face in the driver)", ev["bridged_frames"], "lower is better"),
+    judged = None if identity_caveat(ev) else (0.95, None)  # a self-reenactment's output is A
+    rows = [("frames", ev["frames"], "", None),
+            ("frames bridged (no face in the driver)", ev["bridged_frames"], "lower is better", None),
             ("frames whose identity is judged", identity.get("frames_judged", ev["frames"]),
-             "evenly spaced (evaluate.identity_frames); = frames when that is 0"),
-            ("frames that are B and not A", identity["fraction_b_not_a"], "higher is better; target ≥ 0.95"),
+             "evenly spaced (evaluate.identity_frames); = frames when that is 0", None),
+            ("frames that are B and not A", identity["fraction_b_not_a"], "higher is better; target ≥ 0.95", judged),
             ("composite.mp4 frames that are B and not A", identity.get("fraction_b_not_a_composite"),
-             "higher is better; target ≥ 0.95"),
-            ("mean distance to B", identity["mean_distance_to_b"], "lower is better; < 0.6 = the same person"),
-            ("mean distance to A", identity["mean_distance_to_a"], "higher is better; > 0.6 = another person"),
-            ("output frames without a face", identity["frames_without_face"], "lower is better; target 0")]
-    rows += [(f"expression correlation: {k.replace('_', ' ')}", v, "higher is better; target ≥ 0.85 (mouth)")
-             for k, v in ev["expression"].items()]
-    rows += [(f"expression gain (output / driver): {k.replace('_', ' ')}", a["gain"],
-              "1 = the driver's amplitude; target 0.7-1.4") for k, a in ev.get("amplitude", {}).items()]
-    rows += [(f"expression gain on composite.mp4: {k.replace('_', ' ')}", a["gain"],
-              "1 = the driver's amplitude; target 0.7-1.4") for k, a in ev.get("amplitude_composite", {}).items()]
-    rows += [(k.replace("_", " "), v, _STABILITY.get(k, "lower is better")) for k, v in ev["stability"].items()]
+             "higher is better; target ≥ 0.95", judged),
+            ("mean distance to B", identity["mean_distance_to_b"], "lower is better; < 0.6 = the same person", None),
+            ("mean distance to A", identity["mean_distance_to_a"], "higher is better; > 0.6 = another person", None),
+            ("output frames without a face", identity["frames_without_face"], "lower is better; target 0", (None, 0))]
+    rows += [(f"expression correlation: {k.replace('_', ' ')}", v, "higher is better; target ≥ 0.85 (mouth)",
+              (0.85, None) if k == "mouth_open" else None) for k, v in ev["expression"].items()]
+    rows += _gain_rows("(output / driver)", ev.get("amplitude", {}))
+    rows += _gain_rows("on composite.mp4", ev.get("amplitude_composite", {}))
+    rows += [(k.replace("_", " "), v, _STABILITY.get(k, "lower is better"),
+              (None, 1.0) if k in _STABILITY else None) for k, v in ev["stability"].items()]
     for how, f in ev.get("composite", {}).items():
         rows += [(f"composite seam ({how}): colour step beyond the driver's own (grey levels)", f["colour_step"],
-                  "lower is better; 0 = no step beyond the frame's; target ≤ 7.7 (3 % of 255)"),
+                  "lower is better; 0 = no step beyond the frame's; target ≤ 7.7 (3 % of 255)", (None, 7.7)),
                  (f"composite seam ({how}): gradient energy over the driver's", f["gradient_ratio"],
-                  "lower is better; 1 = as smooth as the frame; target ≤ 1.2")]
+                  "lower is better; 1 = as smooth as the frame; target ≤ 1.2", (None, 1.2))]
     texture = ev.get("texture", {})
     rows += [(f"texture tears: {k.replace('_', ' ')}", v, "lower is better; the ratio (frames over B's photos) "
-              "target ≤ 1" if k == "ratio" else "lower is better") for k, v in texture.get("tears", {}).items()]
+              "target ≤ 1" if k == "ratio" else "lower is better", (None, 1.0) if k == "ratio" else None)
+             for k, v in texture.get("tears", {}).items()]
     rows += [(f"texture detail: {k.replace('_', ' ')}", v, "the ratio (frames over B's photos) target ≥ 0.6"
-              if k == "ratio" else "band-pass energy; higher is sharper") for k, v in texture.get("detail", {}).items()]
-    guide = {"psnr_db": "higher is better; target ≥ 28 dB", "ssim": "higher is better; target ≥ 0.88"}
-    rows += [(f"self-reenactment {k}", v, guide.get(k.removesuffix("_composite"), ""))
+              if k == "ratio" else "band-pass energy; higher is sharper", (0.6, None) if k == "ratio" else None)
+             for k, v in texture.get("detail", {}).items()]
+    guide = {"psnr_db": ("higher is better; target ≥ 28 dB", (28.0, None)),
+             "ssim": ("higher is better; target ≥ 0.88", (0.88, None))}
+    rows += [(f"self-reenactment {k}", v, *guide.get(k.removesuffix("_composite"), ("", None)))
              for k, v in ev.get("self_reenactment", {}).items()]
     rows += [(f"{who.replace('_', ' ')} follow A's landmarks: {k.replace('_', ' ')} (gain, r)",
-              f"{a['gain']:.2f}, {a['r']:.2f}", "gain 1 = the driver's amplitude") for who, figures in
+              f"{a['gain']:.2f}, {a['r']:.2f}", "gain 1 = the driver's amplitude", None) for who, figures in
              ev.get("motion", {}).items() for k, a in figures.items()]
     return rows
 
@@ -269,7 +309,7 @@ def write_report(path, *, metrics: dict, pictures: dict[str, np.ndarray], strip:
         caveat = identity_caveat(ev)
         if caveat:
             parts.append(f"<p><b>Identity:</b> {html.escape(caveat)}</p>")
-        parts += ["<h2>Figures</h2>", _table(rows)]
+        parts += ["<h2>Figures</h2>", f"<p><b>{html.escape(targets_summary(rows))}</b></p>", _table(rows)]
     for result, grid in texture:
         parts += texture_section(result, grid)
     if strip is not None:

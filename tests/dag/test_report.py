@@ -1,7 +1,7 @@
 """The report's figures say which way is good and what the target is, and say when identity cannot
 be judged."""
 
-from persona.dag.report import figure_rows, identity_caveat
+from persona.dag.report import figure_rows, identity_caveat, met, targets_summary
 
 
 def evaluation(to_b: float, to_a: float) -> dict:
@@ -10,7 +10,8 @@ def evaluation(to_b: float, to_a: float) -> dict:
             "identity": {"fraction_b_not_a": 0.0, "fraction_b_not_a_composite": 0.0, "mean_distance_to_b": to_b, "mean_distance_to_a": to_a,
                          "frames_without_face": 0},
             "expression": {k: 0.9 for k in signals},
-            "amplitude": {k: {"gain": 0.8, "r": 0.9} for k in signals},
+            "amplitude": {"mouth_open": {"gain": 0.8, "r": 0.9, "driver_range": 0.2},
+                          "eye_open": {"gain": 0.3, "r": 0.5, "driver_range": 0.02}},
             "stability": {"jitter_ratio": 0.9, "colour_change_ratio": 0.5, "texture_change_ratio": 0.2},
             "composite": {"blend": {"colour_step": 20.0, "gradient_ratio": 1.2}},
             "self_reenactment": {"psnr_db": 26.0, "ssim": 0.76}}
@@ -19,7 +20,7 @@ def evaluation(to_b: float, to_a: float) -> dict:
 def test_every_figure_says_what_is_good():
     rows = figure_rows(evaluation(0.3, 0.9))
     assert len(rows) == 19  # 8 identity, 2 + 2 expression, 3 stability, 2 composite, 2 self-reenactment
-    for label, _, guide in rows[1:]:  # all but the frame count
+    for label, _, guide, _ in rows[1:]:  # all but the frame count
         assert "better" in guide or "target" in guide or "= " in guide, label
     assert dict((r[0], r[2]) for r in rows)["self-reenactment psnr_db"] == "higher is better; target ≥ 28 dB"
 
@@ -28,3 +29,18 @@ def test_identity_caveat_when_dlib_sees_one_person():
     assert identity_caveat(evaluation(0.3, 0.9)) is None  # B, and not A: identity can be judged
     text = identity_caveat(evaluation(0.3, 0.4))  # self-reenactment, or synthetic faces
     assert "cannot judge identity" in text
+
+
+def test_each_target_is_marked_met_or_not():
+    """Known answers: a gain of 0.8 meets 0.7-1.4, PSNR 26 dB misses 28, a seam's step of 20 grey levels
+    misses 7.7; the eye gain of 0.3 has no target where the driver's eyes range over 0.02 IOD (< 0.05),
+    nor has "B and not A" where dlib sees B and A as one person (0.3 and 0.4 from the output)."""
+    assert met(0.8, (0.7, 1.4)) and not met(1.5, (0.7, 1.4)) and met(0, (None, 0)) and met(0.3, None) is None
+    rows = {r[0]: r for r in figure_rows(evaluation(0.3, 0.4))}
+    assert met(*rows["expression gain (output / driver): mouth open"][1::2])
+    assert rows["expression gain (output / driver): eye open"][3] is None
+    assert rows["frames that are B and not A"][3] is None
+    assert not met(*rows["self-reenactment psnr_db"][1::2])
+    summary = targets_summary(list(rows.values()))
+    assert summary.startswith("7 of 10 targets met; not met: ")
+    assert "colour step" in summary and "psnr_db 26.00" in summary and "ssim 0.76" in summary
