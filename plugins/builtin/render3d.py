@@ -170,10 +170,11 @@ class RaycastRender(RenderBackend):
                    "texture, at the driver's head pose (z-buffered, equal to ray casting pixel centres)")
     default = True
     uses_mesh = True
-    version = "6"  # 2: rgb is the face's own colour across its soft edge; no background param; 3: the mouth
+    version = "7"  # 2: rgb is the face's own colour across its soft edge; no background param; 3: the mouth
     # interior averaged to the gap's size and drawn by the share of each pixel it covers; 4: the opening's
     # outline rounded (mouth.rounded); 5: the middle of an opening taller than the photos' turns to the cavity
-    # (mouth.depth); 6: the driver's own interior (mouth_choice frame, the default) and where it is (render/own)
+    # (mouth.depth); 6: the driver's own interior (mouth_choice frame, the default) and where it is (render/own);
+    # 7: the driver's own interior parted at its darkest row where B's lips part further (mouth._rows_fitted)
 
     class Params(Params):
         min_coverage: float = Field(0.3, ge=0, le=1, description="canonical pixels seen in fewer "

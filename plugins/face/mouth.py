@@ -37,7 +37,10 @@ gain on Bush <- Obama 0.82 -> 0.76; docs/expression.md.)
 **A jaw that drops further than B's photos.** The interior shows teeth and cavity at the size of
 the photos' gap. Where the frame's lips are further apart than that, the teeth keep their size
 along the lips and the middle of the opening turns to B's darkest interior colour
-(:func:`depth`, :func:`cavity`), rather than the teeth stretching with the jaw.
+(:func:`depth`, :func:`cavity`), rather than the teeth stretching with the jaw. The driver's own
+interior, whose teeth are sharp, keeps its rows at their size both ways (:func:`_rows_fitted`): parted
+at its darkest row, the dark there fills what the jaw dropped further, so upper teeth that fill A's
+gap stay on B's upper lip, not split between both lips with B's dark between.
 """
 
 from __future__ import annotations
@@ -228,16 +231,27 @@ def _area(triangle: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     return out
 
 
-def _rows_kept(image: np.ndarray, height: float, gap: float) -> np.ndarray:
-    """The interior ``image`` for lips ``height`` px apart where its own were ``gap`` apart: all of it
-    where they are as far apart or further; closer, only its rows nearest each lip, at their own
-    size (as many as the height takes), its middle left out: the upper teeth hang from the upper
-    lip and the lower ones sit on the lower, and a mouth that opens less shows less between them."""
+def _rows_fitted(image: np.ndarray, height: float, gap: float) -> np.ndarray:
+    """The interior ``image`` for lips ``height`` px apart where its own were ``gap`` apart, its rows at
+    their own size: the upper teeth hang from the upper lip and the lower ones sit on the lower.
+    Closer, only its rows nearest each lip are kept, its middle left out: a mouth that opens less shows
+    less between them. Further, the image is parted at its darkest row (the dark between the teeth, or
+    below upper teeth that fill it) and that row is repeated between the two parts: a jaw that drops
+    further shows more of the dark, and the teeth keep their size and their lip."""
     rows = image.shape[0]
-    if not height < gap:
+    if not 0 < gap < np.inf:
         return image
-    keep = max(int(round(rows * height / gap)), 2)
-    return np.concatenate([image[:(keep + 1) // 2], image[rows - keep // 2:]])
+    want = int(round(rows * min(height / gap, 4.0)))
+    if want == rows:
+        return image
+    if want < rows:
+        keep = max(want, 2)
+        return np.concatenate([image[:(keep + 1) // 2], image[rows - keep // 2:]])
+    cols = image.shape[1]
+    middle = to_grey(image[:, cols // 4:cols - cols // 4]).mean(axis=1)  # the mouth's corners are dark anyway
+    split = int(np.argmin(middle))
+    return np.concatenate([image[:split + 1], np.repeat(image[split:split + 1], want - rows, axis=0),
+                           image[split + 1:]])
 
 
 def draw(out: np.ndarray, face: np.ndarray, image: np.ndarray, curves: np.ndarray,
@@ -247,9 +261,10 @@ def draw(out: np.ndarray, face: np.ndarray, image: np.ndarray, curves: np.ndarra
     float is. ``gap``: how far apart (frame px) the lips of the photos the interior comes from were;
     where the frame's lips are further apart, the middle of the opening turns to B's :func:`cavity`
     colour by its :func:`depth`, as a jaw that drops shows the dark between the teeth (inf: never).
-    ``keep_rows``: where they are closer, the image's rows nearest the lips keep their size and its
-    middle is left out (:func:`_rows_kept`; the driver's own interior, whose teeth are sharp), rather
-    than the whole image squeezed into the gap. Returns how much of each pixel of ``out`` (h, w) float32
+    ``keep_rows``: the image's rows keep their size, the rows nearest each lip hanging from it
+    (:func:`_rows_fitted`; the driver's own interior, whose teeth are sharp): where the lips are
+    closer the image's middle is left out, where further its darkest row is repeated there, rather
+    than the whole image squeezed or stretched into the gap (and no :func:`depth` is drawn). Returns how much of each pixel of ``out`` (h, w) float32
     the interior covers.
 
     Quad by quad between the outline's points, the image is first averaged down (area resampling) to
@@ -279,7 +294,7 @@ def draw(out: np.ndarray, face: np.ndarray, image: np.ndarray, curves: np.ndarra
     for k in range(nodes - 1):
         height = np.linalg.norm(curves[1, k:k + 2] - curves[0, k:k + 2], axis=1).mean()
         rows_px = int(np.clip(np.ceil(height), 1, rows))
-        kept = _rows_kept(image, height, gap) if keep_rows else image
+        kept = _rows_fitted(image, height, gap) if keep_rows else image
         small = kept if (rows_px, cols_px) == kept.shape[:2] else cv2.resize(kept, (cols_px, rows_px),
                                                                              interpolation=cv2.INTER_AREA)
         left, right = k * (cols_px - 1) / (nodes - 1), (k + 1) * (cols_px - 1) / (nodes - 1)
@@ -300,7 +315,7 @@ def draw(out: np.ndarray, face: np.ndarray, image: np.ndarray, curves: np.ndarra
     if not cover.any():
         return drawn
     colour = paint / np.maximum(cover, 1e-6)[..., None]
-    if np.isfinite(gap):  # the photos' gap known: the dark between the teeth where the jaw dropped further
+    if np.isfinite(gap) and not keep_rows:  # the photos' gap known: the dark between the teeth where the jaw dropped further
         dark = depth((cover > 0.5).astype(np.uint8), gap)[..., None]
         colour = colour * (1 - dark) + cavity(image) * dark
     drawn[y0:y1, x0:x1] = alpha = cover * face[y0:y1, x0:x1]

@@ -244,3 +244,25 @@ def test_lips_closer_than_the_interiors_own_keep_its_teeth_at_their_size():
     assert middle_row(False, 20.0) < 40
     assert middle_row(True, 20.0) > 215
     assert middle_row(True, 10.0) < 40  # the interior's own gap: nothing left out
+
+
+def test_lips_further_apart_than_the_drivers_keep_its_teeth_on_their_lip():
+    """The driver's own interior from lips 10 px apart: upper teeth (white) in its top 26 of 32 rows,
+    the dark below them. Drawn with ``keep_rows`` between lips 20 px apart (rows 20 to 40), the teeth
+    keep their size on the upper lip (white 4 px below it: 26 / 32 of 10 px) and the dark fills the
+    rest down to the lower lip (from 10 px below the upper lip to 1 px above the lower), where
+    stretched and darkened in the middle (the photos' way, without ``keep_rows``) the teeth would
+    reach down to the lower lip too, split by the dark."""
+    image = np.zeros((32, 64, 3), np.float32)
+    image[:26] = 255
+    xs = np.linspace(20, 80, 5)
+    curves = np.stack([np.c_[xs, np.full(5, 20.0)], np.c_[xs, np.full(5, 40.0)]])  # 20 px apart
+
+    def column(keep_rows):
+        out = np.full((60, 100, 3), 128, np.uint8)
+        mouth.draw(out, np.ones((60, 100), np.float32), image, curves, gap=10.0, keep_rows=keep_rows)
+        return out[:, 45:56].astype(float).mean(axis=(1, 2))
+
+    kept, stretched = column(True), column(False)
+    assert kept[24] > 215 and kept[30:40].max() < 40
+    assert stretched[34:40].max() > 215 and stretched[30] < 40  # teeth, dark, teeth: what keep_rows avoids
