@@ -110,8 +110,9 @@ def targets_summary(rows: list[tuple]) -> str:
 
 
 #: what is good for each stability figure, and its target where there is one
-_STABILITY = {"jitter_ratio": "lower is better; target ≤ 1 (the output as steady as the driver)",
-              "jitter_ratio_composite": "the same on composite.mp4 (B's face in A's frame, A's jaw line)",
+_STABILITY = {"jitter_ratio": "lower is better; target ≤ 1 (the output as steady as the driver), over the 51 "
+                              "points inside the jaw line: the face alone shows no jaw",
+              "jitter_ratio_composite": "the same on composite.mp4 (B's face in A's frame, A's jaw line), all 68",
               "colour_change_ratio": "lower is better; target ≤ 1",
               "colour_change_ratio_composite": "the same on composite.mp4, in A's light made steady in time",
               "texture_change_ratio": "lower is better; ≤ 1: B's texture changes no more than A's face does"}

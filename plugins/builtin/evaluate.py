@@ -283,18 +283,24 @@ def amplitude(driver, output) -> dict[str, float]:
 # --------------------------------------------------------------------------- stability
 
 
-def jitter(landmarks) -> float:
+#: the iBUG points inside the jaw line (brows, nose, eyes, mouth): what a face without its jaw line shows
+INNER = slice(17, 68)
+
+
+def jitter(landmarks, points=slice(None)) -> float:
     """Landmark jitter: the mean acceleration of the points, relative to the face size.
 
     Parameters
     ----------
     landmarks : ndarray, shape (n, 68, 2)
         iBUG landmarks (x, y) per frame; NaN for a frame without a face.
+    points : slice or index array
+        The points counted (default all 68; :data:`INNER` leaves the jaw line out).
 
     Returns
     -------
     float
-        Mean over frames t = 1 .. n-2 and the 68 points of
+        Mean over frames t = 1 .. n-2 and the points of
         ``|x[t+1] - 2 x[t] + x[t-1]|`` (Euclidean) divided by the IOD of frame t.
         Triples with a NaN frame are skipped; NaN when no triple is left. Constant and
         uniformly moving tracks have jitter 0.
@@ -302,7 +308,7 @@ def jitter(landmarks) -> float:
     x = _track(landmarks)
     if len(x) < 3:
         return float("nan")
-    accel = np.linalg.norm(x[2:] - 2 * x[1:-1] + x[:-2], axis=-1)  # (n-2, 68)
+    accel = np.linalg.norm(x[2:] - 2 * x[1:-1] + x[:-2], axis=-1)[:, points]  # (n-2, points)
     return _finite_mean(_divide(accel, interocular(x)[1:-1, None]))
 
 
@@ -547,7 +553,7 @@ def masked_ssim(a, b, mask) -> float:
 
 
 def compare_videos(driver_landmarks, output_landmarks, *, driver_frames=None, driver_masks=None,
-                   output_frames=None, output_masks=None) -> dict:
+                   output_frames=None, output_masks=None, jaw: bool = True) -> dict:
     """Expression transfer and stability of a puppet video against its driving video.
 
     Parameters
@@ -559,6 +565,11 @@ def compare_videos(driver_landmarks, output_landmarks, *, driver_frames=None, dr
         RGB frames, for the colour flicker; each needs its masks.
     driver_masks, output_masks : ndarray, shape (n, h, w), bool, optional
         Face region of each frame.
+    jaw : bool
+        Whether the output shows a jaw line. The face alone on grey does not (its mask ends above
+        the chin): dlib's 17 jaw points on it are its shape model's guess, which wanders from frame
+        to frame with nothing in the image to hold it, so without a jaw the jitter counts the 51
+        points inside it (:data:`INNER`), the driver's too.
 
     Returns
     -------
@@ -577,7 +588,8 @@ def compare_videos(driver_landmarks, output_landmarks, *, driver_frames=None, dr
     sd, so = expression_signals(driver), expression_signals(output)
     expression = {k: pearson(sd[k], so[k]) for k in sd}
     amplitudes = {k: amplitude(sd[k], so[k]) for k in sd}
-    jd, jo = jitter(driver), jitter(output)
+    points = slice(None) if jaw else INNER
+    jd, jo = jitter(driver, points), jitter(output, points)
     stability = {"jitter_driver": jd, "jitter_output": jo, "jitter_ratio": _ratio(jo, jd)}
     for who, frames, masks in (("driver", driver_frames, driver_masks),
                                ("output", output_frames, output_masks)):

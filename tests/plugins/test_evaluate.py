@@ -12,7 +12,7 @@ from pydantic import ValidationError
 from persona.plugins.base import Rejected
 from persona.plugins.builtin.evaluate import (DlibIdentity, IdentityBackend, centroid, colour_change,
                                               compare_videos, expression_signals, frame_changes, identity_figures,
-                                              interocular, jitter, masked_psnr, masked_ssim, pearson)
+                                              INNER, interocular, jitter, masked_psnr, masked_ssim, pearson)
 from persona.plugins.builtin import evaluate as ev
 from persona.plugins.manager import default_registry
 
@@ -94,6 +94,19 @@ def test_a_track_against_itself_correlates_exactly_and_has_jitter_ratio_one():
     assert stability["jitter_driver"] == stability["jitter_output"] > 0
     assert "colour_change_ratio" not in stability
     json.dumps(figures)  # plain floats
+
+
+def test_a_jaw_that_only_the_output_wanders_is_left_out_without_a_jaw():
+    """The output is the driver's track with its 17 jaw points shaken by ±1 px frame to frame (dlib's
+    guess of a jaw the face alone does not show): over all 68 points the output jitters more than the
+    driver; without a jaw (``jaw=False``) the 51 inner points count, which move as the driver's, ratio 1."""
+    driver = talking_track()
+    output = driver.copy()
+    output[:, :17, 0] += (-1.0) ** np.arange(len(output))[:, None]
+    assert compare_videos(driver, output)["stability"]["jitter_ratio"] > 1.2
+    inner = compare_videos(driver, output, jaw=False)["stability"]
+    assert inner["jitter_ratio"] == pytest.approx(1.0)
+    assert inner["jitter_driver"] == pytest.approx(jitter(driver, INNER))
 
 
 def test_a_time_shifted_copy_correlates_less():
