@@ -39,7 +39,7 @@ the photos' gap. Where the frame's lips are further apart than that, the teeth k
 along the lips and the middle of the opening turns to B's darkest interior colour
 (:func:`depth`, :func:`cavity`), rather than the teeth stretching with the jaw. The driver's own
 interior, whose teeth are sharp, keeps its rows at their size both ways (:func:`_rows_fitted`): parted
-at its darkest row, the dark there fills what the jaw dropped further, so upper teeth that fill A's
+at its darkest row, its cavity colour fills what the jaw dropped further, so upper teeth that fill A's
 gap stay on B's upper lip, not split between both lips with B's dark between.
 """
 
@@ -235,9 +235,10 @@ def _rows_fitted(image: np.ndarray, height: float, gap: float) -> np.ndarray:
     """The interior ``image`` for lips ``height`` px apart where its own were ``gap`` apart, its rows at
     their own size: the upper teeth hang from the upper lip and the lower ones sit on the lower.
     Closer, only its rows nearest each lip are kept, its middle left out: a mouth that opens less shows
-    less between them. Further, the image is parted at its darkest row (the dark between the teeth, or
-    below upper teeth that fill it) and that row is repeated between the two parts: a jaw that drops
-    further shows more of the dark, and the teeth keep their size and their lip."""
+    less between them. Further, the image is parted below its darkest row (the dark between the teeth,
+    or below upper teeth that fill it) and rows of its cavity colour fill between the two parts: a jaw that drops
+    further shows more of the dark (:func:`cavity`'s colour, across the whole row: a teeth's edge that
+    is not level would otherwise run down as streaks), and the teeth keep their size and their lip."""
     rows = image.shape[0]
     if not 0 < gap < np.inf:
         return image
@@ -249,9 +250,9 @@ def _rows_fitted(image: np.ndarray, height: float, gap: float) -> np.ndarray:
         return np.concatenate([image[:(keep + 1) // 2], image[rows - keep // 2:]])
     cols = image.shape[1]
     middle = to_grey(image[:, cols // 4:cols - cols // 4]).mean(axis=1)  # the mouth's corners are dark anyway
-    split = int(np.argmin(middle))
-    return np.concatenate([image[:split + 1], np.repeat(image[split:split + 1], want - rows, axis=0),
-                           image[split + 1:]])
+    split = int(np.argmin(middle)) + 1
+    dark = np.broadcast_to(cavity(image), (want - rows, image.shape[1], image.shape[2]))
+    return np.concatenate([image[:split], dark, image[split:]]).astype(image.dtype)
 
 
 def draw(out: np.ndarray, face: np.ndarray, image: np.ndarray, curves: np.ndarray,
@@ -263,7 +264,7 @@ def draw(out: np.ndarray, face: np.ndarray, image: np.ndarray, curves: np.ndarra
     colour by its :func:`depth`, as a jaw that drops shows the dark between the teeth (inf: never).
     ``keep_rows``: the image's rows keep their size, the rows nearest each lip hanging from it
     (:func:`_rows_fitted`; the driver's own interior, whose teeth are sharp): where the lips are
-    closer the image's middle is left out, where further its darkest row is repeated there, rather
+    closer the image's middle is left out, where further its cavity colour fills it, parted at its darkest row, rather
     than the whole image squeezed or stretched into the gap (and no :func:`depth` is drawn). Returns how much of each pixel of ``out`` (h, w) float32
     the interior covers.
 
