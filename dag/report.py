@@ -93,7 +93,8 @@ def _table(rows: list[tuple]) -> str:
             return f"{v:.3f}"
         return html.escape(str(v))
 
-    marks = {True: "<td style='color:#070'>met</td>", False: "<td style='color:#b00'><b>not met</b></td>",
+    marks = {True: "<td style='color:#070;white-space:nowrap'>met</td>",
+             False: "<td style='color:#b00;white-space:nowrap'><b>not met</b></td>",
              None: "<td></td>"}
     body = "".join(f"<tr><th>{html.escape(r[0])}</th><td>{fmt(r[1])}</td>"
                    + (f"<td>{html.escape(r[2])}</td>" if len(r) > 2 else "")
@@ -154,11 +155,16 @@ def figure_rows(ev: dict) -> list[tuple]:
     rows += _gain_rows("on composite.mp4", ev.get("amplitude_composite", {}))
     rows += [(k.replace("_", " "), v, _STABILITY.get(k, "lower is better"),
               (None, 1.0) if k in _STABILITY else None) for k, v in ev["stability"].items()]
-    for how, f in ev.get("composite", {}).items():
+    for how, f in ev.get("composite", {}).items():  # composite.mp4's blend, and a plain paste to compare
+        ours = how == "blend"
         rows += [(f"composite seam ({how}): colour step beyond the driver's own (grey levels)", f["colour_step"],
-                  "lower is better; 0 = no step beyond the frame's; target ≤ 7.7 (3 % of 255)", (None, 7.7)),
+                  "lower is better; 0 = no step beyond the frame's" + ("; target ≤ 7.7 (3 % of 255)" if ours else
+                                                                       " (a plain paste, for comparison)"),
+                  (None, 7.7) if ours else None),
                  (f"composite seam ({how}): gradient energy over the driver's", f["gradient_ratio"],
-                  "lower is better; 1 = as smooth as the frame; target ≤ 1.2", (None, 1.2))]
+                  "lower is better; 1 = as smooth as the frame" + ("; target ≤ 1.2" if ours else
+                                                                  " (a plain paste, for comparison)"),
+                  (None, 1.2) if ours else None)]
     texture = ev.get("texture", {})
     rows += [(f"texture tears: {k.replace('_', ' ')}", v, "lower is better; the ratio (frames over B's photos) "
               "target ≤ 1" if k == "ratio" else "lower is better", (None, 1.0) if k == "ratio" else None)
