@@ -38,9 +38,10 @@ gain on Bush <- Obama 0.82 -> 0.76; docs/expression.md.)
 the photos' gap. Where the frame's lips are further apart than that, the teeth keep their size
 along the lips and the middle of the opening turns to B's darkest interior colour
 (:func:`depth`, :func:`cavity`), rather than the teeth stretching with the jaw. The driver's own
-interior, whose teeth are sharp, keeps its rows at their size both ways (:func:`_rows_fitted`): parted
-at its darkest row, its cavity colour fills what the jaw dropped further, so upper teeth that fill A's
-gap stay on B's upper lip, not split between both lips with B's dark between.
+interior, whose teeth are sharp, keeps its rows at their size both ways (:func:`_rows_fitted`): where it
+has a dark gap (:func:`dark_row`), it is parted there and more of that dark fills what the jaw dropped
+further, so upper teeth that fill A's gap stay on B's upper lip, not split between both lips with B's
+dark between.
 """
 
 from __future__ import annotations
@@ -231,28 +232,44 @@ def _area(triangle: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     return out
 
 
-def _rows_fitted(image: np.ndarray, height: float, gap: float) -> np.ndarray:
+#: a row of the driver's interior darker than this share of its median row's is a gap to part it at
+#: (:func:`dark_row`)
+DARK_GAP = 0.5
+
+
+def dark_row(image: np.ndarray, share: float = DARK_GAP) -> int | None:
+    """The row of the interior ``image`` at which to part it where the lips open further than its own:
+    its darkest (the mean grey of its middle half of columns; the mouth's corners are dark anyway),
+    when no brighter than ``share`` of its median row: the dark between two rows of teeth, or below
+    upper teeth that fill the gap. None where no row is that dark: teeth closed edge to edge, a
+    tongue, or a mouth dark throughout have no gap to part."""
+    cols = image.shape[1]
+    middle = to_grey(image[:, cols // 4:cols - cols // 4]).mean(axis=1)
+    row = int(np.argmin(middle))
+    return row if middle[row] <= share * np.median(middle) else None
+
+
+def _rows_fitted(image: np.ndarray, height: float, gap: float, split: int | None) -> np.ndarray:
     """The interior ``image`` for lips ``height`` px apart where its own were ``gap`` apart, its rows at
     their own size: the upper teeth hang from the upper lip and the lower ones sit on the lower.
     Closer, only its rows nearest each lip are kept, its middle left out: a mouth that opens less shows
-    less between them. Further, the image is parted below its darkest row (the dark between the teeth,
-    or below upper teeth that fill it) and rows of its cavity colour fill between the two parts: a jaw that drops
-    further shows more of the dark (:func:`cavity`'s colour, across the whole row: a teeth's edge that
-    is not level would otherwise run down as streaks), and the teeth keep their size and their lip."""
-    rows = image.shape[0]
+    less between them. Further, and parted at the row ``split`` (:func:`dark_row`), rows of that row's
+    colour (its middle half's mean, across the whole row: a teeth's edge that is not level would
+    otherwise run down as streaks) go below it: a jaw that drops further shows more of the dark, and
+    the teeth keep their size and their lip. Further with no row to part at, the image as it is
+    (:func:`draw` stretches it and turns the middle to the cavity by :func:`depth`)."""
+    rows, cols = image.shape[:2]
     if not 0 < gap < np.inf:
         return image
     want = int(round(rows * min(height / gap, 4.0)))
-    if want == rows:
+    if want == rows or (want > rows and split is None):
         return image
     if want < rows:
         keep = max(want, 2)
         return np.concatenate([image[:(keep + 1) // 2], image[rows - keep // 2:]])
-    cols = image.shape[1]
-    middle = to_grey(image[:, cols // 4:cols - cols // 4]).mean(axis=1)  # the mouth's corners are dark anyway
-    split = int(np.argmin(middle)) + 1
-    dark = np.broadcast_to(cavity(image), (want - rows, image.shape[1], image.shape[2]))
-    return np.concatenate([image[:split], dark, image[split:]]).astype(image.dtype)
+    colour = image[split, cols // 4:cols - cols // 4].mean(axis=0)
+    dark = np.broadcast_to(colour, (want - rows, cols, image.shape[2]))
+    return np.concatenate([image[:split + 1], dark, image[split + 1:]]).astype(image.dtype)
 
 
 def draw(out: np.ndarray, face: np.ndarray, image: np.ndarray, curves: np.ndarray,
@@ -264,8 +281,9 @@ def draw(out: np.ndarray, face: np.ndarray, image: np.ndarray, curves: np.ndarra
     colour by its :func:`depth`, as a jaw that drops shows the dark between the teeth (inf: never).
     ``keep_rows``: the image's rows keep their size, the rows nearest each lip hanging from it
     (:func:`_rows_fitted`; the driver's own interior, whose teeth are sharp): where the lips are
-    closer the image's middle is left out, where further its cavity colour fills it, parted at its darkest row, rather
-    than the whole image squeezed or stretched into the gap (and no :func:`depth` is drawn). Returns how much of each pixel of ``out`` (h, w) float32
+    closer the image's middle is left out; where further and it has a dark gap (:func:`dark_row`),
+    it is parted there and more of that dark goes between, rather than the whole image squeezed or
+    stretched into the gap (and no :func:`depth` is drawn). Returns how much of each pixel of ``out`` (h, w) float32
     the interior covers.
 
     Quad by quad between the outline's points, the image is first averaged down (area resampling) to
@@ -287,6 +305,7 @@ def draw(out: np.ndarray, face: np.ndarray, image: np.ndarray, curves: np.ndarra
         return drawn
     rows, cols = image.shape[:2]
     nodes = curves.shape[1]
+    split = dark_row(image) if keep_rows else None
     length = np.linalg.norm(np.diff(curves, axis=1), axis=2).max(axis=0).sum()  # along the mouth, px
     cols_px = int(np.clip(np.ceil(length), 2, cols))
     paint = np.zeros((y1 - y0, x1 - x0, 3), np.float32)
@@ -295,7 +314,7 @@ def draw(out: np.ndarray, face: np.ndarray, image: np.ndarray, curves: np.ndarra
     for k in range(nodes - 1):
         height = np.linalg.norm(curves[1, k:k + 2] - curves[0, k:k + 2], axis=1).mean()
         rows_px = int(np.clip(np.ceil(height), 1, rows))
-        kept = _rows_fitted(image, height, gap) if keep_rows else image
+        kept = _rows_fitted(image, height, gap, split) if keep_rows else image
         small = kept if (rows_px, cols_px) == kept.shape[:2] else cv2.resize(kept, (cols_px, rows_px),
                                                                              interpolation=cv2.INTER_AREA)
         left, right = k * (cols_px - 1) / (nodes - 1), (k + 1) * (cols_px - 1) / (nodes - 1)
@@ -316,7 +335,7 @@ def draw(out: np.ndarray, face: np.ndarray, image: np.ndarray, curves: np.ndarra
     if not cover.any():
         return drawn
     colour = paint / np.maximum(cover, 1e-6)[..., None]
-    if np.isfinite(gap) and not keep_rows:  # the photos' gap known: the dark between the teeth where the jaw dropped further
+    if np.isfinite(gap) and split is None:  # the photos' gap known: the dark between the teeth where the jaw dropped further
         dark = depth((cover > 0.5).astype(np.uint8), gap)[..., None]
         colour = colour * (1 - dark) + cavity(image) * dark
     drawn[y0:y1, x0:x1] = alpha = cover * face[y0:y1, x0:x1]

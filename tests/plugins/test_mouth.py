@@ -266,3 +266,16 @@ def test_lips_further_apart_than_the_drivers_keep_its_teeth_on_their_lip():
     kept, stretched = column(True), column(False)
     assert kept[24] > 215 and kept[30:40].max() < 40
     assert stretched[34:40].max() > 215 and stretched[30] < 40  # teeth, dark, teeth: what keep_rows avoids
+
+
+def test_a_dark_gap_is_where_the_drivers_interior_parts():
+    """dark_row: the upper teeth's edge over a black gap (row 20 of 32 black, the rest white) parts at
+    the gap; teeth closed edge to edge (white over light grey, 200, no row under half the median), a
+    tongue or a mouth dark throughout have none, and are drawn the photos' way."""
+    image = np.full((32, 64, 3), 255, np.float32)
+    image[20] = 0
+    assert mouth.dark_row(image) == 20
+    image[20] = 200
+    image[16:] = 200
+    assert mouth.dark_row(image) is None
+    assert mouth.dark_row(np.full((32, 64, 3), 20, np.float32)) is None
