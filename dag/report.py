@@ -117,6 +117,11 @@ _STABILITY = {"jitter_ratio": "lower is better; target ≤ 1 (the output as stea
               "colour_change_ratio": "lower is better; target ≤ 1",
               "colour_change_ratio_composite": "the same on composite.mp4, in A's light made steady in time",
               "texture_change_ratio": "lower is better; ≤ 1: B's texture changes no more than A's face does"}
+#: the composite's seam figures: (label, key, what is good, target, its bound)
+_SEAM = (("colour step beyond the driver's own (grey levels)", "colour_step",
+          "lower is better; 0 = no step beyond the frame's", "7.7 (3 % of 255)", 7.7),
+         ("gradient energy over the driver's", "gradient_ratio", "lower is better; 1 = as smooth as the frame",
+          "1.2", 1.2))
 #: the driver's eye openness must range over more than this (IOD, 5th-95th percentile) for its gain to
 #: have a target: below it the signal is dlib's noise (issue 12)
 EYE_RANGE = 0.05
@@ -157,14 +162,9 @@ def figure_rows(ev: dict) -> list[tuple]:
               (None, 1.0) if k in _STABILITY else None) for k, v in ev["stability"].items()]
     for how, f in ev.get("composite", {}).items():  # composite.mp4's blend, and a plain paste to compare
         ours = how == "blend"
-        rows += [(f"composite seam ({how}): colour step beyond the driver's own (grey levels)", f["colour_step"],
-                  "lower is better; 0 = no step beyond the frame's" + ("; target ≤ 7.7 (3 % of 255)" if ours else
-                                                                       " (a plain paste, for comparison)"),
-                  (None, 7.7) if ours else None),
-                 (f"composite seam ({how}): gradient energy over the driver's", f["gradient_ratio"],
-                  "lower is better; 1 = as smooth as the frame" + ("; target ≤ 1.2" if ours else
-                                                                  " (a plain paste, for comparison)"),
-                  (None, 1.2) if ours else None)]
+        rows += [(f"composite seam ({how}): {label}", f[key],
+                  f"{good}; target ≤ {aim}" if ours else f"{good} (a plain paste, for comparison)",
+                  (None, hi) if ours else None) for label, key, good, aim, hi in _SEAM]
     texture = ev.get("texture", {})
     rows += [(f"texture tears: {k.replace('_', ' ')}", v, "lower is better; the ratio (frames over B's photos) "
               "target ≤ 1" if k == "ratio" else "lower is better", (None, 1.0) if k == "ratio" else None)

@@ -153,11 +153,18 @@ def widest(landmarks68: np.ndarray, count: int, min_gap: float) -> np.ndarray:
     return order[gap[order] >= min_gap][:count]
 
 
+def _middle_half(sample: np.ndarray) -> np.ndarray:
+    """The middle half of the mouth's length of a :func:`sample` (its columns), away from the corners,
+    which are dark anyway."""
+    cols = sample.shape[1]
+    return sample[:, cols // 4: cols - cols // 4]
+
+
 def _middle_grey(sample: np.ndarray) -> float:
     """The mean grey (0-1) of a gap's middle, away from the lips: the middle half of the mouth's
     length and the middle third of the gap's height of a :func:`sample`."""
-    rows, cols = sample.shape[:2]
-    return float(to_grey(sample[rows // 3: rows - rows // 3, cols // 4: cols - cols // 4]).mean())
+    rows = sample.shape[0]
+    return float(to_grey(_middle_half(sample)[rows // 3: rows - rows // 3]).mean())
 
 
 def darkest(samples: np.ndarray, count: int) -> np.ndarray:
@@ -239,12 +246,11 @@ DARK_GAP = 0.5
 
 def dark_row(image: np.ndarray, share: float = DARK_GAP) -> int | None:
     """The row of the interior ``image`` at which to part it where the lips open further than its own:
-    its darkest (the mean grey of its middle half of columns; the mouth's corners are dark anyway),
+    its darkest (the mean grey of its :func:`_middle_half`),
     when no brighter than ``share`` of its median row: the dark between two rows of teeth, or below
     upper teeth that fill the gap. None where no row is that dark: teeth closed edge to edge, a
     tongue, or a mouth dark throughout have no gap to part."""
-    cols = image.shape[1]
-    middle = to_grey(image[:, cols // 4:cols - cols // 4]).mean(axis=1)
+    middle = to_grey(_middle_half(image)).mean(axis=1)
     row = int(np.argmin(middle))
     return row if middle[row] <= share * np.median(middle) else None
 
@@ -267,7 +273,7 @@ def _rows_fitted(image: np.ndarray, height: float, gap: float, split: int | None
     if want < rows:
         keep = max(want, 2)
         return np.concatenate([image[:(keep + 1) // 2], image[rows - keep // 2:]])
-    colour = image[split, cols // 4:cols - cols // 4].mean(axis=0)
+    colour = _middle_half(image)[split].mean(axis=0)
     dark = np.broadcast_to(colour, (want - rows, cols, image.shape[2]))
     return np.concatenate([image[:split + 1], dark, image[split + 1:]]).astype(image.dtype)
 
