@@ -74,7 +74,6 @@ def main():
     ap.add_argument("--flow", default="varref", help="reference mode's flow backend (the texture default: varref)")
     args = ap.parse_args()
     from persona.plugins.builtin.texture import MultiscaleTexture
-    from persona.plugins.face.blend import expression_weights
     from persona.plugins.face.texture import Aligned
 
     rgb, valid, fiducials, source = aligned_collection(args)
@@ -98,7 +97,7 @@ def main():
                                     ("mean fiducials, default skip", backend.params.skip, share,
                                      np.repeat(fiducials.mean(axis=0)[None], args.frames, axis=0))):
         def frame(target, skip=skip, rho=rho):
-            return cache.blend(expression_weights(fiducials, target, backend.params.sigma), skip=skip, share=rho)
+            return cache.blend(backend.params.weights_of(fiducials, target, relative=False), skip=skip, share=rho)
 
         ms, runs = median_ms(frame, items, args.repeats)
         print(f"  per frame ({label}): median {ms:.1f} ms over {args.repeats} runs of {len(items)} frames "

@@ -32,6 +32,18 @@ from ..manager import FlowChoice
 class _Weights(Params):
     sigma: float = Field(10.0, gt=0, description="σ of the expression weight e_i = exp(-||F^T - F^i||² / 2σ²), "
                          "canonical px over the 49 fiducials (paper: 10)")
+    min_share: float = Field(0.16, ge=0, le=1, description="σ widened, for a target few of B's photos are near "
+                             "(an expression B rarely makes), until its weights draw on this share of them, "
+                             "(Σe)²/Σe² (persona.plugins.face.blend.widened). Not in the paper, whose §8 widens σ "
+                             "for a whole collection that is small (0: σ as given). 0.16 draws the rarest frames "
+                             "of the woman's drives on 38-40 photos where 5 drew them, with their streaks and "
+                             "glasses (docs/texture.md)")
+
+    def weights_of(self, fiducials: np.ndarray, target: np.ndarray, *, relative: bool = True) -> np.ndarray:
+        """e_i (n,) of photos with fiducials (n, 49, 2) for a target (49, 2): Eq. 3's, σ widened for a
+        rare target (``min_share``)."""
+        return expression_weights(fiducials, target, self.sigma, relative=relative,
+                                  min_photos=self.min_share * len(fiducials))
 
 
 class _Alignment(_Weights):
@@ -67,9 +79,9 @@ def _weighted_mean(rgb: np.ndarray, weights: np.ndarray) -> Texture:
     return Texture(out.astype(np.float32), total > 0)
 
 
-def _expression_mean(aligned: align.Aligned, fiducials: np.ndarray, target: np.ndarray, sigma: float) -> Texture:
+def _expression_mean(aligned: align.Aligned, fiducials: np.ndarray, target: np.ndarray, params: _Weights) -> Texture:
     """The photos' average weighted by e_i (relative, so never all zero) where each one sees."""
-    e = expression_weights(fiducials, target, sigma, relative=True)
+    e = params.weights_of(fiducials, target)
     return _weighted_mean(aligned.rgb, e[:, None, None] * aligned.valid)
 
 
@@ -87,7 +99,8 @@ class MultiscaleTexture(TextureBackend):
     #: lid's edge too
     version = "11"
     #: what :meth:`weights` and :meth:`finish` read and :meth:`cache` does not (``tau`` is read by both)
-    frame_params = frozenset({"sigma", "skip", "time_sigma", "detail_share", "close_eyes", "shut_from", "shut_at"})
+    frame_params = frozenset({"sigma", "min_share", "skip", "time_sigma", "detail_share", "close_eyes", "shut_from",
+                              "shut_at"})
 
     class Params(_Alignment):
         levels: int = Field(5, ge=2, le=8, description="pyramid levels p (the paper does not say; 5 gives a "
@@ -181,7 +194,7 @@ class MultiscaleTexture(TextureBackend):
         (blend.chosen)."""
         p = self.params
         # without a uniform term only the ratios of the e_i matter: relative ones cannot all underflow
-        e = np.stack([expression_weights(fiducials, t, p.sigma, relative=p.tau == 0) for t in targets])
+        e = np.stack([p.weights_of(fiducials, t, relative=p.tau == 0) for t in targets])
         return chosen(smooth_in_time(e, p.time_sigma)[keep], p.skip)
 
     def weights(self, fiducials: np.ndarray, targets: np.ndarray, keep: slice = slice(None)) -> np.ndarray:
@@ -253,7 +266,7 @@ class WeightedTexture(TextureBackend):
         pass
 
     def synthesize(self, photos, target, flow=None, reference=None):
-        return _expression_mean(align.rigid(photos), photos.fiducials, target, self.params.sigma)
+        return _expression_mean(align.rigid(photos), photos.fiducials, target, self.params)
 
 
 class PrewarpedTexture(TextureBackend):
@@ -267,7 +280,7 @@ class PrewarpedTexture(TextureBackend):
     def synthesize(self, photos, target, flow=None, reference=None):
         p = self.params
         aligned = p.aligned(photos, target, flow, reference)
-        return _expression_mean(aligned, photos.fiducials, target, p.sigma)
+        return _expression_mean(aligned, photos.fiducials, target, p)
 
 
 @hookimpl

@@ -32,17 +32,55 @@ from .fiducials import mean_square_distance
 
 
 def expression_weights(fiducials: np.ndarray, target: np.ndarray, sigma: float, *,
-                       relative: bool = False) -> np.ndarray:
+                       relative: bool = False, min_photos: float = 0.0) -> np.ndarray:
     """e_i = exp(-||F^T - F^i||² / 2σ²) for fiducials (n, 49, 2) and a target (49, 2), in
     canonical px (σ = 10 in the paper: a mean displacement of 2 px per point gives 0.14).
 
     ``relative``: divided by the largest (the nearest photo gets 1), for averages that are
     normalised anyway; it keeps them defined when every e_i underflows (a target far from
     every photo). Points that are NaN in a photo or the target are left out of its distance,
-    which is scaled back to all points: a turned photo is compared on its visible half."""
+    which is scaled back to all points: a turned photo is compared on its visible half.
+
+    ``min_photos`` (not in the paper; 0: σ as given): σ is widened, for this target only, to the
+    smallest whose weights draw on that many photos (:func:`photos_drawn`, :func:`widened`), so that a
+    target few photos are near (an expression B rarely makes) is not made of a handful of photos, their
+    accessories and their misalignments."""
     d2 = np.shape(fiducials)[1] * mean_square_distance(fiducials, target)  # over the shared points, scaled to all
     d2[np.isnan(d2)] = np.inf  # no point in common
+    if min_photos > 0:
+        sigma = widened(d2 - d2.min(), sigma, min_photos)
     return np.exp(-(d2 - (d2.min() if relative else 0.0)) / (2.0 * sigma ** 2))
+
+
+def photos_drawn(e: np.ndarray) -> float:
+    """(Σ e_i)² / Σ e_i²: how many photos weights e (n,) draw on (n for equal weights, 1 for one photo)."""
+    e = np.asarray(e, np.float64)
+    return float(e.sum() ** 2 / max((e ** 2).sum(), np.finfo(float).tiny))
+
+
+def widened(d2: np.ndarray, sigma: float, photos: float, *, steps: int = 30) -> float:
+    """The smallest σ' ≥ σ (to 0.1 %, by bisection in log σ) whose weights exp(-d²/2σ'²) over the squared
+    distances ``d2`` (n,; the nearest 0, ``inf`` for a photo with none) draw on ``photos`` photos
+    (:func:`photos_drawn`), or on all the finite ones, about equally, when they are fewer; σ itself when
+    its weights draw on that many already."""
+    d2 = np.asarray(d2, np.float64)
+    d2 = d2[np.isfinite(d2)]
+    want = min(photos, len(d2))
+
+    def drawn(log_s: float) -> float:
+        return photos_drawn(np.exp(-d2 / (2.0 * np.exp(log_s) ** 2)))
+
+    low = high = np.log(sigma)
+    if len(d2) == 0 or drawn(low) >= want:
+        return sigma
+    for _ in range(40):  # until σ is past it (4^40: the weights all but equal)
+        low, high = high, high + np.log(4.0)
+        if drawn(high) >= want:
+            break
+    for _ in range(steps):
+        middle = (low + high) / 2
+        low, high = (middle, high) if drawn(middle) < want else (low, middle)
+    return float(np.exp(high))
 
 
 def seen_sums(images: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

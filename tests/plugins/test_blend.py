@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from persona.plugins.face.blend import (BlendCache, collapse, expression_weights, gaussian_pyramid, given_back,
-                                        laplacian_pyramid, level_bias)
+                                        laplacian_pyramid, level_bias, photos_drawn, widened)
 
 H, W = 244, 194
 
@@ -37,6 +37,32 @@ def test_expression_weights_follow_the_paper_and_relative_ones_never_vanish():
     assert e[1] == 0.0  # underflows
     r = expression_weights(fid, target, sigma=10, relative=True)
     assert r[0] == 1.0 and 0 <= r[1] < 1
+
+
+def test_photos_drawn_counts_equal_weights_and_one_photo():
+    assert photos_drawn(np.ones(7)) == pytest.approx(7)
+    assert photos_drawn(np.array([0.0, 3.0, 0.0])) == pytest.approx(1)
+    assert photos_drawn(np.array([1.0, 1.0, 0.0, 0.0])) == pytest.approx(2)
+
+
+def test_a_rare_expression_is_drawn_from_at_least_min_photos():
+    """Three photos near the target, 47 far: σ 10 draws on about 3; ``min_photos`` 20 widens σ until the
+    weights draw on 20 (to 0.1 %), the nearest photos still weighing most. A target many photos are near
+    keeps σ; asking for more photos than there are gives them all, about equally."""
+    rng = np.random.default_rng(3)
+    target = np.zeros((49, 2))
+    near = target + rng.normal(0, 0.5, (3, 49, 2))
+    far = target + 8 + rng.normal(0, 2, (47, 49, 2))
+    fid = np.concatenate([near, far])
+    assert photos_drawn(expression_weights(fid, target, sigma=10)) == pytest.approx(3, abs=0.1)
+    wide = expression_weights(fid, target, sigma=10, min_photos=20)
+    assert photos_drawn(wide) == pytest.approx(20, rel=1e-3)
+    assert wide[:3].min() > wide[3:].max()
+    crowd = far.mean(axis=0)
+    np.testing.assert_array_equal(expression_weights(far, crowd, sigma=10, min_photos=20),
+                                  expression_weights(far, crowd, sigma=10))
+    d2 = np.array([0.0, 1.0, 4.0, np.inf])
+    assert photos_drawn(np.exp(-d2[:3] / (2 * widened(d2, 0.1, 10) ** 2))) == pytest.approx(3, rel=1e-3)
 
 
 def _collection(rng, n=6):
