@@ -34,10 +34,10 @@ class _Weights(Params):
                          "canonical px over the 49 fiducials (paper: 10)")
     min_share: float = Field(0.16, ge=0, le=1, description="σ widened, for a target few of B's photos are near "
                              "(an expression B rarely makes), until its weights draw on this share of them, "
-                             "(Σe)²/Σe² (persona.plugins.face.blend.widened). Not in the paper, whose §8 widens σ "
-                             "for a whole collection that is small (0: σ as given). 0.16 draws the rarest frames "
-                             "of the woman's drives on 38-40 photos where 5 drew them, with their streaks and "
-                             "glasses (docs/texture.md)")
+                             "(Σe)²/Σe² (persona.plugins.face.blend.widened). Not in the paper, whose §8 widens "
+                             "σ for a whole collection that is small (0: σ as given). 0.16 draws the rarest "
+                             "frames of the woman's drives on 38-40 photos where 5 drew them, with their streaks "
+                             "and glasses (docs/texture.md)")
 
     def weights_of(self, fiducials: np.ndarray, target: np.ndarray, *, relative: bool = True) -> np.ndarray:
         """e_i (n,) of photos with fiducials (n, 49, 2) for a target (49, 2): Eq. 3's, σ widened for a
