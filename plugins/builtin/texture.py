@@ -36,7 +36,7 @@ class _Weights(Params):
                              "(an expression B rarely makes), until its weights draw on this share of them, "
                              "(Σe)²/Σe² (persona.plugins.face.blend.widened). Not in the paper, whose §8 widens "
                              "σ for a whole collection that is small (0: σ as given). 0.16 draws the rarest "
-                             "frames of the woman's drives on 38-40 photos where 5 drew them, with their streaks "
+                             "frames of the woman's drives on 38 photos where 5 drew them, with their streaks "
                              "and glasses (docs/texture.md)")
 
     def weights_of(self, fiducials: np.ndarray, target: np.ndarray, *, relative: bool = True) -> np.ndarray:
