@@ -48,7 +48,7 @@ def expression_weights(fiducials: np.ndarray, target: np.ndarray, sigma: float, 
     d2 = np.shape(fiducials)[1] * mean_square_distance(fiducials, target)  # over the shared points, scaled to all
     d2[np.isnan(d2)] = np.inf  # no point in common
     if min_photos > 0:
-        sigma = widened(d2 - d2.min(), sigma, min_photos)
+        sigma = widened(d2, sigma, min_photos)
     return np.exp(-(d2 - (d2.min() if relative else 0.0)) / (2.0 * sigma ** 2))
 
 
@@ -60,11 +60,12 @@ def photos_drawn(e: np.ndarray) -> float:
 
 def widened(d2: np.ndarray, sigma: float, photos: float, *, steps: int = 30) -> float:
     """The smallest σ' ≥ σ (to 0.1 %, by bisection in log σ) whose weights exp(-d²/2σ'²) over the squared
-    distances ``d2`` (n,; the nearest 0, ``inf`` for a photo with none) draw on ``photos`` photos
-    (:func:`photos_drawn`), or on all the finite ones, about equally, when they are fewer; σ itself when
-    its weights draw on that many already."""
+    distances ``d2`` (n,; ``inf`` for a photo with none) draw on ``photos`` photos (:func:`photos_drawn`),
+    or on all the finite ones, about equally, when they are fewer; σ itself when its weights draw on that
+    many already. The count does not depend on the nearest distance, which is taken off (no underflow)."""
     d2 = np.asarray(d2, np.float64)
     d2 = d2[np.isfinite(d2)]
+    d2 = d2 - d2.min() if len(d2) else d2
     want = min(photos, len(d2))
 
     def drawn(log_s: float) -> float:
