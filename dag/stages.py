@@ -222,15 +222,23 @@ FRAMES = "@frames/"
 def _puppet(root, path) -> dict:
     """The context of the render stages: the drive's puppet's average face, fiducials and mouth (each
     interior of B's mouth as its image and its photos' gap, or None)."""
-    puppet = Collection(root, Cast.of(root, path).puppet)
+    cast = Cast.of(root, path)
+    puppet, driver = Collection(root, cast.puppet), Collection(root, cast.driver)
     group = puppet.group["aligned"]
+    fiducials = group["mean_fiducials"][...].astype(np.float64)
+    lips = puppet.array("texture/lips")[...] if puppet.has("texture/lips") else None
 
     def interior(name):
         return ((puppet.array(name)[...].astype(np.float32), float(puppet.array(f"{name}_gap")[0]))
                 if puppet.has(name) else None)
 
-    return {"coverage": group["coverage"][...], "fiducials": group["mean_fiducials"][...].astype(np.float64),
-            "lips": puppet.array("texture/lips")[...] if puppet.has("texture/lips") else None,
+    insets = None  # B's and A's neutral inner-lip corners (mouth.frame_insets): B's mean, A's photos' median
+    if lips is not None and driver.has("landmarks/points"):
+        found = driver.state("landmarks") == OK
+        theirs = mouth.landmark_inset(driver.array("landmarks/points")[:][found].astype(np.float64))
+        outer = fiducials[[IDX49.index(48), IDX49.index(54)]]
+        insets = (mouth.corner_inset(outer, lips[0, [0, -1]]), np.nanmedian(theirs, axis=0)) if len(theirs) else None
+    return {"coverage": group["coverage"][...], "fiducials": fiducials, "lips": lips, "insets": insets,
             "mouth": interior("texture/mouth"), "mouth_cavity": interior("texture/mouth_cavity")}
 
 
@@ -246,9 +254,12 @@ def _render(backend, params, inputs, context):
         drivers = mouth.from_frame(frame, inputs["@frames/landmarks/points"])  # A's own interior, where A's lips part
         if drivers is not None:  # its gap from frame px to canonical at the head's distance (the renderer's f / z)
             interior, gap = drivers[0], drivers[1] * float(pose.tvec[2]) / float(pose.camera[0, 0])
+    insets = None
+    if context["insets"] is not None and "@frames/landmarks/points" in inputs:
+        insets = mouth.frame_insets(*context["insets"], inputs["@frames/landmarks/points"])
     puppet = Puppet(appearance=inputs["texture/rgb"].astype(np.float32), coverage=context["coverage"],
                     fiducials=context["fiducials"], mesh=inputs.get("mesh"), mouth=interior,
-                    lips=context["lips"], mouth_gap=gap, mouth_own=drivers is not None)
+                    lips=context["lips"], mouth_gap=gap, mouth_own=drivers is not None, lip_insets=insets)
     out = backend.render(puppet, inputs["target"].astype(np.float64), pose, frame)
     mask = np.round(out.mask * 255).astype(np.uint8)
     own = np.zeros_like(mask) if out.own is None else np.round(out.own * 255).astype(np.uint8)

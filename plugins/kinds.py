@@ -126,6 +126,9 @@ class Puppet:
     mouth_own : bool — ``mouth`` is the driver's own, from this frame (``mouth_choice: frame``): sharp and
         already in the frame's light, its rows nearest the lips keep their size and the composite leaves
         it as it is (Rendered.own)
+    lip_insets : ndarray, shape (2,), or None — where this frame's inner-lip corners lie, as fractions of
+        the mouth's width in from its outer corners (:func:`persona.plugins.face.mouth.frame_insets`,
+        from the driver's); None: where the mesh puts them
     """
 
     appearance: np.ndarray
@@ -136,6 +139,7 @@ class Puppet:
     lips: np.ndarray | None = None
     mouth_gap: float = np.inf
     mouth_own: bool = False
+    lip_insets: np.ndarray | None = None
 
 
 @dataclass(frozen=True)

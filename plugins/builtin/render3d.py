@@ -32,6 +32,7 @@ from ..face import mouth
 from ..face.blend import gaussian_pyramid
 from ..face.composite import GREY
 from ..face.mesh import grid_triangles
+from ..face.template import IDX49
 from ..face.warp import compose
 from ..hookspecs import hookimpl
 from ..kinds import Pose, Puppet, RenderBackend, Rendered
@@ -210,6 +211,13 @@ class RaycastRender(RenderBackend):
             "0.68 -> 0.74 (docs/expression.md)")
         mouth_sigma: float = Field(1.5, ge=0, description="mouth_choice driver: how much of B's teeth each frame "
                                    "shows, smoothed in time by a Gaussian of this many frames (0: each frame's own)")
+        mouth_corners: Literal["driver", "mesh"] = Field(
+            "driver", description="where the opening's two corners (B's inner-lip corners, iBUG 60 and 64) are "
+            "drawn. `driver` (the default; not in the paper): B's own neutral place moved along the mouth as far "
+            "as the driver's inner corners moved from theirs in this frame (mouth.frame_insets), so that a round "
+            "'O' leaves lip at the corners; `mesh`: where the mesh moved them, which follows only the 49 "
+            "fiducials: they stay near the outer corners and an 'O' opens as wide as the lips "
+            "(docs/expression.md)")
 
     def render(self, puppet: Puppet, target: np.ndarray, pose: Pose, frame: np.ndarray) -> Rendered:
         """target is not used: the expression is already in ``puppet.mesh`` and ``puppet.appearance``."""
@@ -245,11 +253,15 @@ class RaycastRender(RenderBackend):
         face = np.clip(rgb, 0, 255).round().astype(np.uint8)
         out[y0:y1, x0:x1] = np.where((part > 0)[..., None], face, out[y0:y1, x0:x1])
         if self.params.mouth and puppet.mouth is not None and puppet.lips is not None:
-            lips = np.asarray(puppet.lips, np.float32).reshape(1, -1, 2)
-            xy, z = project(compose(np.asarray(puppet.mesh, np.float32), lips)[0], pose)  # the mesh at the lips
+            corners = np.asarray(puppet.fiducials, np.float32)[[IDX49.index(48), IDX49.index(54)]]
+            points = np.concatenate([np.asarray(puppet.lips, np.float32).reshape(-1, 2), corners])[None]
+            xy, z = project(compose(np.asarray(puppet.mesh, np.float32), points)[0], pose)  # the mesh there
+            curves, outer = xy[:-2].reshape(2, -1, 2), xy[-2:]
+            if self.params.mouth_corners == "driver" and puppet.lip_insets is not None:
+                curves = mouth.place_corners(curves, outer, puppet.lip_insets)
             if np.all(z > _NEAR):  # frame px per canonical unit at the lips: f / z
-                drawn = mouth.draw(out, mask, np.asarray(puppet.mouth, np.float32), xy.reshape(2, -1, 2),
-                                   gap=puppet.mouth_gap * pose.camera[0, 0] / float(np.mean(z)),
+                drawn = mouth.draw(out, mask, np.asarray(puppet.mouth, np.float32), curves,
+                                   gap=puppet.mouth_gap * pose.camera[0, 0] / float(np.mean(z[:-2])),
                                    keep_rows=puppet.mouth_own)
                 if puppet.mouth_own:
                     return Rendered(rgb=out, mask=mask, own=drawn)

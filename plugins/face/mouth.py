@@ -77,6 +77,53 @@ def lip_gap(landmarks68: np.ndarray, per_iod: bool = True) -> np.ndarray:
     return gap / np.linalg.norm(lm[:, 36:42].mean(axis=1) - lm[:, 42:48].mean(axis=1), axis=1)
 
 
+def corner_inset(outer: np.ndarray, inner: np.ndarray) -> np.ndarray:
+    """(2,): how far in from the mouth's outer corners (iBUG 48, 54) its inner corners (60, 64) are,
+    along the line between the outer corners, as fractions of the mouth's width (left, right).
+
+    ``outer`` and ``inner`` are (2, 2) or (n, 2, 2) points (x, y), the left corner first; the result
+    has their leading shape. A round "O" brings the inner corners in further than a smile does."""
+    outer, inner = np.asarray(outer, np.float64), np.asarray(inner, np.float64)
+    axis = outer[..., 1, :] - outer[..., 0, :]
+    length2 = np.sum(axis ** 2, axis=-1)
+    with np.errstate(invalid="ignore", divide="ignore"):  # corners that coincide: NaN
+        left = np.sum((inner[..., 0, :] - outer[..., 0, :]) * axis, axis=-1) / length2
+        right = np.sum((outer[..., 1, :] - inner[..., 1, :]) * axis, axis=-1) / length2
+    return np.stack([left, right], axis=-1)
+
+
+def landmark_inset(landmarks68: np.ndarray) -> np.ndarray:
+    """:func:`corner_inset` of 68 landmarks (..., 68, 2) -> (..., 2)."""
+    lm = np.asarray(landmarks68, np.float64)
+    return corner_inset(lm[..., [48, 54], :], lm[..., [60, 64], :])
+
+
+def frame_insets(puppet_neutral: np.ndarray, driver_neutral: np.ndarray, frame68: np.ndarray) -> np.ndarray | None:
+    """(2,) where B's inner-lip corners go in one frame (``mouth_corners: driver``): B's neutral
+    :func:`corner_inset` plus how far the driver's own inner corners have moved from theirs in this
+    frame (its 68 landmarks ``frame68``), as the paper moves B's fiducials by A's offsets. The mesh
+    moves only the 49 fiducials, which leave out the inner corners: left to the mesh they stay near
+    the outer corners, and a round "O" is drawn as wide as the lips. None where a point is missing."""
+    insets = np.asarray(puppet_neutral) + landmark_inset(frame68) - np.asarray(driver_neutral)
+    return insets if np.all(np.isfinite(insets)) else None
+
+
+def place_corners(curves: np.ndarray, outer: np.ndarray, inset: np.ndarray) -> np.ndarray:
+    """The inner-lip ``curves`` (2, nodes, 2) with their corner nodes moved along the mouth, so that
+    they lie ``inset`` (2,) of the way in from the ``outer`` corners (2, 2) (:func:`corner_inset`);
+    across the mouth each keeps its own offset from its outer corner. The insets are held between 0
+    and 0.45 (an inner corner stays inside its outer one and short of the middle)."""
+    curves, outer = np.array(curves, np.float64), np.asarray(outer, np.float64)
+    inset = np.clip(np.asarray(inset, np.float64), 0.0, 0.45)
+    axis = outer[1] - outer[0]
+    unit = axis / np.linalg.norm(axis)
+    for node, start, sign, share in ((0, outer[0], 1.0, inset[0]), (-1, outer[1], -1.0, inset[1])):
+        offset = curves[0, node] - start
+        across = offset - np.dot(offset, unit) * unit
+        curves[:, node] = start + sign * share * axis + across
+    return curves
+
+
 def rounded(curves: np.ndarray, steps: int = STEPS) -> np.ndarray:
     """(2, (nodes - 1) · steps + 1, 2): the inner-lip curves (2, nodes, 2) as one closed, smooth outline
     of the opening, sampled ``steps`` times from each node to the next.

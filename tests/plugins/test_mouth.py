@@ -8,6 +8,7 @@ import numpy as np
 from persona.plugins.builtin.render3d import RaycastRender
 from persona.plugins.face import mouth
 from persona.plugins.face.synthetic import Expression, look_at_pose, make_face
+from persona.plugins.face.template import IDX49
 from persona.plugins.kinds import Pose, Puppet
 
 BLUE = np.array([0.0, 0.0, 255.0], np.float32)
@@ -102,16 +103,17 @@ def test_draw_fills_the_gap_only_where_the_face_is():
     assert (closed == 200).all()
 
 
-def _blue_pixels(expression: Expression, draw: bool) -> int:
+def _blue_pixels(expression: Expression, draw: bool, insets=None, corners: str = "driver") -> int:
     face = make_face(expression=expression)
     neutral = make_face()
     lips = mouth.lip_curves(neutral.landmarks3d[:, :2])
     mesh = np.where(face.vert_mask[..., None], face.verts, np.nan).astype(np.float32)
     puppet = Puppet(appearance=(face.vert_albedo * 255).astype(np.float32),
-                    coverage=np.ones(face.vert_mask.shape, np.float32), fiducials=face.landmarks3d[:, :2],
-                    mesh=mesh, mouth=np.broadcast_to(BLUE, (32, 64, 3)).copy(), lips=lips)
+                    coverage=np.ones(face.vert_mask.shape, np.float32),
+                    fiducials=neutral.landmarks3d[list(IDX49), :2], mesh=mesh,
+                    mouth=np.broadcast_to(BLUE, (32, 64, 3)).copy(), lips=lips, lip_insets=insets)
     rvec, tvec, camera = look_at_pose(0.0, 0.0, 0.0, face_px=170.0, image_size=(260, 240))
-    out = RaycastRender({"mouth": draw}).render(puppet, None, Pose(rvec, tvec, camera, 0.0),
+    out = RaycastRender({"mouth": draw, "mouth_corners": corners}).render(puppet, None, Pose(rvec, tvec, camera, 0.0),
                                                 np.zeros((260, 240, 3), np.uint8))
     rgb = out.rgb.astype(int)
     return int(np.count_nonzero((rgb[..., 2] > 180) & (rgb[..., 0] < 60) & (rgb[..., 1] < 60)))
@@ -119,12 +121,21 @@ def _blue_pixels(expression: Expression, draw: bool) -> int:
 
 def test_the_renderer_shows_the_interior_when_the_lips_part():
     """A synthetic face whose jaw drops: the renderer draws the interior between the lips as the
-    mesh moved them (measured 670 px wide open, 236 at rest: the synthetic face's lips rest a little
-    apart), only the antialiased rim with the lips closed (8 px), none with ``mouth: false``."""
+    mesh moved them (measured 713 px wide open, 227 at rest: the synthetic face's lips rest a little
+    apart), only the antialiased rim with the lips closed (11 px), none with ``mouth: false``."""
     wide, rest = _blue_pixels(Expression(open=1.0), draw=True), _blue_pixels(Expression(), draw=True)
     assert wide > 2 * rest > 200
     assert _blue_pixels(Expression(open=-1.0), draw=True) < 30
     assert _blue_pixels(Expression(open=1.0), draw=False) == 0
+
+
+def test_the_opening_narrows_when_the_drivers_inner_corners_come_in():
+    """The same open mouth with its inner corners placed a quarter of the mouth's width in from the
+    outer ones (a round "O") covers fewer pixels than where the mesh leaves them (measured 496 against
+    713; the synthetic face's own are 0.08 in); ``mouth_corners: mesh`` ignores the insets."""
+    mesh = _blue_pixels(Expression(open=1.0), draw=True)
+    assert _blue_pixels(Expression(open=1.0), draw=True, insets=np.array([0.25, 0.25]), corners="mesh") == mesh
+    assert _blue_pixels(Expression(open=1.0), draw=True, insets=np.array([0.25, 0.25])) < 0.8 * mesh
 
 
 def test_a_gap_a_pixel_tall_shows_the_interiors_mean_colour_along_it_not_a_speckle_of_its_rows():
@@ -279,3 +290,39 @@ def test_a_dark_gap_is_where_the_drivers_interior_parts():
     image[16:] = 200
     assert mouth.dark_row(image) is None
     assert mouth.dark_row(np.full((32, 64, 3), 20, np.float32)) is None
+
+
+def test_corner_inset_is_the_inner_corners_share_of_the_width_in_from_the_outer():
+    """Outer corners 100 px apart, the inner ones 8 and 12 px in (and off the line: only the part
+    along it counts): insets 0.08 and 0.12; 68 landmarks give the same."""
+    outer = np.array([[10.0, 50.0], [110.0, 50.0]])
+    inner = np.array([[18.0, 53.0], [98.0, 47.0]])
+    np.testing.assert_allclose(mouth.corner_inset(outer, inner), [0.08, 0.12])
+    lm = np.zeros((68, 2))
+    lm[[48, 54]], lm[[60, 64]] = outer, inner
+    np.testing.assert_allclose(mouth.landmark_inset(lm[None]), [[0.08, 0.12]])
+
+
+def test_the_frames_inner_corners_move_in_as_far_as_the_drivers_do():
+    """B's neutral insets 0.07, the driver's 0.08 at rest and 0.11 / 0.10 in a round "O" (its inner
+    corners 3 and 2 % of its width further in): B's are 0.10 and 0.09; placed on a mouth whose outer
+    corners are 80 px apart (tilted), each corner lies that share of the way in, its offset across
+    the mouth kept. A missing point gives None."""
+    lm = np.zeros((68, 2))
+    lm[[48, 54]] = [[0.0, 0.0], [100.0, 0.0]]
+    lm[[60, 64]] = [[11.0, 1.0], [90.0, 1.0]]
+    insets = mouth.frame_insets(np.array([0.07, 0.07]), np.array([0.08, 0.08]), lm)
+    np.testing.assert_allclose(insets, [0.10, 0.09])
+    angle = np.deg2rad(10.0)
+    axis = 80.0 * np.array([np.cos(angle), np.sin(angle)])
+    across = np.array([-np.sin(angle), np.cos(angle)])
+    outer = np.array([[20.0, 30.0], [20.0, 30.0] + axis])
+    curves = np.zeros((2, 5, 2))
+    curves[:, :, :] = outer[0] + np.linspace(0.02, 0.98, 5)[:, None] * axis  # corners where a mesh left them
+    curves[:, 0] += 1.5 * across
+    placed = mouth.place_corners(curves, outer, insets)
+    np.testing.assert_allclose(placed[:, 0], [outer[0] + 0.10 * axis + 1.5 * across] * 2, atol=1e-9)
+    np.testing.assert_allclose(placed[:, -1], [outer[1] - 0.09 * axis] * 2, atol=1e-9)
+    np.testing.assert_array_equal(placed[:, 1:-1], curves[:, 1:-1])  # the other nodes stay
+    lm[60] = np.nan
+    assert mouth.frame_insets(np.array([0.07, 0.07]), np.array([0.08, 0.08]), lm) is None
