@@ -26,7 +26,7 @@ import numpy as np
 from pydantic import Field
 
 from ..base import Backend, Params, Rejected
-from ..face.template import IDX49
+from ..face.template import IDX49, generic_template
 from ..hookspecs import hookimpl
 
 # iBUG 68 indices
@@ -383,12 +383,25 @@ TEAR_SIGMA = 1.0
 TEAR_PERCENTILE = 90
 
 
-def line_strength(image) -> np.ndarray:
+def masked_blur(grey, mask, sigma: float) -> np.ndarray:
+    """(h, w) float32: a Gaussian blur (σ px) of ``grey`` (h, w) over the pixels of ``mask`` (h, w) alone,
+    each pixel the weighted mean of the masked ones around it (normalised convolution); the whole image
+    with ``mask`` None. A photo frontalized into the canonical frame is 0 beyond its view: a plain blur
+    would mix that 0 into the face, and a filter would see the cut-out's edge as detail or as a line."""
+    grey = np.asarray(grey, np.float32)
+    if mask is None:
+        return cv2.GaussianBlur(grey, (0, 0), sigma)
+    weight = np.asarray(mask, np.float32)
+    return cv2.GaussianBlur(grey * weight, (0, 0), sigma) / np.maximum(cv2.GaussianBlur(weight, (0, 0), sigma), 1e-6)
+
+
+def line_strength(image, mask=None) -> np.ndarray:
     """(h, w) how much each pixel of an RGB image (0-255) lies on a thin line or a step: ||λ1| - |λ2||
-    of the grey image's Hessian at σ = ``TEAR_SIGMA`` (σ²-normalised), λ the two eigenvalues. High
-    across a crack or a jump, low on smooth skin and on round blobs."""
+    of the grey image's Hessian at σ = ``TEAR_SIGMA`` (σ²-normalised), λ the two eigenvalues, from the
+    pixels of ``mask`` alone (:func:`masked_blur`; None: all). High across a crack or a jump, low on
+    smooth skin and on round blobs."""
     grey = np.asarray(image, np.float32) @ np.float32([0.299, 0.587, 0.114]) / 255
-    g = cv2.GaussianBlur(grey, (0, 0), TEAR_SIGMA)
+    g = masked_blur(grey, mask, TEAR_SIGMA)
     xx, yy = cv2.Sobel(g, cv2.CV_32F, 2, 0, ksize=3), cv2.Sobel(g, cv2.CV_32F, 0, 2, ksize=3)
     xy = cv2.Sobel(g, cv2.CV_32F, 1, 1, ksize=3)
     mean, half = (xx + yy) / 2, np.sqrt(((xx - yy) / 2) ** 2 + xy ** 2)
@@ -405,7 +418,7 @@ def tear_reference(photos, masks) -> np.ndarray:
     """(h, w) the ``TEAR_PERCENTILE``-th percentile of :func:`line_strength` over the photos (n, h, w, 3)
     whose mask (n, h, w; their view, :func:`inner`) holds each pixel: the lines a collection's own
     photos have there (eyelids, lips, creases). NaN where no photo counts."""
-    strengths = np.stack([np.where(m, line_strength(p), np.nan) for p, m in zip(photos, masks)])
+    strengths = np.stack([np.where(m, line_strength(p, m), np.nan) for p, m in zip(photos, masks)])
     seen = np.isfinite(strengths).any(axis=0)
     out = np.full(seen.shape, np.nan)
     out[seen] = np.nanpercentile(strengths[:, seen], TEAR_PERCENTILE, axis=0)
@@ -417,16 +430,34 @@ def tear_energy(image, mask, reference) -> float:
     of its line strength beyond the collection's ``reference`` (:func:`tear_reference`). A collection's
     own photos score about the same as one another (each exceeds the others' percentile here and
     there); a clean blend of them scores less, cracks that no photo has score more."""
-    excess = np.maximum(line_strength(image) - reference, 0)
+    excess = np.maximum(line_strength(image, mask) - reference, 0)
     inside = np.asarray(mask, bool) & np.isfinite(reference)
     return float(1000 * np.mean(excess[inside] ** 2)) if inside.any() else float("nan")
 
 
-def detail_energy(image, mask) -> float:
-    """Fine detail of an image (h, w, 3, 0-255) inside ``mask``: the mean square of its grey band-pass
-    (difference of Gaussians, σ 1 and 4 px, grey in [0, 1]) ×1000; a blur lowers it, tears raise it."""
+#: the fine detail the believable-face issue measures: a difference of Gaussians of σ 1 and 2 px on a face
+#: whose eyes are ``DETAIL_IOD`` px apart
+DETAIL_SIGMAS = (1.0, 2.0)
+DETAIL_IOD = 100.0
+
+
+@lru_cache(maxsize=1)
+def canonical_iod() -> float:
+    """How far apart (px) the eye centres of the canonical frame's generic template are (65.6)."""
+    fiducials = generic_template().fiducials3d[:, :2]
+    eyes = [IDX49.index(k) for k in range(36, 48)]
+    return float(np.linalg.norm(fiducials[eyes[:6]].mean(axis=0) - fiducials[eyes[6:]].mean(axis=0)))
+
+
+def detail_energy(image, mask, iod: float | None = None) -> float:
+    """Fine detail of an image (h, w, 3, 0-255) inside ``mask``: the mean square ×1000 of its grey band-pass
+    (grey in [0, 1]; difference of Gaussians of ``DETAIL_SIGMAS`` at ``DETAIL_IOD`` px between the eyes,
+    scaled to the image's ``iod``, by default the canonical frame's; from the pixels of ``mask`` alone,
+    :func:`masked_blur`). A blur lowers it, tears raise it, and the edge of a photo cut out on black does
+    not count."""
+    scale = (canonical_iod() if iod is None else iod) / DETAIL_IOD
     grey = np.asarray(image, np.float32) @ np.float32([0.299, 0.587, 0.114]) / 255
-    band = cv2.GaussianBlur(grey, (0, 0), 1.0) - cv2.GaussianBlur(grey, (0, 0), 4.0)
+    band = masked_blur(grey, mask, DETAIL_SIGMAS[0] * scale) - masked_blur(grey, mask, DETAIL_SIGMAS[1] * scale)
     inside = np.asarray(mask, bool)
     return float(1000 * np.mean(band[inside] ** 2)) if inside.any() else float("nan")
 
