@@ -127,9 +127,10 @@ class MultiscaleTexture(TextureBackend):
                                     "they do not share (skin, the exact place of a crease) than any one photo; each "
                                     "band but the two coarsest is scaled by one factor, the one that gives B's "
                                     "neutral blend e + ρ (E - e), e its energy and E one photo's. Not in the paper "
-                                    "(0 is its blend): 0.35 takes the detail from 0.38 to 0.48 of B's photos on "
+                                    "(0 is its blend): 0.35 took the detail from 0.38 to 0.48 of B's photos on "
                                     "Bush <- Obama; 0.5 to 0.51, but Obama <- woman's composite jitter to 1.01; 1 "
-                                    "to 0.63, but the self-reenactment's SSIM under 0.88 (docs/texture.md)")
+                                    "to 0.63, but the self-reenactment's SSIM under 0.88 (on the detail figure's "
+                                    "first band, σ 1 and 4 px; docs/texture.md)")
         time_sigma: float = Field(0.0, ge=0, le=10, description="video mode: σ (frames) of a Gaussian over time "
                                   "taken of each photo's expression weight, so that the photos a frame's texture is "
                                   "made of change from frame to frame gradually rather than at once. Not in the "
