@@ -221,7 +221,9 @@ FRAMES = "@frames/"
 
 def _puppet(root, path) -> dict:
     """The context of the render stages: the drive's puppet's average face, fiducials and mouth (each
-    interior of B's mouth as its image and its photos' gap, or None)."""
+    interior of B's mouth as its image and its photos' gap, or None), and the neutral insets of B's and
+    A's inner-lip corners that each frame's are drawn from (mouth.frame_insets; None without B's lips or
+    A's landmarks)."""
     cast = Cast.of(root, path)
     puppet, driver = Collection(root, cast.puppet), Collection(root, cast.driver)
     group = puppet.group["aligned"]
