@@ -238,8 +238,8 @@ def _puppet(root, path) -> dict:
     if lips is not None and driver.has("landmarks/points"):
         found = driver.state("landmarks") == OK
         theirs = mouth.landmark_inset(driver.array("landmarks/points")[:][found].astype(np.float64))
-        outer = fiducials[[IDX49.index(48), IDX49.index(54)]]
-        insets = (mouth.corner_inset(outer, lips[0, [0, -1]]), np.nanmedian(theirs, axis=0)) if len(theirs) else None
+        ours = mouth.corner_inset(mouth.outer_corners(fiducials), lips[0, [0, -1]])
+        insets = (ours, np.nanmedian(theirs, axis=0)) if len(theirs) else None
     return {"coverage": group["coverage"][...], "fiducials": fiducials, "lips": lips, "insets": insets,
             "mouth": interior("texture/mouth"), "mouth_cavity": interior("texture/mouth_cavity")}
 

@@ -444,9 +444,7 @@ DETAIL_IOD = 100.0
 @lru_cache(maxsize=1)
 def canonical_iod() -> float:
     """How far apart (px) the eye centres of the canonical frame's generic template are (65.6)."""
-    fiducials = generic_template().fiducials3d[:, :2]
-    eyes = [IDX49.index(k) for k in range(36, 48)]
-    return float(np.linalg.norm(fiducials[eyes[:6]].mean(axis=0) - fiducials[eyes[6:]].mean(axis=0)))
+    return float(interocular(generic_template().landmarks3d[None, :, :2])[0])
 
 
 def detail_energy(image, mask, iod: float | None = None) -> float:

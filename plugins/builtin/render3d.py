@@ -32,7 +32,6 @@ from ..face import mouth
 from ..face.blend import gaussian_pyramid
 from ..face.composite import GREY
 from ..face.mesh import grid_triangles
-from ..face.template import IDX49
 from ..face.warp import compose
 from ..hookspecs import hookimpl
 from ..kinds import Pose, Puppet, RenderBackend, Rendered
@@ -253,7 +252,7 @@ class RaycastRender(RenderBackend):
         face = np.clip(rgb, 0, 255).round().astype(np.uint8)
         out[y0:y1, x0:x1] = np.where((part > 0)[..., None], face, out[y0:y1, x0:x1])
         if self.params.mouth and puppet.mouth is not None and puppet.lips is not None:
-            corners = np.asarray(puppet.fiducials, np.float32)[[IDX49.index(48), IDX49.index(54)]]
+            corners = mouth.outer_corners(np.asarray(puppet.fiducials, np.float32))
             points = np.concatenate([np.asarray(puppet.lips, np.float32).reshape(-1, 2), corners])[None]
             xy, z = project(compose(np.asarray(puppet.mesh, np.float32), points)[0], pose)  # the mesh there
             curves, outer = xy[:-2].reshape(2, -1, 2), xy[-2:]

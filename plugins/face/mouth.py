@@ -49,6 +49,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from .template import IDX49
 from .texture import to_grey
 
 #: the iBUG-68 indices of the inner lips: upper curve and lower curve, corner to corner
@@ -75,6 +76,11 @@ def lip_gap(landmarks68: np.ndarray, per_iod: bool = True) -> np.ndarray:
     if not per_iod:
         return gap
     return gap / np.linalg.norm(lm[:, 36:42].mean(axis=1) - lm[:, 42:48].mean(axis=1), axis=1)
+
+
+def outer_corners(fiducials49: np.ndarray) -> np.ndarray:
+    """(2, 2): the mouth's outer corners (iBUG 48, 54), left first, among the paper's 49 fiducials (49, 2)."""
+    return np.asarray(fiducials49)[[IDX49.index(48), IDX49.index(54)]]
 
 
 def corner_inset(outer: np.ndarray, inner: np.ndarray) -> np.ndarray:
