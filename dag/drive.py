@@ -18,7 +18,7 @@ from persona.plugins.face import mouth
 from persona.plugins.face.composite import alone, steady_light
 from persona.plugins.face.dynamics import smooth_in_time
 from persona.plugins.face.fiducials import mean_shape
-from persona.plugins.face.tracks import bridge
+from persona.plugins.face.tracks import bridge, steadied
 from persona.plugins.face.warp import retarget
 from persona.stores import media, storage
 from persona.stores.layout import OK, PENDING, Cast, Collection
@@ -40,15 +40,17 @@ def run_drive(runner, cast: Cast, output: str) -> Collection:
     inputs = {"frames": frames.provenance("status/screen/state").key,
               "puppet": puppet.provenance("aligned/mean").key}
     motion = runner.motion_params()
-    sigma, lips = motion["pose_sigma"], motion["lips"]
-    # lips at the paper's 'mean' is left out of the key: stores made before the switch existed stay valid
+    sigma, lips, steady = motion["pose_sigma"], motion["lips"], motion["steady"]
+    # lips at the paper's 'mean' and steady off are left out of the key: stores made before the switches
+    # existed stay valid
     prov = Provenance.make(stage="retarget", backend="-", backend_version="2",
-                           params={"pose_sigma": sigma, **({"lips": lips} if lips != "mean" else {})},
+                           params={"pose_sigma": sigma, **({"lips": lips} if lips != "mean" else {}),
+                                   **({"steady": steady} if steady else {})},
                            inputs=inputs, persona_version=runner.version)
     drive = Collection(runner.root, cast.drive)
     # the status is created before the targets and written after them: done only when no frame is pending
     if not (drive.exists() and drive.made_by("status/retarget/state", prov)) or (drive.state("retarget") == PENDING).any():
-        _retarget(runner, cast, drive, frames, puppet, found, prov, sigma, lips)
+        _retarget(runner, cast, drive, frames, puppet, found, prov, sigma, lips, steady)
     with runner.step("frame textures", cast.drive):
         textures = run_frame_textures(runner, drive, puppet, prov)
     inputs = {"retarget": prov.key, "texture": textures.key}
@@ -111,7 +113,7 @@ def _teeth(runner, drive: Collection, frames: Collection, puppet: Collection, mo
     return prov
 
 
-def _retarget(runner, cast, drive, frames, puppet, found, prov, sigma: float, lips: str) -> None:
+def _retarget(runner, cast, drive, frames, puppet, found, prov, sigma: float, lips: str, steady: int) -> None:
     n = frames.n
     group = runner.root.require_group(cast.drive)
     cast.record(group)
@@ -120,7 +122,7 @@ def _retarget(runner, cast, drive, frames, puppet, found, prov, sigma: float, li
     fiducials = frames.array("aligned/fiducials")[:].astype(np.float64)
     pose = bridge(frames.array("pose")[:], found)
     pose[:, :6] = smooth_in_time(pose[:, :6], sigma)  # rvec, tvec
-    driver_fiducials = bridge(fiducials, found)
+    driver_fiducials = bridge(steadied(fiducials, frames.array("aligned/rgb"), found, steady), found)
     target = retarget(driver_fiducials, mean_shape(fiducials[found]),
                       puppet.array("aligned/mean_fiducials")[...].astype(np.float64), lips=lips)
     for name, value, tail, dims in (

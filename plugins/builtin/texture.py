@@ -99,8 +99,8 @@ class MultiscaleTexture(TextureBackend):
     #: lid's edge too
     version = "11"
     #: what :meth:`weights` and :meth:`finish` read and :meth:`cache` does not (``tau`` is read by both)
-    frame_params = frozenset({"sigma", "min_share", "skip", "time_sigma", "detail_share", "close_eyes", "shut_from",
-                              "shut_at"})
+    frame_params = frozenset({"sigma", "min_share", "skip", "time_sigma", "detail_share", "detail_from",
+                              "close_eyes", "shut_from", "shut_at"})
 
     class Params(_Alignment):
         levels: int = Field(5, ge=2, le=8, description="pyramid levels p (the paper does not say; 5 gives a "
@@ -131,6 +131,10 @@ class MultiscaleTexture(TextureBackend):
                                     "Bush <- Obama; 0.5 to 0.51, but Obama <- woman's composite jitter to 1.01; 1 "
                                     "to 0.63, but the self-reenactment's SSIM under 0.88 (on the detail figure's "
                                     "first band, σ 1 and 4 px; docs/texture.md)")
+        detail_from: Literal["frame", "neutral"] = Field(
+            "frame", description="video mode: what `detail_share` gives back in each frame: more of the frame's "
+            "own fine bands (frame), or of B's neutral blend's, the same in every frame (neutral), so that the "
+            "detail given back holds still while the photos a frame takes change. Not in the paper")
         time_sigma: float = Field(0.0, ge=0, le=10, description="video mode: σ (frames) of a Gaussian over time "
                                   "taken of each photo's expression weight, so that the photos a frame's texture is "
                                   "made of change from frame to frame gradually rather than at once. Not in the "
@@ -215,7 +219,8 @@ class MultiscaleTexture(TextureBackend):
         ``close_eyes`` (default: the param), the eyes a target shuts drawn shut."""
         f = len(targets)
         gains = sums.detail_gains(totals, self.params.detail_share, f)
-        textures = np.clip(sums.finish(totals, gains=gains, rows=range(f)), 0, 255)
+        held = f if self.params.detail_from == "neutral" else None
+        textures = np.clip(sums.finish(totals, gains=gains, rows=range(f), held=held), 0, 255)
         if self.params.close_eyes if close_eyes is None else close_eyes:
             neutral = mean_shape(fiducials)  # the texture's geometry is B's neutral: the photos' mean fiducials
             for texture, target in zip(textures, targets):

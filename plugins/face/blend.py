@@ -263,16 +263,24 @@ class BlendSums:
             return []
         return [given_back(*self.band(totals, k, t), totals.photo_energy[k], share) for k in range(totals.levels - 2)]
 
-    def finish(self, totals: BlendTotals, *, gains=(), rows=None) -> np.ndarray:
+    def finish(self, totals: BlendTotals, *, gains=(), rows=None, held: int | None = None) -> np.ndarray:
         """The blended images (f, H, W, C) of the targets ``rows`` (default: all), each the collapse
         of its levels (:meth:`band`). Not in the paper: level k multiplied by ``gains[k]`` where given
         (:meth:`detail_gains`): a weighted mean of photos whose fine detail does not coincide (skin,
-        pores, the exact place of a crease) has less of it than any one photo."""
+        pores, the exact place of a crease) has less of it than any one photo. With ``held``, what the
+        gain adds is target ``held``'s band rather than each target's own: level k + (gains[k] - 1) ×
+        the held target's level k, the same in every image, so the detail given back holds still
+        while the photos each target takes change."""
+        extra = [np.float32(g - 1) * self.band(totals, k, held)[0] for k, g in enumerate(gains)] \
+            if held is not None else []
         images = []
         for t in range(len(self.num[0])) if rows is None else rows:
             pyramid = [self.band(totals, k, t)[0] for k in range(totals.levels)]
             for k, gain in enumerate(gains):
-                pyramid[k] *= np.float32(gain)
+                if held is None:
+                    pyramid[k] *= np.float32(gain)
+                else:
+                    pyramid[k] += extra[k]
             images.append(collapse(pyramid))
         return np.stack(images)
 
