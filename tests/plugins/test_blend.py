@@ -4,7 +4,7 @@ import cv2
 import numpy as np
 import pytest
 
-from persona.plugins.face.blend import (BlendCache, collapse, expression_weights, gaussian_pyramid, given_back,
+from persona.plugins.face.blend import (BlendCache, BlendSums, collapse, expression_weights, gaussian_pyramid, given_back,
                                         laplacian_pyramid, level_bias, photos_drawn, widened)
 
 H, W = 244, 194
@@ -153,6 +153,28 @@ def _grainy_photos(n=8, h=96, w=80):
     grain = [cv2.GaussianBlur(rng.normal(0, 12, (h, w)).astype(np.float32), (0, 0), 0.7) for _ in range(n)]
     images = np.stack([np.repeat((shared + g)[..., None], 3, axis=2) for g in grain]).astype(np.float32)
     return images, BlendCache.build(images, np.ones((n, h, w), bool), levels=4, alpha=0.0, beta=20, tau=1)
+
+
+def test_held_detail_is_the_held_targets_band_in_every_image():
+    """Two targets that draw on different grainy photos, and a third (the neutral) on all of them: with
+    ``held`` the third, each target's image is its plain blend plus (g_k - 1) × the neutral's level k, to
+    float precision, the same added to both, so the two differ exactly as their plain blends do; without
+    it, by their difference times the gains."""
+    images, cache = _grainy_photos()
+    weights = np.zeros((3, len(images)), np.float32)
+    weights[0, :4], weights[1, 4:], weights[2] = 1, 1, 1
+    sums = BlendSums.zeros(3, cache.totals)
+    sums.add(cache.weighted, cache.detail, weights)
+    gains = sums.detail_gains(cache.totals, 1.0, 2)
+    assert all(g > 1.05 for g in gains)
+    plain = sums.finish(cache.totals)
+    held = sums.finish(cache.totals, gains=gains, rows=[0, 1], held=2)
+    extra = collapse([np.float32(g - 1) * sums.band(cache.totals, k, 2)[0] for k, g in enumerate(gains)]
+                     + [np.zeros_like(sums.band(cache.totals, k, 2)[0]) for k in range(len(gains), cache.levels)])
+    np.testing.assert_allclose(held, plain[:2] + extra[None], atol=1e-3)
+    np.testing.assert_allclose(held[0] - held[1], plain[0] - plain[1], atol=1e-3)
+    scaled = sums.finish(cache.totals, gains=gains, rows=[0, 1])
+    assert np.abs((scaled[0] - scaled[1]) - (plain[0] - plain[1])).max() > 1.0
 
 
 def test_given_back_is_a_share_of_the_energy_the_blend_lost():
