@@ -57,18 +57,19 @@ def steadied(points: np.ndarray, frames, found: np.ndarray, radius: int) -> np.n
     points = np.asarray(points, np.float64)
     if radius <= 0:
         return points
-    grey = {}
+    grey = {}  # the grey frames within ``radius`` of the one being steadied, each read once
 
     def image(t):
         if t not in grey:
             grey[t] = cv2.cvtColor(np.asarray(frames[t]), cv2.COLOR_RGB2GRAY)
-            grey.pop(t - 2 * radius - 1, None)
         return grey[t]
 
     out = points.copy()
     sigma = radius / 2
     n = len(points)
     for t in np.flatnonzero(found):
+        for old in [s for s in grey if s < t - radius]:
+            del grey[old]
         total, weight = points[t].copy(), np.ones(len(points[t]))
         for s in range(max(0, t - radius), min(n, t + radius + 1)):
             if s == t or not found[s]:

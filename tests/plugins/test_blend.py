@@ -4,8 +4,8 @@ import cv2
 import numpy as np
 import pytest
 
-from persona.plugins.face.blend import (BlendCache, BlendSums, collapse, expression_weights, gaussian_pyramid, given_back,
-                                        laplacian_pyramid, level_bias, photos_drawn, widened)
+from persona.plugins.face.blend import (BlendCache, BlendSums, collapse, expression_weights, gaussian_pyramid,
+                                        given_back, laplacian_pyramid, level_bias, photos_drawn, widened)
 
 H, W = 244, 194
 
