@@ -254,8 +254,8 @@ def _render(backend, params, inputs, context):
     pose, drivers = Pose.from_vector(inputs["pose"]), None
     if getattr(backend.params, "mouth_choice", None) == "frame" and interior is not None:
         drivers = mouth.from_frame(frame, inputs["@frames/landmarks/points"])  # A's own interior, where A's lips part
-        if drivers is not None:  # its gap from frame px to canonical at the head's distance (the renderer's f / z)
-            interior, gap = drivers[0], drivers[1] * float(pose.tvec[2]) / float(pose.camera[0, 0])
+        if drivers is not None:  # its gap in this frame's px, where the renderer draws it
+            interior, gap = drivers
     insets = None
     if context["insets"] is not None and "@frames/landmarks/points" in inputs:
         insets = mouth.frame_insets(*context["insets"], inputs["@frames/landmarks/points"])

@@ -121,8 +121,9 @@ class Puppet:
         open-mouth photos (:mod:`persona.plugins.face.mouth`); None when no photo shows it
     lips : ndarray, shape (2, 5, 2), or None — B's neutral inner-lip curves (upper, lower; canonical
         x, y), where the mesh's lips are
-    mouth_gap : float — how far apart (canonical px) the inner lips are in the photos ``mouth`` comes
-        from: the interior's own height (inf: unknown, the interior is stretched to any gap)
+    mouth_gap : float — how far apart the inner lips are in the photos ``mouth`` comes from (canonical
+        px), or in the driver's frame (its px, with ``mouth_own``): the interior's own height (inf:
+        unknown, the interior is stretched to any gap)
     mouth_own : bool — ``mouth`` is the driver's own, from this frame (``mouth_choice: frame``): sharp and
         already in the frame's light, its rows nearest the lips keep their size and the composite leaves
         it as it is (Rendered.own)

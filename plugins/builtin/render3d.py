@@ -170,11 +170,13 @@ class RaycastRender(RenderBackend):
                    "texture, at the driver's head pose (z-buffered, equal to ray casting pixel centres)")
     default = True
     uses_mesh = True
-    version = "7"  # 2: rgb is the face's own colour across its soft edge; no background param; 3: the mouth
+    version = "8"  # 2: rgb is the face's own colour across its soft edge; no background param; 3: the mouth
     # interior averaged to the gap's size and drawn by the share of each pixel it covers; 4: the opening's
     # outline rounded (mouth.rounded); 5: the middle of an opening taller than the photos' turns to the cavity
     # (mouth.depth); 6: the driver's own interior (mouth_choice frame, the default) and where it is (render/own);
-    # 7: the driver's own interior parted at its darkest row where B's lips part further (mouth._rows_fitted)
+    # 7: the driver's own interior parted at its darkest row where B's lips part further (mouth._rows_fitted);
+    # 8: the driver's own gap taken in the frame's px (it was scaled by the head's distance over the lips',
+    # 0.54-0.58 on MEAD happy, so B's opening was drawn as though 1.7 times the driver's)
 
     class Params(Params):
         min_coverage: float = Field(0.3, ge=0, le=1, description="canonical pixels seen in fewer "
@@ -258,9 +260,9 @@ class RaycastRender(RenderBackend):
             curves, outer = xy[:-2].reshape(2, -1, 2), xy[-2:]
             if self.params.mouth_corners == "driver" and puppet.lip_insets is not None:
                 curves = mouth.place_corners(curves, outer, puppet.lip_insets)
-            if np.all(z > _NEAR):  # frame px per canonical unit at the lips: f / z
-                drawn = mouth.draw(out, mask, np.asarray(puppet.mouth, np.float32), curves,
-                                   gap=puppet.mouth_gap * pose.camera[0, 0] / float(np.mean(z[:-2])),
+            if np.all(z > _NEAR):  # B's photos' gap to frame px at the lips (f / z); the driver's is in them
+                gap = puppet.mouth_gap if puppet.mouth_own else puppet.mouth_gap * pose.camera[0, 0] / float(np.mean(z[:-2]))
+                drawn = mouth.draw(out, mask, np.asarray(puppet.mouth, np.float32), curves, gap=gap,
                                    keep_rows=puppet.mouth_own)
                 if puppet.mouth_own:
                     return Rendered(rgb=out, mask=mask, own=drawn)

@@ -119,6 +119,45 @@ def _blue_pixels(expression: Expression, draw: bool, insets=None, corners: str =
     return int(np.count_nonzero((rgb[..., 2] > 180) & (rgb[..., 0] < 60) & (rgb[..., 1] < 60)))
 
 
+def _render_open(interior: np.ndarray, gap: float, own: bool) -> np.ndarray:
+    """The synthetic face with its jaw dropped, rendered with ``interior`` as its mouth (``own``: the
+    driver's, its ``gap`` in frame px; else B's, in canonical px)."""
+    face, neutral = make_face(expression=Expression(open=1.0)), make_face()
+    puppet = Puppet(appearance=np.full(face.vert_albedo.shape[:2] + (3,), 200, np.float32),
+                    coverage=np.ones(face.vert_mask.shape, np.float32),
+                    fiducials=neutral.landmarks3d[list(IDX49), :2],
+                    mesh=np.where(face.vert_mask[..., None], face.verts, np.nan).astype(np.float32),
+                    mouth=interior, lips=mouth.lip_curves(neutral.landmarks3d[:, :2]), mouth_gap=gap, mouth_own=own)
+    rvec, tvec, camera = look_at_pose(0.0, 0.0, 0.0, face_px=100.0, image_size=(260, 240))  # half size
+    return RaycastRender().render(puppet, None, Pose(rvec, tvec, camera, 0.0), np.zeros((260, 240, 3), np.uint8)).rgb
+
+
+def test_the_drivers_own_interior_is_fitted_to_its_gap_in_the_frames_pixels():
+    """The driver's own interior (white, one dark row in its middle: the dark below the upper
+    teeth) drawn into B's opening, given the driver's gap in the frame's px, on a face drawn at about
+    half its canonical size. At the opening's own height (measured: 11 px at its middle column)
+    nothing is added: the dark stays one row's share
+    of the opening (under 10 %). Given half that gap, the jaw dropped twice as far as the driver's,
+    so the dark is parted open to fill about half of it (over 40 %). (Taken to canonical px and back
+    at the head's distance rather than the lips', the gap came out at 0.54-0.58 of the driver's on a
+    real drive, and the dark was parted open where the lips were no further apart than A's.)"""
+    image = np.full((32, 64, 3), 255, np.float32)
+    image[16] = 0
+    rgb = _render_open(np.broadcast_to(BLUE, (32, 64, 3)).copy(), np.inf, own=False).astype(int)
+    blue = (rgb[..., 2] > 180) & (rgb[..., 0] < 60)
+    column = int(np.median(np.nonzero(blue)[1]))
+    height = int(np.count_nonzero(blue[:, column]))
+
+    def dark_share(gap):
+        grey = _render_open(image, gap, own=True)[..., 0].astype(int)[blue[:, column], column]
+        return np.mean(grey < 100)
+
+    print(f"\nopening {height} px: dark {dark_share(float(height)):.2f} at its own gap, "
+          f"{dark_share(height / 2):.2f} at half")
+    assert dark_share(float(height)) < 0.1
+    assert dark_share(height / 2) > 0.4
+
+
 def test_the_renderer_shows_the_interior_when_the_lips_part():
     """A synthetic face whose jaw drops: the renderer draws the interior between the lips as the
     mesh moved them (measured 713 px wide open, 227 at rest: the synthetic face's lips rest a little
@@ -219,7 +258,8 @@ def test_a_mouth_opened_further_than_its_photos_shows_the_cavity_between_its_tee
 def test_the_drivers_own_interior_is_taken_inside_its_lips():
     """``mouth_choice: frame``: the driver's gap, sampled a little inside its inner-lip points, which sit
     on the lips' edge: a red lip line 2 px thick along each of them lines the plain sample's first and
-    last rows, not the driver's interior, whose middle is the gap's (black) and whose gap is the lips'."""
+    last rows, not the driver's interior, whose middle is the gap's (black) and whose height is the
+    share of the lips' gap it spans (0.7 of 20 px, 0.15 of it left out along each lip)."""
     rgb, lm = open_photo(20.0)
     for y in (100, 120):  # the upper and lower inner-lip curves of a 20 px gap about y = 110
         rgb[y - 1:y + 2, 40:121] = (200, 30, 30)
@@ -230,7 +270,7 @@ def test_the_drivers_own_interior_is_taken_inside_its_lips():
     assert interior.shape == (*mouth.SIZE, 3)
     assert not red(interior[:, 16:48]).any()
     assert interior[2:-2, 16:48].max() < 40
-    assert gap == 20.0
+    assert gap == 14.0
     closed = open_photo(1.0)
     assert mouth.from_frame(*closed) is None  # lips under 2 px apart: B's own interior is drawn
     lm[66] = np.nan
