@@ -99,7 +99,7 @@ class MultiscaleTexture(TextureBackend):
     #: lid's edge too
     version = "11"
     #: what :meth:`weights` and :meth:`finish` read and :meth:`cache` does not (``tau`` is read by both)
-    frame_params = frozenset({"sigma", "min_share", "skip", "time_sigma", "detail_share", "detail_from",
+    frame_params = frozenset({"sigma", "min_share", "skip", "time_sigma", "detail_share", "finest_share", "detail_from",
                               "close_eyes", "shut_from", "shut_at"})
 
     class Params(_Alignment):
@@ -122,21 +122,24 @@ class MultiscaleTexture(TextureBackend):
             "faster, but it tears tight low-resolution crops; docs/texture.md)")
         skip: float = Field(1e-6, ge=0, lt=1, description="photos with e_i below skip · max(e) are left out of "
                             "the fine levels' sums (their share there is below this); 0 keeps every photo")
-        detail_share: float = Field(0.35, ge=0, le=1, description="ρ: the share of the fine energy the blend "
+        detail_share: float = Field(0.6, ge=0, le=1, description="ρ: the share of the fine energy the blend "
                                     "lost that is given back. A weighted mean of photos has less of the fine detail "
                                     "they do not share (skin, the exact place of a crease) than any one photo; each "
                                     "band but the two coarsest is scaled by one factor, the one that gives B's "
                                     "neutral blend e + ρ (E - e), e its energy and E one photo's. Not in the paper "
-                                    "(0 is its blend): 0.35 took the detail from 0.38 to 0.48 of B's photos on "
-                                    "Bush <- Obama; 0.5 to 0.51, but Obama <- woman's composite jitter to 1.01; 1 "
-                                    "to 0.63, but the self-reenactment's SSIM under 0.88 (on the detail figure's "
-                                    "first band, σ 1 and 4 px; docs/texture.md)")
+                                    "(0, with `finest_share` 0, is its blend). With `finest_share` 1 and "
+                                    "`detail_from` neutral, 0.6 keeps 0.61-0.70 of B's photos' detail on every "
+                                    "cross-identity example workflow (0.5: 0.60 on the MEAD drives); more costs dlib's "
+                                    "readings of the face's features (docs/texture.md)")
+        finest_share: float | None = Field(1.0, ge=0, le=1, description="ρ₀: the share given back at the "
+                                           "pyramid's finest level, where the blend loses most (a photo has 3 times "
+                                           "its energy) and which holds grain rather than the features dlib places "
+                                           "points on; none: `detail_share` there too. Not in the paper")
         detail_from: Literal["frame", "neutral"] = Field(
-            "frame", description="video mode: what `detail_share` gives back in each frame: more of the frame's "
+            "neutral", description="video mode: what `detail_share` gives back in each frame: more of the frame's "
             "own fine bands (frame), or of B's neutral blend's, the same in every frame (neutral), so that the "
-            "detail given back holds still while the photos a frame takes change. Not in the paper. With "
-            "detail_share 1, neutral gave detail 0.65-0.79 with the texture's change 0.07-0.10 (frame: 0.10-0.13), "
-            "but lost face-alone gains at their edges (docs/texture.md)")
+            "detail given back holds still while the photos a frame takes change. Not in the paper. At the "
+            "defaults, neutral changes the texture from frame to frame less (docs/texture.md)")
         time_sigma: float = Field(0.0, ge=0, le=10, description="video mode: σ (frames) of a Gaussian over time "
                                   "taken of each photo's expression weight, so that the photos a frame's texture is "
                                   "made of change from frame to frame gradually rather than at once. Not in the "
@@ -220,7 +223,7 @@ class MultiscaleTexture(TextureBackend):
         given back does not change from frame to frame with the photos a frame takes. With
         ``close_eyes`` (default: the param), the eyes a target shuts drawn shut."""
         f = len(targets)
-        gains = sums.detail_gains(totals, self.params.detail_share, f)
+        gains = sums.detail_gains(totals, self.params.detail_share, f, finest=self.params.finest_share)
         held = f if self.params.detail_from == "neutral" else None
         textures = np.clip(sums.finish(totals, gains=gains, rows=range(f), held=held), 0, 255)
         if self.params.close_eyes if close_eyes is None else close_eyes:

@@ -256,12 +256,14 @@ class BlendSums:
             den = self.den[k][t] + np.float32(c) * totals.detail[k]
         return num / np.where(den > 0, den, np.inf), den[..., 0] > 0
 
-    def detail_gains(self, totals: BlendTotals, share: float, t: int) -> list[float]:
+    def detail_gains(self, totals: BlendTotals, share: float, t: int, *, finest: float | None = None) -> list[float]:
         """Per level but the two coarsest, the factor that gives back ``share`` of the band energy
-        target t's blend lost against one photo's (:func:`given_back`); none for share 0."""
-        if share <= 0:
+        target t's blend lost against one photo's (:func:`given_back`), ``finest`` (default: ``share``)
+        at the finest level; none where every share is 0."""
+        shares = [share if k or finest is None else finest for k in range(totals.levels - 2)]
+        if max(shares, default=0) <= 0:
             return []
-        return [given_back(*self.band(totals, k, t), totals.photo_energy[k], share) for k in range(totals.levels - 2)]
+        return [given_back(*self.band(totals, k, t), totals.photo_energy[k], s) for k, s in enumerate(shares)]
 
     def finish(self, totals: BlendTotals, *, gains=(), rows=None, held: int | None = None) -> np.ndarray:
         """The blended images (f, H, W, C) of the targets ``rows`` (default: all), each the collapse
