@@ -90,14 +90,15 @@ def main():
           f"that keeps every photo): median {floor:.1f} ms (runs {', '.join(f'{r:.1f}' for r in runs)})")
     targets = fiducials[np.linspace(0, len(fiducials) - 1, args.frames).astype(int)]
     share = backend.params.detail_share
-    for label, skip, rho, items in (("own fiducials, default skip and detail_share", backend.params.skip, share, targets),
-                                    ("own fiducials, default skip, the paper's blend (detail_share 0)",
+    for label, skip, rho, items in (("own fiducials, default skip, detail_share and finest_share", backend.params.skip, share, targets),
+                                    ("own fiducials, default skip, the paper's blend (both shares 0)",
                                      backend.params.skip, 0.0, targets),
                                     ("own fiducials, every photo kept", 0.0, share, targets),
                                     ("mean fiducials, default skip", backend.params.skip, share,
                                      np.repeat(fiducials.mean(axis=0)[None], args.frames, axis=0))):
         def frame(target, skip=skip, rho=rho):
-            return cache.blend(backend.params.weights_of(fiducials, target, relative=False), skip=skip, share=rho)
+            return cache.blend(backend.params.weights_of(fiducials, target, relative=False), skip=skip, share=rho,
+                               finest=backend.params.finest_share if rho else 0.0)
 
         ms, runs = median_ms(frame, items, args.repeats)
         print(f"  per frame ({label}): median {ms:.1f} ms over {args.repeats} runs of {len(items)} frames "

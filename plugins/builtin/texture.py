@@ -128,7 +128,7 @@ class MultiscaleTexture(TextureBackend):
                                     "band but the two coarsest is scaled by one factor, the one that gives B's "
                                     "neutral blend e + ρ (E - e), e its energy and E one photo's. Not in the paper "
                                     "(0, with `finest_share` 0, is its blend). With `finest_share` 1 and "
-                                    "`detail_from` neutral, 0.6 keeps 0.61-0.70 of B's photos' detail on every "
+                                    "`detail_from` neutral, 0.6 keeps 0.61-0.72 of B's photos' detail on every "
                                     "cross-identity example workflow (0.5: 0.60 on the MEAD drives); more costs dlib's "
                                     "readings of the face's features (docs/texture.md)")
         finest_share: float | None = Field(1.0, ge=0, le=1, description="ρ₀: the share given back at the "

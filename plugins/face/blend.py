@@ -342,13 +342,13 @@ class BlendCache:
     def levels(self) -> int:
         return len(self.weighted)
 
-    def blend(self, e: np.ndarray, *, skip: float = 1e-6, share: float = 0.0) -> np.ndarray:
+    def blend(self, e: np.ndarray, *, skip: float = 1e-6, share: float = 0.0, finest: float | None = None) -> np.ndarray:
         """The blended image (H, W, C) for expression weights e (n,): the photos whose e is below
         ``skip`` × max(e) are left out of the sums (:func:`chosen`); ``share`` of the fine energy it
-        lost given back (:meth:`BlendSums.detail_gains`)."""
+        lost given back, ``finest`` at the finest level (:meth:`BlendSums.detail_gains`)."""
         sums = BlendSums.zeros(1, self.totals)
         sums.add(self.weighted, self.detail, chosen(e, skip))
-        return sums.finish(self.totals, gains=sums.detail_gains(self.totals, share, 0))[0]
+        return sums.finish(self.totals, gains=sums.detail_gains(self.totals, share, 0, finest=finest))[0]
 
     def weights(self, e: np.ndarray) -> list[np.ndarray]:
         """The normalised W̃^i_l per level, (n, h_k, w_k): for tests and pictures."""
