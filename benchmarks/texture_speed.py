@@ -90,7 +90,8 @@ def main():
           f"that keeps every photo): median {floor:.1f} ms (runs {', '.join(f'{r:.1f}' for r in runs)})")
     targets = fiducials[np.linspace(0, len(fiducials) - 1, args.frames).astype(int)]
     share = backend.params.detail_share
-    for label, skip, rho, items in (("own fiducials, default skip, detail_share and finest_share", backend.params.skip, share, targets),
+    for label, skip, rho, items in (("own fiducials, default skip, detail_share and finest_share",
+                                     backend.params.skip, share, targets),
                                     ("own fiducials, default skip, the paper's blend (both shares 0)",
                                      backend.params.skip, 0.0, targets),
                                     ("own fiducials, every photo kept", 0.0, share, targets),

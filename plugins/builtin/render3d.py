@@ -261,7 +261,8 @@ class RaycastRender(RenderBackend):
             if self.params.mouth_corners == "driver" and puppet.lip_insets is not None:
                 curves = mouth.place_corners(curves, outer, puppet.lip_insets)
             if np.all(z > _NEAR):  # B's photos' gap to frame px at the lips (f / z); the driver's is in them
-                gap = puppet.mouth_gap if puppet.mouth_own else puppet.mouth_gap * pose.camera[0, 0] / float(np.mean(z[:-2]))
+                to_frame = 1.0 if puppet.mouth_own else pose.camera[0, 0] / float(np.mean(z[:-2]))
+                gap = puppet.mouth_gap * to_frame
                 drawn = mouth.draw(out, mask, np.asarray(puppet.mouth, np.float32), curves, gap=gap,
                                    keep_rows=puppet.mouth_own)
                 if puppet.mouth_own:

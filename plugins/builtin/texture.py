@@ -99,8 +99,8 @@ class MultiscaleTexture(TextureBackend):
     #: lid's edge too
     version = "11"
     #: what :meth:`weights` and :meth:`finish` read and :meth:`cache` does not (``tau`` is read by both)
-    frame_params = frozenset({"sigma", "min_share", "skip", "time_sigma", "detail_share", "finest_share", "detail_from",
-                              "close_eyes", "shut_from", "shut_at"})
+    frame_params = frozenset({"sigma", "min_share", "skip", "time_sigma", "detail_share", "finest_share",
+                              "detail_from", "close_eyes", "shut_from", "shut_at"})
 
     class Params(_Alignment):
         levels: int = Field(5, ge=2, le=8, description="pyramid levels p (the paper does not say; 5 gives a "
@@ -131,10 +131,10 @@ class MultiscaleTexture(TextureBackend):
                                     "`detail_from` neutral, 0.6 keeps 0.61-0.72 of B's photos' detail on every "
                                     "cross-identity example workflow (0.5: 0.60 on the MEAD drives); more costs dlib's "
                                     "readings of the face's features (docs/texture.md)")
-        finest_share: float | None = Field(1.0, ge=0, le=1, description="ρ₀: the share given back at the "
-                                           "pyramid's finest level, where the blend loses most (a photo has 3 times "
-                                           "its energy) and which holds grain rather than the features dlib places "
-                                           "points on; none: `detail_share` there too. Not in the paper")
+        finest_share: float = Field(1.0, ge=0, le=1, description="ρ₀: the share given back at the pyramid's "
+                                    "finest level, where the blend loses most (a photo has 3 times its energy) and "
+                                    "which holds grain rather than the features dlib places points on. Not in the "
+                                    "paper")
         detail_from: Literal["frame", "neutral"] = Field(
             "neutral", description="video mode: what `detail_share` gives back in each frame: more of the frame's "
             "own fine bands (frame), or of B's neutral blend's, the same in every frame (neutral), so that the "

@@ -342,7 +342,8 @@ class BlendCache:
     def levels(self) -> int:
         return len(self.weighted)
 
-    def blend(self, e: np.ndarray, *, skip: float = 1e-6, share: float = 0.0, finest: float | None = None) -> np.ndarray:
+    def blend(self, e: np.ndarray, *, skip: float = 1e-6, share: float = 0.0,
+              finest: float | None = None) -> np.ndarray:
         """The blended image (H, W, C) for expression weights e (n,): the photos whose e is below
         ``skip`` × max(e) are left out of the sums (:func:`chosen`); ``share`` of the fine energy it
         lost given back, ``finest`` at the finest level (:meth:`BlendSums.detail_gains`)."""

@@ -136,9 +136,9 @@ def test_the_drivers_own_interior_is_fitted_to_its_gap_in_the_frames_pixels():
     """The driver's own interior (white, one dark row in its middle: the dark below the upper
     teeth) drawn into B's opening, given the driver's gap in the frame's px, on a face drawn at about
     half its canonical size. At the opening's own height (measured: 11 px at its middle column)
-    nothing is added: the dark stays one row's share
-    of the opening (under 10 %). Given half that gap, the jaw dropped twice as far as the driver's,
-    so the dark is parted open to fill about half of it (over 40 %). (Taken to canonical px and back
+    nothing is added: the dark stays one row's share of the opening (under 10 %). Given half that
+    gap, the jaw dropped twice as far as the driver's, so the dark is parted open to fill about half
+    of it (over 40 %). (Taken to canonical px and back
     at the head's distance rather than the lips', the gap came out at 0.54-0.58 of the driver's on a
     real drive, and the dark was parted open where the lips were no further apart than A's.)"""
     image = np.full((32, 64, 3), 255, np.float32)
