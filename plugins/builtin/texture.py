@@ -23,7 +23,7 @@ from ..face.blend import BlendCache, BlendSums, BlendTotals, chosen, expression_
 from ..face.dynamics import smooth_in_time, time_radius
 from ..face.fiducials import mean_shape
 from ..face.template import CANONICAL_HEIGHT as H, CANONICAL_WIDTH as W
-from ..face.warp import tps_map
+from ..face.warp import FACING, tps_map
 from ..hookspecs import hookimpl
 from ..kinds import Texture, TextureBackend
 from ..manager import FlowChoice
@@ -39,11 +39,19 @@ class _Weights(Params):
                              "frames of the woman's drives on 38 photos where 5 drew them, with their streaks "
                              "and glasses (docs/texture.md)")
 
-    def weights_of(self, fiducials: np.ndarray, target: np.ndarray, *, relative: bool = True) -> np.ndarray:
+    eye_sigma: float = Field(1.0, ge=0, description="σ (canonical px) of the eyes' own expression weight, over "
+                             "how far apart their lids are (the four facing pairs' heights) rather than the 49 "
+                             "fiducials; the eyes' region of the texture is blended with it, so B's eyes open "
+                             "and narrow with the target's whatever its mouth does. Not in the paper (0: the "
+                             "eyes take the face's weights, as there). σ is widened by `min_share` like the "
+                             "face's. 1 raises Bush ← Obama's eye gain 0.56 → 0.62 (docs/expression.md)")
+
+    def weights_of(self, fiducials: np.ndarray, target: np.ndarray, *, relative: bool = True,
+                   eyes: bool = False) -> np.ndarray:
         """e_i (n,) of photos with fiducials (n, 49, 2) for a target (49, 2): Eq. 3's, σ widened for a
-        rare target (``min_share``)."""
-        return expression_weights(fiducials, target, self.sigma, relative=relative,
-                                  min_photos=self.min_share * len(fiducials))
+        rare target (``min_share``); with ``eyes``, the eyes' own (``eye_sigma``)."""
+        return expression_weights(fiducials, target, self.eye_sigma if eyes else self.sigma, relative=relative,
+                                  min_photos=self.min_share * len(fiducials), pairs=FACING[:4] if eyes else None)
 
 
 class _Alignment(_Weights):
@@ -99,7 +107,7 @@ class MultiscaleTexture(TextureBackend):
     #: lid's edge too
     version = "11"
     #: what :meth:`weights` and :meth:`finish` read and :meth:`cache` does not (``tau`` is read by both)
-    frame_params = frozenset({"sigma", "min_share", "skip", "time_sigma", "detail_share", "finest_share",
+    frame_params = frozenset({"sigma", "eye_sigma", "min_share", "skip", "time_sigma", "detail_share", "finest_share",
                               "detail_from", "close_eyes", "shut_from", "shut_at"})
 
     class Params(_Alignment):
@@ -196,52 +204,64 @@ class MultiscaleTexture(TextureBackend):
         """Video mode: how many frames on each side a frame's expression weights take in (``time_sigma``)."""
         return time_radius(self.params.time_sigma)
 
-    def expression(self, fiducials: np.ndarray, targets: np.ndarray, keep: slice = slice(None)) -> np.ndarray:
+    def expression(self, fiducials: np.ndarray, targets: np.ndarray, keep: slice = slice(None), *,
+                   eyes: bool = False) -> np.ndarray:
         """Video mode: the expression weights (f, n) of the targets ``keep`` of consecutive frames' targets
         (T, 49, 2), over photos whose fiducials are (n, 49, 2): each photo's weight Gaussian-averaged over
         the frames around (``time_sigma``; the targets should reach :attr:`time_radius` frames beyond
         ``keep`` where the video does), those below ``skip`` of a frame's largest then set to 0
-        (blend.chosen)."""
+        (blend.chosen); with ``eyes``, the eyes' own weights (``eye_sigma``)."""
         p = self.params
         # without a uniform term only the ratios of the e_i matter: relative ones cannot all underflow
-        e = np.stack([p.weights_of(fiducials, t, relative=p.tau == 0) for t in targets])
+        e = np.stack([p.weights_of(fiducials, t, relative=p.tau == 0, eyes=eyes) for t in targets])
         return chosen(smooth_in_time(e, p.time_sigma)[keep], p.skip)
 
     def weights(self, fiducials: np.ndarray, targets: np.ndarray, keep: slice = slice(None)) -> np.ndarray:
-        """Video mode: the weights (f + 1, n) a drive sums the photos with: the :meth:`expression`
-        weights of the targets ``keep``, then those of B's neutral (the photos' mean fiducials), whose
-        blend sets how much fine detail :meth:`finish` gives back, in every frame alike."""
-        return np.vstack([self.expression(fiducials, targets, keep),
+        """Video mode: the weights (f + 1, n), or (2f + 1, n) with ``eye_sigma``, a drive sums the photos
+        with: the :meth:`expression` weights of the targets ``keep``, then the eyes' own of the same
+        targets, then those of B's neutral (the photos' mean fiducials), whose blend sets how much fine
+        detail :meth:`finish` gives back, in every frame alike."""
+        eyes = [self.expression(fiducials, targets, keep, eyes=True)] if self.params.eye_sigma > 0 else []
+        return np.vstack([self.expression(fiducials, targets, keep), *eyes,
                           self.expression(fiducials, mean_shape(fiducials)[None])])
 
     def finish(self, sums: BlendSums, totals: BlendTotals, fiducials: np.ndarray, targets: np.ndarray, *,
                close_eyes: bool | None = None) -> np.ndarray:
         """Video mode: the textures (f, H, W, 3) float32 in 0-255 of the targets (f, 49, 2) from the
-        sums over every photo (fiducials (n, 49, 2)) of their :meth:`weights` (f + 1 rows, B's neutral
-        last). Each fine band of every texture is multiplied by one factor, the one that gives back
-        ``detail_share`` of the energy the neutral's blend lost (BlendSums.detail_gains): the detail
-        given back does not change from frame to frame with the photos a frame takes. With
-        ``close_eyes`` (default: the param), the eyes a target shuts drawn shut."""
-        f = len(targets)
-        gains = sums.detail_gains(totals, self.params.detail_share, f, finest=self.params.finest_share)
-        held = f if self.params.detail_from == "neutral" else None
+        sums over every photo (fiducials (n, 49, 2)) of their :meth:`weights` (B's neutral last). Each
+        fine band of every texture is multiplied by one factor, the one that gives back ``detail_share``
+        of the energy the neutral's blend lost (BlendSums.detail_gains): the detail given back does not
+        change from frame to frame with the photos a frame takes. With ``eye_sigma``, the eyes' region
+        (eyes.region) is the blend of the eyes' own weights. With ``close_eyes`` (default: the param),
+        the eyes a target shuts drawn shut."""
+        p, f = self.params, len(targets)
+        neutral = mean_shape(fiducials)  # the texture's geometry is B's neutral: the photos' mean fiducials
+        last = len(sums.num[0]) - 1
+        gains = sums.detail_gains(totals, p.detail_share, last, finest=p.finest_share)
+        held = last if p.detail_from == "neutral" else None
         textures = np.clip(sums.finish(totals, gains=gains, rows=range(f), held=held), 0, 255)
-        if self.params.close_eyes if close_eyes is None else close_eyes:
-            neutral = mean_shape(fiducials)  # the texture's geometry is B's neutral: the photos' mean fiducials
+        if last == 2 * f:  # the eyes' own rows
+            own = np.clip(sums.finish(totals, gains=gains, rows=range(f, 2 * f), held=held), 0, 255)
+            where = eyes.region(neutral, textures.shape[1:3])[..., None]
+            textures += where * (own - textures)
+        if p.close_eyes if close_eyes is None else close_eyes:
             for texture, target in zip(textures, targets):
                 visible = eyes.lowered(target, neutral, start=self.params.shut_from, end=self.params.shut_at)
                 texture[:] = np.clip(eyes.lower(texture, neutral, visible), 0, 255)
         return textures
 
-    def blend(self, cache: BlendCache, fiducials: np.ndarray, target: np.ndarray, *,
+    def blend(self, cache: BlendCache, fiducials: np.ndarray, targets: np.ndarray, *,
               close_eyes: bool | None = None) -> np.ndarray:
-        """Video mode with the whole cache in memory: the texture (H, W, 3) float32 for a target
-        (49, 2), from a cache of photos aligned to their mean fiducials, whose own fiducials
-        (n, 49, 2) give the expression weights (:meth:`weights`, :meth:`finish`)."""
-        weights = self.weights(fiducials, [target])
+        """Video mode with the whole cache in memory: the textures (f, H, W, 3) float32 of targets
+        (f, 49, 2), or the texture (H, W, 3) of one target (49, 2), from a cache of photos aligned to
+        their mean fiducials, whose own fiducials (n, 49, 2) give the expression weights
+        (:meth:`weights`, :meth:`finish`)."""
+        targets = np.asarray(targets, np.float64)
+        weights = self.weights(fiducials, targets.reshape(-1, *targets.shape[-2:]))
         sums = BlendSums.zeros(len(weights), cache.totals)
         sums.add(cache.weighted, cache.detail, weights)
-        return self.finish(sums, cache.totals, fiducials, [target], close_eyes=close_eyes)[0]
+        out = self.finish(sums, cache.totals, fiducials, targets.reshape(-1, *targets.shape[-2:]), close_eyes=close_eyes)
+        return out.reshape(*targets.shape[:-2], *out.shape[1:])
 
     def synthesize(self, photos, target, flow=None, reference=None):
         aligned = self.params.aligned(photos, target, flow, reference)

@@ -28,11 +28,11 @@ import cv2
 import numba
 import numpy as np
 
-from .fiducials import mean_square_distance
+from .fiducials import gap_square_distance, mean_square_distance
 
 
 def expression_weights(fiducials: np.ndarray, target: np.ndarray, sigma: float, *,
-                       relative: bool = False, min_photos: float = 0.0) -> np.ndarray:
+                       relative: bool = False, min_photos: float = 0.0, pairs=None) -> np.ndarray:
     """e_i = exp(-||F^T - F^i||² / 2σ²) for fiducials (n, 49, 2) and a target (49, 2), in
     canonical px (σ = 10 in the paper: a mean displacement of 2 px per point gives 0.14).
 
@@ -44,8 +44,15 @@ def expression_weights(fiducials: np.ndarray, target: np.ndarray, sigma: float, 
     ``min_photos`` (not in the paper; 0: σ as given): σ is widened, for this target only, to the
     smallest whose weights draw on that many photos (:func:`photos_drawn`, :func:`widened`), so that a
     target few photos are near (an expression B rarely makes) is not made of a handful of photos, their
-    accessories and their misalignments."""
-    d2 = np.shape(fiducials)[1] * mean_square_distance(fiducials, target)  # over the shared points, scaled to all
+    accessories and their misalignments.
+
+    ``pairs`` (not in the paper): the distance is taken over the heights of these facing pairs of points
+    instead (:func:`~persona.plugins.face.fiducials.gap_square_distance`; the eyes' lids give the eyes'
+    own weights, which follow how open the target's eyes are whatever its mouth does)."""
+    if pairs is None:
+        d2 = np.shape(fiducials)[1] * mean_square_distance(fiducials, target)  # over the shared points, scaled to all
+    else:
+        d2 = gap_square_distance(fiducials, target, pairs)
     d2[np.isnan(d2)] = np.inf  # no point in common
     if min_photos > 0:
         sigma = widened(d2, sigma, min_photos)

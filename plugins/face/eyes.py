@@ -50,6 +50,20 @@ EYES = ((tuple(IDX49.index(i) for i in range(36, 42)), FACING[0:2]),
         (tuple(IDX49.index(i) for i in range(42, 48)), FACING[2:4]))
 
 
+def region(neutral: np.ndarray, shape: tuple[int, int], *, grow: int = 3, blur: float = 2.0) -> np.ndarray:
+    """(H, W) float32 in [0, 1]: where a texture at the geometry of the fiducials ``neutral`` (49, 2) shows
+    the eyes: their openings (the polygons of their six fiducials) grown by ``grow`` texels over the lids and
+    feathered by a Gaussian of σ ``blur``, so a texture blended in there has no edge."""
+    mask = np.zeros(shape, np.float32)
+    for points, _ in EYES:
+        polygon = np.asarray(neutral, np.float64)[list(points)]
+        if np.isfinite(polygon).all():
+            mask = np.maximum(mask, _drawn(shape, polygon))
+    if grow:
+        mask = cv2.dilate(mask, np.ones((2 * grow + 1, 2 * grow + 1), np.uint8))
+    return cv2.GaussianBlur(mask, (0, 0), blur) if blur else mask
+
+
 def lowered(target: np.ndarray, neutral: np.ndarray, *, start: float = 0.85, end: float = 0.45) -> np.ndarray:
     """(2,) the share of each eye's opening the upper lid leaves uncovered in the texture, in [0, 1]:
     φ(r) / r, r the distance of the eye's lids in the fiducials ``target`` (49, 2) over ``neutral``'s

@@ -34,6 +34,19 @@ def mean_square_distance(fiducials: np.ndarray, reference: np.ndarray) -> np.nda
     return np.where(count > 0, np.where(seen, d2, 0.0).sum(axis=-1) / np.maximum(count, 1), np.nan)
 
 
+def gap_square_distance(fiducials: np.ndarray, reference: np.ndarray, pairs) -> np.ndarray:
+    """(n,) Σ over facing ``pairs`` of points (upper, lower) of the squared difference (px²) between each
+    photo's height of the pair, lower minus upper y, in fiducials (n, k, 2), and the reference's (k, 2): how
+    far apart a region's openings are (the eyes' lids: ``warp.FACING``) whatever the rest of the face does.
+    A pair NaN in a photo or the reference is left out and the sum scaled back to all pairs; NaN when none
+    is shared."""
+    f, r = np.asarray(fiducials, np.float64), np.asarray(reference, np.float64)
+    d2 = np.stack([((f[:, lo, 1] - f[:, up, 1]) - (r[lo, 1] - r[up, 1])) ** 2 for up, lo in pairs], axis=-1)
+    seen = np.isfinite(d2)
+    count = seen.sum(axis=-1)
+    return np.where(count > 0, np.where(seen, d2, 0.0).sum(axis=-1) * len(pairs) / np.maximum(count, 1), np.nan)
+
+
 def shape_distance(fiducials: np.ndarray, reference: np.ndarray) -> np.ndarray:
     """(n,) RMS distance (px) of each photo's fiducials (n, k, 2) from a reference shape (k, 2),
     over the points both have; NaN for a photo with no such point."""
