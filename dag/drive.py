@@ -40,17 +40,18 @@ def run_drive(runner, cast: Cast, output: str) -> Collection:
     inputs = {"frames": frames.provenance("status/screen/state").key,
               "puppet": puppet.provenance("aligned/mean").key}
     motion = runner.motion_params()
-    sigma, lips, steady = motion["pose_sigma"], motion["lips"], motion["steady"]
-    # lips at the paper's 'mean' and steady off are left out of the key: stores made before the switches
-    # existed stay valid
+    sigma, lips, steady, widen = motion["pose_sigma"], motion["lips"], motion["steady"], motion["widen"]
+    # lips at the paper's 'mean', steady off and widen at 'opening' are left out of the key: stores made
+    # before the switches existed stay valid
     prov = Provenance.make(stage="retarget", backend="-", backend_version="2",
                            params={"pose_sigma": sigma, **({"lips": lips} if lips != "mean" else {}),
-                                   **({"steady": steady} if steady else {})},
+                                   **({"steady": steady} if steady else {}),
+                                   **({"widen": widen} if widen != "opening" else {})},
                            inputs=inputs, persona_version=runner.version)
     drive = Collection(runner.root, cast.drive)
     # the status is created before the targets and written after them: done only when no frame is pending
     if not (drive.exists() and drive.made_by("status/retarget/state", prov)) or (drive.state("retarget") == PENDING).any():
-        _retarget(runner, cast, drive, frames, puppet, found, prov, sigma, lips, steady)
+        _retarget(runner, cast, drive, frames, puppet, found, prov, sigma, lips, steady, widen)
     with runner.step("frame textures", cast.drive):
         textures = run_frame_textures(runner, drive, puppet, prov)
     inputs = {"retarget": prov.key, "texture": textures.key}
@@ -113,7 +114,8 @@ def _teeth(runner, drive: Collection, frames: Collection, puppet: Collection, mo
     return prov
 
 
-def _retarget(runner, cast, drive, frames, puppet, found, prov, sigma: float, lips: str, steady: int) -> None:
+def _retarget(runner, cast, drive, frames, puppet, found, prov, sigma: float, lips: str, steady: int,
+              widen: str) -> None:
     n = frames.n
     group = runner.root.require_group(cast.drive)
     cast.record(group)
@@ -124,7 +126,7 @@ def _retarget(runner, cast, drive, frames, puppet, found, prov, sigma: float, li
     pose[:, :6] = smooth_in_time(pose[:, :6], sigma)  # rvec, tvec
     driver_fiducials = bridge(steadied(fiducials, frames.array("aligned/rgb"), found, steady), found)
     target = retarget(driver_fiducials, mean_shape(fiducials[found]),
-                      puppet.array("aligned/mean_fiducials")[...].astype(np.float64), lips=lips)
+                      puppet.array("aligned/mean_fiducials")[...].astype(np.float64), lips=lips, widen=widen)
     for name, value, tail, dims in (
             ("target", target, (49, 2), ("frame", "fiducial", "xy")),
             ("pose", pose, (10,), ("frame", "field")),

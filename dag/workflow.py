@@ -393,6 +393,11 @@ class MotionParams(Strict):
         "scaled, so that its closed lips close the puppet's; 'parted' (not in the paper), the paper's but never less "
         "open than 'closed': a driver whose mean mouth is more open than the puppet's (one who smiles or talks "
         "through the clip) no longer shuts the puppet's lips while its own are apart (docs/expression.md)")
+    widen: Literal["opening", "face"] = Field(
+        "face", description="how far the puppet's eyes open wider than their neutral when the driver's do "
+        "(retargeting): 'opening', by the ratio of the two faces' eye openings, as they close; 'face' (not in the "
+        "paper), by the faces' proportions: the lids still meet when the driver's do, but how far a lid lifts is "
+        "the eyeball's, which goes with the face's size (persona.plugins.face.warp.retarget; docs/expression.md)")
     dynamics: DynamicsParams = Field(default_factory=DynamicsParams, description="the driver's per-frame "
                                      "3D flow (ALGORITHMS §9), used by 3D renderers")
     flow: FlowChoice = Field(default_factory=FlowChoice, description="the 2D flow of the per-frame 3D flow "

@@ -152,7 +152,7 @@ def gap(fiducials: np.ndarray, pairs) -> np.ndarray:
 
 
 def retarget(driver: np.ndarray, driver_neutral: np.ndarray, puppet_neutral: np.ndarray,
-             max_eye_ratio: float = 2.0, lips: str = "mean") -> np.ndarray:
+             max_eye_ratio: float = 2.0, lips: str = "mean", widen: str = "opening") -> np.ndarray:
     """Target fiducials for the puppet: its neutral plus the driver's offsets from the driver's
     neutral, scaled per axis by the two faces' proportions (ALGORITHMS §16.7); the eyes' vertical
     offsets by the two faces' eye openings instead (clipped to [1/max_eye_ratio, max_eye_ratio]),
@@ -168,6 +168,12 @@ def retarget(driver: np.ndarray, driver_neutral: np.ndarray, puppet_neutral: np.
         more open than the puppet's (a driver who smiles or talks through most of the clip), the
         paper's offsets shut the puppet's lips while the driver's are still apart.
 
+    widen : "opening": the eyes open wider than their neutral by the ratio of the faces' eye openings,
+        as they close. "face" (not in the paper): by the faces' proportions, the other points' scale: the
+        lids still meet when the driver's do, but how far a lid lifts off the eyeball is the eyeball's,
+        which goes with the face's size, not with how far apart the lids rest. Each facing pair of lids
+        moves by the ratio as a whole; only the part of its offset that parts it wider is scaled anew.
+
     driver : (n, 49, 2); driver_neutral, puppet_neutral : (49, 2) -> (n, 49, 2)
     """
     sizes = eye_mouth_scale(puppet_neutral) / eye_mouth_scale(driver_neutral)
@@ -179,6 +185,15 @@ def retarget(driver: np.ndarray, driver_neutral: np.ndarray, puppet_neutral: np.
     target = puppet_neutral + (driver - driver_neutral) * scale
     if lips not in ("mean", "parted", "closed"):
         raise ValueError(f'lips: "mean", "parted" or "closed", not "{lips}"')
+    if widen not in ("opening", "face"):
+        raise ValueError(f'widen: "opening" or "face", not "{widen}"')
+    if widen == "face":
+        for upper, lower in FACING[:4]:
+            half = (driver[..., lower, 1] - driver_neutral[lower, 1]
+                    - driver[..., upper, 1] + driver_neutral[upper, 1]) / 2  # > 0: the pair parts wider
+            more = np.maximum(np.nan_to_num(half), 0) * (sizes[1] - scale[lower, 1])
+            target[..., upper, 1] -= more
+            target[..., lower, 1] += more
     if lips != "mean":
         shift = lip_gap(target) - sizes[1] * lip_gap(driver)  # how much more open than the driver's, scaled
         shift = np.nan_to_num(np.minimum(shift, 0) if lips == "parted" else shift)

@@ -177,6 +177,32 @@ def test_retarget_closes_the_puppets_own_eyes_and_never_crosses_the_lids():
     np.testing.assert_allclose(close_no_further(puppet_neutral), puppet_neutral)
 
 
+def test_retarget_widen_face_lifts_the_lids_by_the_faces_scale_and_still_closes_them():
+    """``widen="face"``: eyes 30 % smaller than the driver's on a face of the same size. The driver's lids
+    parting 2 px wider part the puppet's 2 px wider (by "opening", 1.4 px); the driver's blink still just
+    closes the puppet's eyes, and an eye that moves up as a whole does not open (a pair that moves together
+    takes the eye ratio as a whole)."""
+    driver_neutral = generic_template().landmarks3d[list(IDX49), :2]
+    puppet_neutral = driver_neutral.copy()
+    for upper, lower in FACING[:4]:
+        middle, half = (driver_neutral[upper, 1] + driver_neutral[lower, 1]) / 2, (driver_neutral[lower, 1] - driver_neutral[upper, 1]) / 2
+        puppet_neutral[upper, 1], puppet_neutral[lower, 1] = middle - 0.7 * half, middle + 0.7 * half
+    wide, blink, raised = driver_neutral.copy(), driver_neutral.copy(), driver_neutral.copy()
+    for upper, lower in FACING[:4]:
+        wide[upper, 1] -= 1.0
+        wide[lower, 1] += 1.0
+        blink[upper, 1] = blink[lower, 1]
+        raised[[upper, lower], 1] -= 2.0
+    frames = np.stack([wide, blink, raised])
+    opening, face = (retarget(frames, driver_neutral, puppet_neutral, widen=w) for w in ("opening", "face"))
+    parted = lambda t: eye_opening(t) - eye_opening(puppet_neutral)
+    assert parted(opening[0]) == pytest.approx(1.4) and parted(face[0]) == pytest.approx(2.0)
+    np.testing.assert_allclose(face[1:], opening[1:])
+    assert eye_opening(face[1]) == pytest.approx(0.0, abs=1e-9) and parted(face[2]) == pytest.approx(0.0, abs=1e-9)
+    with pytest.raises(ValueError, match="widen"):
+        retarget(frames, driver_neutral, puppet_neutral, widen="wide")
+
+
 def test_retarget_lips_closed_closes_a_puppet_whose_mean_mouth_is_open():
     """A puppet whose mean mouth is 6 px open (a collection of people talking), a driver whose rest is
     closed: with the paper's offsets ("mean") the puppet's lips stay 6 px apart when the driver's
