@@ -91,7 +91,8 @@ def main():
           f"that keeps every photo): median {floor:.1f} ms (runs {', '.join(f'{r:.1f}' for r in runs)})")
     targets = fiducials[np.linspace(0, len(fiducials) - 1, args.frames).astype(int)]
     paper = {"eye_sigma": 0.0, "detail_share": 0.0, "finest_share": 0.0, "close_eyes": False}
-    for label, params, items in (("the defaults: the eyes' own weights, detail given back, eyes drawn shut", {}, targets),
+    for label, params, items in (("the defaults: the eyes' own weights, detail given back, eyes drawn shut", {},
+                                  targets),
                                  ("the defaults but eye_sigma 0 (one set of weights)", {"eye_sigma": 0.0}, targets),
                                  ("the paper's blend", paper, targets),
                                  ("the defaults, every photo kept (skip 0)", {"skip": 0.0}, targets),

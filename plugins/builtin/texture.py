@@ -107,8 +107,8 @@ class MultiscaleTexture(TextureBackend):
     #: lid's edge too
     version = "11"
     #: what :meth:`weights` and :meth:`finish` read and :meth:`cache` does not (``tau`` is read by both)
-    frame_params = frozenset({"sigma", "eye_sigma", "min_share", "skip", "time_sigma", "detail_share", "finest_share",
-                              "detail_from", "close_eyes", "shut_from", "shut_at"})
+    frame_params = frozenset({"sigma", "eye_sigma", "min_share", "skip", "time_sigma", "detail_share",
+                              "finest_share", "detail_from", "close_eyes", "shut_from", "shut_at"})
 
     class Params(_Alignment):
         levels: int = Field(5, ge=2, le=8, description="pyramid levels p (the paper does not say; 5 gives a "
@@ -136,9 +136,10 @@ class MultiscaleTexture(TextureBackend):
                                     "band but the two coarsest is scaled by one factor, the one that gives B's "
                                     "neutral blend e + ρ (E - e), e its energy and E one photo's. Not in the paper "
                                     "(0, with `finest_share` 0, is its blend). With `finest_share` 1 and "
-                                    "`detail_from` neutral and the eyes' own weights (`eye_sigma`), 0.65 keeps 0.60-0.72 of "
-                                    "B's photos' detail on every cross-identity example workflow (0.6: 0.597 on MEAD "
-                                    "surprised); more costs dlib's readings of the face's features (docs/texture.md)")
+                                    "`detail_from` neutral and the eyes' own weights (`eye_sigma`), 0.65 keeps "
+                                    "0.60-0.72 of B's photos' detail on every cross-identity example workflow (0.6: "
+                                    "0.597 on MEAD surprised); more costs dlib's readings of the face's features "
+                                    "(docs/texture.md)")
         finest_share: float = Field(1.0, ge=0, le=1, description="ρ₀: the share given back at the pyramid's "
                                     "finest level, where the blend loses most (a photo has 3 times its energy) and "
                                     "which holds grain rather than the features dlib places points on. Not in the "
@@ -246,7 +247,7 @@ class MultiscaleTexture(TextureBackend):
             textures += where * (own - textures)
         if p.close_eyes if close_eyes is None else close_eyes:
             for texture, target in zip(textures, targets):
-                visible = eyes.lowered(target, neutral, start=self.params.shut_from, end=self.params.shut_at)
+                visible = eyes.lowered(target, neutral, start=p.shut_from, end=p.shut_at)
                 texture[:] = np.clip(eyes.lower(texture, neutral, visible), 0, 255)
         return textures
 
@@ -257,10 +258,11 @@ class MultiscaleTexture(TextureBackend):
         their mean fiducials, whose own fiducials (n, 49, 2) give the expression weights
         (:meth:`weights`, :meth:`finish`)."""
         targets = np.asarray(targets, np.float64)
-        weights = self.weights(fiducials, targets.reshape(-1, *targets.shape[-2:]))
+        every = targets.reshape(-1, *targets.shape[-2:])
+        weights = self.weights(fiducials, every)
         sums = BlendSums.zeros(len(weights), cache.totals)
         sums.add(cache.weighted, cache.detail, weights)
-        out = self.finish(sums, cache.totals, fiducials, targets.reshape(-1, *targets.shape[-2:]), close_eyes=close_eyes)
+        out = self.finish(sums, cache.totals, fiducials, every, close_eyes=close_eyes)
         return out.reshape(*targets.shape[:-2], *out.shape[1:])
 
     def synthesize(self, photos, target, flow=None, reference=None):
