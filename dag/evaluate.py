@@ -200,7 +200,9 @@ def evaluate(store: str, executor, *, identity: tuple[str, dict], threshold: flo
     if drive.provenance("render/rgb").stage == RENDER_3D.name:  # rendered from the motion step's meshes
         result["motion"] = {
             "driver_meshes": mesh_expression(root, f"{cast.drive}/motion/driver_mesh", cast.driver, driver_landmarks),
-            "puppet_meshes": mesh_expression(root, f"{cast.drive}/mesh", cast.puppet, driver_landmarks)}
+            "puppet_meshes": mesh_expression(root, f"{cast.drive}/mesh", cast.puppet, driver_landmarks),
+            "puppet_meshes_posed": mesh_expression(root, f"{cast.drive}/mesh", cast.puppet, driver_landmarks,
+                                                   poses=drive.array("pose")[:])}
     if self_reenactment:
         result["self_reenactment"] = {"psnr_db": _nanmean(joined["psnr"][:, 0]), "ssim": _nanmean(joined["ssim"][:, 0]),
                                       "psnr_db_composite": _nanmean(joined["psnr"][:, 1]),
@@ -256,13 +258,22 @@ def driver_frame_landmarks(root, path: str = Cast.frames) -> np.ndarray:
     return landmarks
 
 
-def mesh_expression(root, meshes: str, actor: str, driver_landmarks: np.ndarray) -> dict[str, dict]:
+def mesh_expression(root, meshes: str, actor: str, driver_landmarks: np.ndarray,
+                    poses: np.ndarray | None = None) -> dict[str, dict]:
     """The :func:`amplitude` (gain, r, ranges) of each expression signal of the actor's mean fiducials moved by the per-frame
     meshes at ``meshes`` (T, H, W, 3; their (x, y) at each fiducial's canonical pixel, rigid pose
-    already removed) and the driver's landmarks (T, 68, 2)."""
+    already removed) and the driver's landmarks (T, 68, 2). With the frames' ``poses`` (T, 10): the
+    fiducials seen at each frame's pose, as the renderer draws them (ev.posed_landmarks); the step between
+    these and dlib's landmarks on the rendered frames is what dlib reads of the drawn face."""
     fiducials = root[f"{actor}/aligned/mean_fiducials"][...]
-    moved = np.concatenate([ev.moved_landmarks(root[meshes][start:start + 256], fiducials)  # a few frames at a time
-                            for start in range(0, len(driver_landmarks), 256)])
+
+    def landmarks(start: int) -> np.ndarray:  # a few frames at a time
+        chunk = root[meshes][start:start + 256]
+        if poses is None:
+            return ev.moved_landmarks(chunk, fiducials)
+        return ev.posed_landmarks(chunk, fiducials, poses[start:start + 256])
+
+    moved = np.concatenate([landmarks(start) for start in range(0, len(driver_landmarks), 256)])
     ours, theirs = ev.expression_signals(moved), ev.expression_signals(driver_landmarks)
     return {k: ev.amplitude(theirs[k], ours[k]) for k in theirs}
 

@@ -28,6 +28,8 @@ from pydantic import Field
 from ..base import Backend, Params, Rejected
 from ..face.template import IDX49, generic_template
 from ..hookspecs import hookimpl
+from ..kinds import Pose
+from .render3d import project
 
 # iBUG 68 indices
 RIGHT_EYE = slice(36, 42)  # subject's right eye (image left)
@@ -249,6 +251,23 @@ def moved_landmarks(meshes, fiducials) -> np.ndarray:
     cols, rows = np.round(np.asarray(fiducials, np.float64)).astype(int).T
     out = np.full((len(meshes), 68, 2), np.nan)
     out[:, list(IDX49)] = meshes[:, rows.clip(0, h - 1), cols.clip(0, w - 1), :2]
+    return out
+
+
+def posed_landmarks(meshes, fiducials, poses) -> np.ndarray:
+    """(T, 68, 2) landmarks of a face moved by per-frame meshes and seen as the renderer draws it: the
+    :func:`moved_landmarks` points' 3D positions (the meshes' (x, y, z) at the canonical pixels of the 49
+    ``fiducials``, bilinear) projected at each frame's pose (``poses`` (T, 10), the store's rows), in frame
+    pixels, where dlib's landmarks on the rendered frames should find them. A frame without a pose (NaN)
+    and the jaw line are NaN."""
+    fiducials = np.asarray(fiducials, np.float32)
+    out = np.full((len(meshes), 68, 2), np.nan)
+    for t, (mesh, pose) in enumerate(zip(meshes, poses)):
+        if not np.isfinite(pose).all():
+            continue
+        points = cv2.remap(np.asarray(mesh, np.float32), fiducials[None, :, 0], fiducials[None, :, 1],
+                           cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)[0]
+        out[t, list(IDX49)] = project(points, Pose.from_vector(pose))[0]
     return out
 
 

@@ -138,6 +138,32 @@ def test_a_track_scaled_by_half_has_gain_one_half_and_correlation_one():
     assert gapped["gain"] == pytest.approx(2.0)
 
 
+
+def test_posed_landmarks_are_the_meshes_fiducials_where_the_camera_sees_them():
+    """B's meshes seen at the frame's pose (the chain's step between the meshes and dlib on the render):
+    a flat mesh at 1000 units from a camera of focal 2000 is drawn twice its size, offset by the
+    principal point; a mouth the mesh widens by 10 % reads 10 % wider whatever the scale; a frame
+    without a pose has no landmarks."""
+    from persona.plugins.face.template import IDX49, generic_template
+
+    template = generic_template()
+    fiducials = template.landmarks3d[list(IDX49), :2]
+    ys, xs = np.mgrid[0:template.mask.shape[0], 0:template.mask.shape[1]].astype(np.float32)
+    flat = np.stack([xs, ys, np.zeros_like(xs)], axis=-1)
+    below_nose = ys > template.landmarks3d[33, 1] + 2  # the mouth's corners, not the eyes
+    centre = fiducials[:, 0].mean()
+    wide = flat.copy()
+    wide[..., 0] += 0.1 * (xs - centre) * below_nose
+    pose = np.array([0, 0, 0, 0, 0, 1000, 2000, 50, 60, 0], np.float64)
+    got = ev.posed_landmarks([flat, wide, flat], fiducials, [pose, pose, np.full(10, np.nan)])
+    assert got[0, list(IDX49)] == pytest.approx(2 * fiducials + [50, 60], abs=1e-3)
+    assert np.isnan(got[0, :17]).all() and np.isnan(got[2]).all()
+    width = expression_signals(got)["mouth_width"]
+    assert width[1] / width[0] == pytest.approx(1.1, abs=1e-4)
+    unposed = np.full((1, 68, 2), np.nan)
+    unposed[0, list(IDX49)] = fiducials
+    assert width[0] == pytest.approx(expression_signals(unposed)["mouth_width"][0], abs=1e-6)
+
 # --------------------------------------------------------------------------- stability
 
 
