@@ -6,6 +6,8 @@ openness, brow height; dlib's landmarks on A's frames are the reference), prints
 
 - A's per-frame meshes M_D^t (A's mean fiducials moved by them): what the dynamics kept;
 - B's meshes M_P^t after the transfer (B's mean fiducials moved): what the transfer kept;
+- the same seen at each frame's pose, as the renderer draws them: what a perfect reader of the
+  rendered face would find;
 - B's meshes re-transferred here with variants of the transfer (``--variants``), on every
   ``--every``-th frame, to locate the loss inside the transfer;
 - the rendered output (dlib's landmarks on the output frames), read from the run's
@@ -61,6 +63,8 @@ def main() -> None:
     print("|---|" + "---|" * len(SIGNALS))
     print(row("A's meshes", mesh_expression(root, "drive/motion/driver_mesh", "driver", landmarks)))
     print(row("B's meshes (the run)", mesh_expression(root, "drive/mesh", "puppet", landmarks)))
+    print(row("B's meshes at the frames' poses", mesh_expression(root, "drive/mesh", "puppet", landmarks,
+                                                               poses=drive.array("pose")[:])))
 
     chosen = np.arange(0, drive.n, args.every)
     sub = {k: v[chosen] for k, v in driver.items()}
