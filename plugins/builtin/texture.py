@@ -241,7 +241,7 @@ class MultiscaleTexture(TextureBackend):
         gains = sums.detail_gains(totals, p.detail_share, last, finest=p.finest_share)
         held = last if p.detail_from == "neutral" else None
         textures = np.clip(sums.finish(totals, gains=gains, rows=range(f), held=held), 0, 255)
-        if last == 2 * f:  # the eyes' own rows
+        if p.eye_sigma > 0:  # the eyes' own rows, after the frames' (weights)
             own = np.clip(sums.finish(totals, gains=gains, rows=range(f, 2 * f), held=held), 0, 255)
             where = eyes.region(neutral, textures.shape[1:3])[..., None]
             textures += where * (own - textures)
