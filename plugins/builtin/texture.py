@@ -104,8 +104,8 @@ class MultiscaleTexture(TextureBackend):
     #: 8: close_eyes lowers the upper lid (was: a fade to skin from 65 %); 9: detail_share (replaces
     #: restore_detail), every frame's fine bands scaled by the factors of B's neutral blend; 10: the lid
     #: drawn antialiased, its lashes two texels wide (plugins/face/eyes.py); 11: the lashes drawn below the
-    #: lid's edge too
-    version = "11"
+    #: lid's edge too; 12: the eyes' region given back its own fine bands, not B's neutral's
+    version = "12"
     #: what :meth:`weights` and :meth:`finish` read and :meth:`cache` does not (``tau`` is read by both)
     frame_params = frozenset({"sigma", "eye_sigma", "min_share", "skip", "time_sigma", "detail_share",
                               "finest_share", "detail_from", "close_eyes", "shut_from", "shut_at"})
@@ -233,7 +233,8 @@ class MultiscaleTexture(TextureBackend):
         fine band of every texture is multiplied by one factor, the one that gives back ``detail_share``
         of the energy the neutral's blend lost (BlendSums.detail_gains): the detail given back does not
         change from frame to frame with the photos a frame takes. With ``eye_sigma``, the eyes' region
-        (eyes.region) is the blend of the eyes' own weights. With ``close_eyes`` (default: the param),
+        (eyes.region) is the blend of the eyes' own weights, given back its own fine bands: B's neutral's
+        would draw B's neutral lids back over photos whose eyes are wider or narrower. With ``close_eyes`` (default: the param),
         the eyes a target shuts drawn shut."""
         p, f = self.params, len(targets)
         neutral = mean_shape(fiducials)  # the texture's geometry is B's neutral: the photos' mean fiducials
@@ -242,7 +243,7 @@ class MultiscaleTexture(TextureBackend):
         held = last if p.detail_from == "neutral" else None
         textures = np.clip(sums.finish(totals, gains=gains, rows=range(f), held=held), 0, 255)
         if p.eye_sigma > 0:  # the eyes' own rows, after the frames' (weights)
-            own = np.clip(sums.finish(totals, gains=gains, rows=range(f, 2 * f), held=held), 0, 255)
+            own = np.clip(sums.finish(totals, gains=gains, rows=range(f, 2 * f)), 0, 255)
             where = eyes.region(neutral, textures.shape[1:3])[..., None]
             textures += where * (own - textures)
         if p.close_eyes if close_eyes is None else close_eyes:

@@ -247,7 +247,8 @@ def test_the_eyes_take_the_photos_whose_eyes_are_as_open_as_the_targets():
     """``eye_sigma``: the eyes' region of a frame's texture is the blend of the photos whose lids are as
     far apart as the target's, whatever their mouths. Half the photos have wide eyes and a shut mouth (a
     red stripe pattern), half an open mouth and ordinary eyes (green); for a target with both, the face's
-    weights (49 fiducials, the mouth's 12 px dominate) take the green photos, the eyes' own the red."""
+    weights (49 fiducials, the mouth's 12 px dominate) take the green photos, the eyes' own the red. At the
+    defaults the fine detail given back in the eyes is the eyes' own too, not B's neutral's."""
     from persona.plugins.face import eyes
     from persona.plugins.face.blend import BlendCache
     from persona.plugins.face.template import CANONICAL_HEIGHT as H, CANONICAL_WIDTH as W
@@ -281,3 +282,8 @@ def test_the_eyes_take_the_photos_whose_eyes_are_as_open_as_the_targets():
         assert red_over_green(texture, region == 0) < 0.2, eye_sigma  # the face follows the mouth
         in_the_eyes = red_over_green(texture, region > 0.95)
         assert in_the_eyes > 5 if eye_sigma else in_the_eyes < 0.2, eye_sigma
+    # the detail given back: the face's from B's neutral (half red, half green), the eyes' their own (red);
+    # given back from the neutral there too, the neutral's green came back into the eyes (red over green 27)
+    texture = MultiscaleTexture({"close_eyes": False}).blend(cache, fiducials, target)
+    assert red_over_green(texture, region > 0.95) > 500
+    assert red_over_green(texture, region == 0) < 0.2
