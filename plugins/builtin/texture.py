@@ -147,8 +147,9 @@ class MultiscaleTexture(TextureBackend):
         detail_from: Literal["frame", "neutral"] = Field(
             "neutral", description="video mode: what `detail_share` gives back in each frame: more of the frame's "
             "own fine bands (frame), or of B's neutral blend's, the same in every frame (neutral), so that the "
-            "detail given back holds still while the photos a frame takes change. Not in the paper. At the "
-            "defaults, neutral changes the texture from frame to frame less (docs/texture.md)")
+            "detail given back holds still while the photos a frame takes change; the eyes' region, with "
+            "`eye_sigma`, always takes its own. Not in the paper. At the defaults, neutral changes the texture "
+            "from frame to frame less (docs/texture.md)")
         time_sigma: float = Field(0.0, ge=0, le=10, description="video mode: σ (frames) of a Gaussian over time "
                                   "taken of each photo's expression weight, so that the photos a frame's texture is "
                                   "made of change from frame to frame gradually rather than at once. Not in the "
