@@ -130,16 +130,16 @@ class MultiscaleTexture(TextureBackend):
             "faster, but it tears tight low-resolution crops; docs/texture.md)")
         skip: float = Field(1e-6, ge=0, lt=1, description="photos with e_i below skip · max(e) are left out of "
                             "the fine levels' sums (their share there is below this); 0 keeps every photo")
-        detail_share: float = Field(0.65, ge=0, le=1, description="ρ: the share of the fine energy the blend "
+        detail_share: float = Field(0.7, ge=0, le=1, description="ρ: the share of the fine energy the blend "
                                     "lost that is given back. A weighted mean of photos has less of the fine detail "
                                     "they do not share (skin, the exact place of a crease) than any one photo; each "
                                     "band but the two coarsest is scaled by one factor, the one that gives B's "
                                     "neutral blend e + ρ (E - e), e its energy and E one photo's. Not in the paper "
                                     "(0, with `finest_share` 0, is its blend). With `finest_share` 1 and "
-                                    "`detail_from` neutral and the eyes' own weights (`eye_sigma`), 0.65 keeps "
-                                    "0.60-0.72 of B's photos' detail on every cross-identity example workflow (0.6: "
-                                    "0.597 on MEAD surprised); more costs dlib's readings of the face's features "
-                                    "(docs/texture.md)")
+                                    "`detail_from` neutral and the eyes' own weights and detail (`eye_sigma`), 0.7 "
+                                    "keeps at least 0.6 of B's photos' detail on every cross-identity example "
+                                    "workflow (0.65: 0.5995 on MEAD surprised); more costs dlib's readings of the "
+                                    "face's features (docs/texture.md)")
         finest_share: float = Field(1.0, ge=0, le=1, description="ρ₀: the share given back at the pyramid's "
                                     "finest level, where the blend loses most (a photo has 3 times its energy) and "
                                     "which holds grain rather than the features dlib places points on. Not in the "
