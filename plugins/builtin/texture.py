@@ -237,8 +237,8 @@ class MultiscaleTexture(TextureBackend):
         of the energy the neutral's blend lost (BlendSums.detail_gains): the detail given back does not
         change from frame to frame with the photos a frame takes. With ``eye_sigma``, the eyes' region
         (eyes.region) is the blend of the eyes' own weights, given back its own fine bands: B's neutral's
-        would draw B's neutral lids back over photos whose eyes are wider or narrower. With ``close_eyes`` (default: the param),
-        the eyes a target shuts drawn shut."""
+        would draw B's neutral lids back over photos whose eyes are wider or narrower. With ``close_eyes``
+        (default: the param), the eyes a target shuts drawn shut."""
         p, f = self.params, len(targets)
         neutral = mean_shape(fiducials)  # the texture's geometry is B's neutral: the photos' mean fiducials
         last = len(sums.num[0]) - 1

@@ -138,7 +138,6 @@ def test_a_track_scaled_by_half_has_gain_one_half_and_correlation_one():
     assert gapped["gain"] == pytest.approx(2.0)
 
 
-
 def test_posed_landmarks_are_the_meshes_fiducials_where_the_camera_sees_them():
     """B's meshes seen at the frame's pose (the chain's step between the meshes and dlib on the render):
     a flat mesh at 1000 units from a camera of focal 2000 is drawn twice its size, offset by the
@@ -163,6 +162,7 @@ def test_posed_landmarks_are_the_meshes_fiducials_where_the_camera_sees_them():
     unposed = np.full((1, 68, 2), np.nan)
     unposed[0, list(IDX49)] = fiducials
     assert width[0] == pytest.approx(expression_signals(unposed)["mouth_width"][0], abs=1e-6)
+
 
 # --------------------------------------------------------------------------- stability
 
