@@ -61,10 +61,10 @@ def main() -> None:
           + ", ".join(f"{k} {np.subtract(*np.nanpercentile(driver[k], [95, 5])):.3f}" for k in SIGNALS))
     print("| step | " + " | ".join(f"{k} gain / r" for k in SIGNALS) + " |")
     print("|---|" + "---|" * len(SIGNALS))
-    print(row("A's meshes", mesh_expression(root, "drive/motion/driver_mesh", "driver", landmarks)))
-    print(row("B's meshes (the run)", mesh_expression(root, "drive/mesh", "puppet", landmarks)))
-    print(row("B's meshes at the frames' poses", mesh_expression(root, "drive/mesh", "puppet", landmarks,
-                                                               poses=drive.array("pose")[:])))
+    print(row("A's meshes", mesh_expression(root, "drive/motion/driver_mesh", "driver", landmarks)[0]))
+    puppet, posed = mesh_expression(root, "drive/mesh", "puppet", landmarks, poses=drive.array("pose")[:])
+    print(row("B's meshes (the run)", puppet))
+    print(row("B's meshes at the frames' poses", posed))
 
     chosen = np.arange(0, drive.n, args.every)
     sub = {k: v[chosen] for k, v in driver.items()}

@@ -198,11 +198,12 @@ def evaluate(store: str, executor, *, identity: tuple[str, dict], threshold: flo
         },
     }
     if drive.provenance("render/rgb").stage == RENDER_3D.name:  # rendered from the motion step's meshes
+        puppet, posed = mesh_expression(root, f"{cast.drive}/mesh", cast.puppet, driver_landmarks,
+                                        poses=drive.array("pose")[:])
         result["motion"] = {
-            "driver_meshes": mesh_expression(root, f"{cast.drive}/motion/driver_mesh", cast.driver, driver_landmarks),
-            "puppet_meshes": mesh_expression(root, f"{cast.drive}/mesh", cast.puppet, driver_landmarks),
-            "puppet_meshes_posed": mesh_expression(root, f"{cast.drive}/mesh", cast.puppet, driver_landmarks,
-                                                   poses=drive.array("pose")[:])}
+            "driver_meshes": mesh_expression(root, f"{cast.drive}/motion/driver_mesh", cast.driver,
+                                             driver_landmarks)[0],
+            "puppet_meshes": puppet, "puppet_meshes_posed": posed}
     if self_reenactment:
         result["self_reenactment"] = {"psnr_db": _nanmean(joined["psnr"][:, 0]), "ssim": _nanmean(joined["ssim"][:, 0]),
                                       "psnr_db_composite": _nanmean(joined["psnr"][:, 1]),
@@ -259,23 +260,27 @@ def driver_frame_landmarks(root, path: str = Cast.frames) -> np.ndarray:
 
 
 def mesh_expression(root, meshes: str, actor: str, driver_landmarks: np.ndarray,
-                    poses: np.ndarray | None = None) -> dict[str, dict]:
+                    poses: np.ndarray | None = None) -> tuple[dict[str, dict], dict[str, dict] | None]:
     """The :func:`amplitude` (gain, r, ranges) of each expression signal of the actor's mean fiducials moved by the per-frame
     meshes at ``meshes`` (T, H, W, 3; their (x, y) at each fiducial's canonical pixel, rigid pose
-    already removed) and the driver's landmarks (T, 68, 2). With the frames' ``poses`` (T, 10): the
-    fiducials seen at each frame's pose, as the renderer draws them (ev.posed_landmarks); the step between
-    these and dlib's landmarks on the rendered frames is what dlib reads of the drawn face."""
+    already removed) and the driver's landmarks (T, 68, 2); and with the frames' ``poses`` (T, 10), from
+    the same read of the meshes, that of the fiducials seen at each frame's pose, as the renderer draws them
+    (ev.posed_landmarks; the step between these and dlib's landmarks on the rendered frames is what dlib
+    reads of the drawn face), else None."""
     fiducials = root[f"{actor}/aligned/mean_fiducials"][...]
-
-    def landmarks(start: int) -> np.ndarray:  # a few frames at a time
+    moved, posed = [], []
+    for start in range(0, len(driver_landmarks), 256):  # a few frames at a time
         chunk = root[meshes][start:start + 256]
-        if poses is None:
-            return ev.moved_landmarks(chunk, fiducials)
-        return ev.posed_landmarks(chunk, fiducials, poses[start:start + 256])
+        moved.append(ev.moved_landmarks(chunk, fiducials))
+        if poses is not None:
+            posed.append(ev.posed_landmarks(chunk, fiducials, poses[start:start + 256]))
+    theirs = ev.expression_signals(driver_landmarks)
 
-    moved = np.concatenate([landmarks(start) for start in range(0, len(driver_landmarks), 256)])
-    ours, theirs = ev.expression_signals(moved), ev.expression_signals(driver_landmarks)
-    return {k: ev.amplitude(theirs[k], ours[k]) for k in theirs}
+    def gains(landmarks: list[np.ndarray]) -> dict[str, dict]:
+        ours = ev.expression_signals(np.concatenate(landmarks))
+        return {k: ev.amplitude(theirs[k], ours[k]) for k in theirs}
+
+    return gains(moved), gains(posed) if poses is not None else None
 
 
 def _ratio(a: float, b: float) -> float:

@@ -27,6 +27,7 @@ from pydantic import Field
 
 from ..base import Backend, Params, Rejected
 from ..face.template import IDX49, generic_template
+from ..face.warp import compose
 from ..hookspecs import hookimpl
 from ..kinds import Pose
 from .render3d import project
@@ -265,8 +266,7 @@ def posed_landmarks(meshes, fiducials, poses) -> np.ndarray:
     for t, (mesh, pose) in enumerate(zip(meshes, poses)):
         if not np.isfinite(pose).all():
             continue
-        points = cv2.remap(np.asarray(mesh, np.float32), fiducials[None, :, 0], fiducials[None, :, 1],
-                           cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)[0]
+        points = compose(np.asarray(mesh, np.float32), fiducials[None], border=cv2.BORDER_REPLICATE)[0]
         out[t, list(IDX49)] = project(points, Pose.from_vector(pose))[0]
     return out
 
