@@ -11,9 +11,13 @@ openness, brow height; dlib's landmarks on A's frames are the reference), prints
 - B's meshes re-transferred here with variants of the transfer (``--variants``), on every
   ``--every``-th frame, to locate the loss inside the transfer;
 - the rendered output (dlib's landmarks on the output frames), read from the run's
-  ``metrics.json`` when its evaluation is there.
+  ``metrics.json`` when its evaluation is there;
+- with ``--worst N``, for each signal the N frames whose output falls furthest from the driver's
+  along the output's fitted line, each step's value there, and the gain without them: whether a loss
+  is spread over the drive or sits in a few frames, and at which step.
 
     python benchmarks/expression_chain.py workflows/obama_self_reenactment.yaml --every 4
+    python benchmarks/expression_chain.py workflows/obama_driven_by_mead_happy.yaml --variants default --worst 6
 """
 
 from __future__ import annotations
@@ -44,6 +48,35 @@ def row(name: str, figures: dict) -> str:
     return f"| {name} | " + " | ".join(cells) + " |"
 
 
+def worst(root, driver: dict, output: dict, count: int) -> None:
+    """For each signal, the ``count`` frames furthest from the output's least-squares line on the
+    driver's (the output's ``series.json``), with each step of the chain there, and the gain without them."""
+    steps = {"A's meshes": ("drive/motion/driver_mesh", "driver", False),
+             "B's meshes": ("drive/mesh", "puppet", False), "as drawn": ("drive/mesh", "puppet", True)}
+    poses = root["drive/pose"]
+    for k in SIGNALS:
+        ours = np.asarray(output[f"output_{k}"], np.float64)
+        ok = np.isfinite(driver[k]) & np.isfinite(ours)
+        slope, offset = np.polyfit(driver[k][ok], ours[ok], 1)
+        off = np.where(ok, np.abs(ours - (slope * driver[k] + offset)), -1.0)
+        frames = np.sort(np.argsort(-off)[:count])
+        kept = ok.copy()
+        kept[frames] = False
+        without = ev.amplitude(driver[k][kept], ours[kept])
+        print(f"\n{k}: gain {ev.amplitude(driver[k], ours)['gain']:.2f}, without frames {frames.tolist()} "
+              f"{without['gain']:.2f} (r {without['r']:.2f})")
+        print("| frame | driver | " + " | ".join(steps) + " | output |")
+        print("|---|---|" + "---|" * len(steps) + "---|")
+        for t in frames:
+            cells = []
+            for meshes, actor, drawn in steps.values():
+                mesh, fiducials = root[meshes][int(t):int(t) + 1], root[f"{actor}/aligned/mean_fiducials"][...]
+                moved = (ev.posed_landmarks(mesh, fiducials, poses[int(t):int(t) + 1]) if drawn
+                         else ev.moved_landmarks(mesh, fiducials))
+                cells.append(f"{ev.expression_signals(moved)[k][0]:.3f}")
+            print(f"| {t} | {driver[k][t]:.3f} | " + " | ".join(cells) + f" | {ours[t]:.3f} |")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("workflow")
@@ -51,6 +84,8 @@ def main() -> None:
     parser.add_argument("--variants", default="default,none,naive,normal",
                         help="comma-separated: default (the run's), none (no denoising), naive, normal, "
                         "tv=W (Huber-ROF with TV weight W)")
+    parser.add_argument("--worst", type=int, default=0, help="list the N frames furthest from the output's "
+                        "line on the driver's, each step there (needs the run's series.json)")
     args = parser.parse_args()
     wf = load_workflow(args.workflow)
     root = open_store(wf.store, mode="r")
@@ -96,6 +131,9 @@ def main() -> None:
         amp = json.loads(metrics.read_text()).get("evaluation", {}).get("amplitude")
         if amp:
             print(row("output (the run's evaluation)", amp))
+    series = Path(wf.output) / "series.json"
+    if args.worst and series.is_file():
+        worst(root, driver, json.loads(series.read_text()), args.worst)
 
 
 if __name__ == "__main__":
