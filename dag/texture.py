@@ -329,7 +329,7 @@ def stored_textures(url: str, path: str, name: str, params: dict, targets, start
                                                      source.array("aligned/fiducials")[:][ok].astype(np.float64)))
     keep = slice(start - first, stop - first)
     weights = backend.weights(fiducials, around, keep)  # (targets and the backend's own rows, accepted photos)
-    sums = BlendSums.zeros(len(weights), totals)
+    sums = backend.sums(fiducials, stop - start, totals)
     for begin, end in source.shard_ranges():
         a, b = np.searchsorted(ok, [begin, end])
         if weights[:, a:b].any():

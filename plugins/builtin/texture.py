@@ -29,6 +29,13 @@ from ..kinds import Texture, TextureBackend
 from ..manager import FlowChoice
 
 
+#: texels above and below the eyes' region over which the eyes' own rows are summed too
+#: (MultiscaleTexture.sums), for what the pyramid's collapse carries into the region: with none the eyes are
+#: up to 0.11 grey levels off the whole image's sums, with 4 0.002, with 8 or more exactly the same
+#: (tests/plugins/test_texture.py, random photos)
+EYE_MARGIN = 12
+
+
 class _Weights(Params):
     sigma: float = Field(10.0, gt=0, description="σ of the expression weight e_i = exp(-||F^T - F^i||² / 2σ²), "
                          "canonical px over the 49 fiducials (paper: 10)")
@@ -229,6 +236,20 @@ class MultiscaleTexture(TextureBackend):
         return np.vstack([self.expression(fiducials, targets, keep), *eyes,
                           self.expression(fiducials, mean_shape(fiducials)[None])])
 
+    def sums(self, fiducials: np.ndarray, targets: int, totals: BlendTotals) -> BlendSums:
+        """Empty sums for the :meth:`weights` of ``targets`` frames: with ``eye_sigma``, the eyes' own rows
+        summed only over the band of image rows that holds the eyes' region and what the pyramid's
+        collapse carries into it (EYE_MARGIN texels either side), a fifth of the face's height."""
+        rows = (2 * targets + 1) if self.params.eye_sigma > 0 else targets + 1
+        bands = {}
+        if self.params.eye_sigma > 0:
+            shape = totals.weighted[0].shape[:2]
+            inside = np.flatnonzero(eyes.region(mean_shape(fiducials), shape).max(axis=1) > 0)
+            if len(inside):
+                band = (max(int(inside[0]) - EYE_MARGIN, 0), min(int(inside[-1]) + 1 + EYE_MARGIN, shape[0]))
+                bands = {t: band for t in range(targets, 2 * targets)}
+        return BlendSums.zeros(rows, totals, bands)
+
     def finish(self, sums: BlendSums, totals: BlendTotals, fiducials: np.ndarray, targets: np.ndarray, *,
                close_eyes: bool | None = None) -> np.ndarray:
         """Video mode: the textures (f, H, W, 3) float32 in 0-255 of the targets (f, 49, 2) from the
@@ -264,7 +285,7 @@ class MultiscaleTexture(TextureBackend):
         targets = np.asarray(targets, np.float64)
         every = targets.reshape(-1, *targets.shape[-2:])
         weights = self.weights(fiducials, every)
-        sums = BlendSums.zeros(len(weights), cache.totals)
+        sums = self.sums(fiducials, len(every), cache.totals)
         sums.add(cache.weighted, cache.detail, weights)
         out = self.finish(sums, cache.totals, fiducials, every, close_eyes=close_eyes)
         return out.reshape(*targets.shape[:-2], *out.shape[1:])

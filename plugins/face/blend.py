@@ -22,7 +22,7 @@ frame) costs only these products (the paper's puppetry mode, §6).
 from __future__ import annotations
 
 import functools
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numba
@@ -231,15 +231,27 @@ class BlendTotals:
 class BlendSums:
     """Eq. 3's target-dependent sums for f targets, per level k: ``num[k]`` (f, h_k, w_k, C) =
     Σ_i e_i P^i and ``den[k]`` (f, h_k, w_k, 1) = Σ_i e_i Q^i. Photos can be added a shard at a
-    time (:meth:`add`); :meth:`finish` makes the blended images."""
+    time (:meth:`add`); :meth:`finish` makes the blended images. A target t in ``bands`` is summed only
+    over the image rows ``bands[t]`` = (top, bottom) of the finest level (the same band of every level):
+    one whose blend is used only there (the eyes' own rows), the rest left at no expression weight."""
 
     num: list[np.ndarray]
     den: list[np.ndarray]
+    bands: dict[int, tuple[int, int]] = field(default_factory=dict)
 
     @classmethod
-    def zeros(cls, targets: int, totals: BlendTotals) -> "BlendSums":
+    def zeros(cls, targets: int, totals: BlendTotals, bands: dict[int, tuple[int, int]] | None = None) -> "BlendSums":
         return cls([np.zeros((targets, *p.shape), np.float32) for p in totals.weighted],
-                   [np.zeros((targets, *q.shape), np.float32) for q in totals.detail])
+                   [np.zeros((targets, *q.shape), np.float32) for q in totals.detail], dict(bands or {}))
+
+    def _span(self, t: int, k: int) -> tuple[int, int]:
+        """The rows of target t's level k that :meth:`add` sums over."""
+        height = self.num[k].shape[1]
+        if t not in self.bands:
+            return 0, height
+        top, bottom = self.bands[t]
+        scale = height / self.num[0].shape[1]
+        return max(int(np.floor(top * scale)), 0), min(int(np.ceil(bottom * scale)), height)
 
     def add(self, weighted: list[np.ndarray], detail: list[np.ndarray], e: np.ndarray) -> None:
         """Add photos: their cache levels (m, h_k, w_k, ·) and their :func:`chosen` weights (f, m)."""
@@ -248,8 +260,11 @@ class BlendSums:
             if len(rows) == 0:
                 continue
             for k in range(len(self.num)):
+                top, bottom = self._span(t, k)
                 for stack, out in ((weighted[k], self.num[k][t]), (detail[k], self.den[k][t])):
-                    _gemv_rows(stack.reshape(len(stack), -1), rows, row[rows], out.reshape(-1))
+                    flat = stack.reshape(len(stack), -1)
+                    a, b = top * flat.shape[1] // out.shape[0], bottom * flat.shape[1] // out.shape[0]
+                    _gemv_rows(flat[:, a:b], rows, row[rows], out.reshape(-1)[a:b])
 
     def band(self, totals: BlendTotals, k: int, t: int) -> tuple[np.ndarray, np.ndarray]:
         """Target t's level k, (h_k, w_k, C) (num + c Σ P) / (den + c Σ Q) with Σ over all photos'
