@@ -25,7 +25,7 @@ import operator
 import numpy as np
 
 from persona.plugins.face import mouth
-from persona.plugins.face.blend import (BlendCache, BlendSums, BlendTotals, gaussian_pyramid, level_bias, seen_mean,
+from persona.plugins.face.blend import (BlendCache, BlendTotals, gaussian_pyramid, level_bias, seen_mean,
                                         seen_sums)
 from persona.plugins.face.template import CANONICAL_HEIGHT as H, CANONICAL_WIDTH as W
 from persona.plugins.face.texture import Aligned, to_grey, warped_basis
