@@ -53,6 +53,7 @@ def worst(root, driver: dict, output: dict, count: int) -> None:
     driver's (the output's ``series.json``), with each step of the chain there, and the gain without them."""
     steps = {"A's meshes": ("drive/motion/driver_mesh", "driver", False),
              "B's meshes": ("drive/mesh", "puppet", False), "as drawn": ("drive/mesh", "puppet", True)}
+    fiducials = {actor: root[f"{actor}/aligned/mean_fiducials"][...] for actor in ("driver", "puppet")}
     poses = root["drive/pose"]
     for k in SIGNALS:
         ours = np.asarray(output[f"output_{k}"], np.float64)
@@ -70,9 +71,9 @@ def worst(root, driver: dict, output: dict, count: int) -> None:
         for t in frames:
             cells = []
             for meshes, actor, drawn in steps.values():
-                mesh, fiducials = root[meshes][int(t):int(t) + 1], root[f"{actor}/aligned/mean_fiducials"][...]
-                moved = (ev.posed_landmarks(mesh, fiducials, poses[int(t):int(t) + 1]) if drawn
-                         else ev.moved_landmarks(mesh, fiducials))
+                mesh = root[meshes][int(t):int(t) + 1]
+                moved = (ev.posed_landmarks(mesh, fiducials[actor], poses[int(t):int(t) + 1]) if drawn
+                         else ev.moved_landmarks(mesh, fiducials[actor]))
                 cells.append(f"{ev.expression_signals(moved)[k][0]:.3f}")
             print(f"| {t} | {driver[k][t]:.3f} | " + " | ".join(cells) + f" | {ours[t]:.3f} |")
 
