@@ -53,7 +53,7 @@ from scipy.ndimage import distance_transform_edt
 from ..base import Params, Rejected
 from ..builtin.frontalize import canonical_landmarks, frontalizing_map
 from ..kinds import FlowBackend, Pose
-from .mesh import cast, grid_triangles, raycasting_scene, rim_points
+from .mesh import cast, grid_triangles, jaw_motion, raycasting_scene, rim_points
 from .subspace import project
 from .template import IDX49
 from .tracks import bridge
@@ -82,6 +82,11 @@ class DynamicsParams(Params):
                             "(measured in docs/expression.md)")
     guide_rim_spacing: int = Field(12, ge=2, le=100, description="px between the points of the average's "
                                    "rim that the guide holds in place (12 on the 244 x 194 grid: ~50 points)")
+    guide_jaw: float = Field(0.8, ge=0, le=2, description="how far the rim below the mouth moves with the "
+                             "lower lip (mesh.jaw_motion; not in the paper): 0.8 = as far as dlib's chin point "
+                             "moves with the lower lip on the example drivers; 0 = the whole rim held still, "
+                             "which squeezed the chin between the lip and the rim (docs/expression.md, \"A jaw "
+                             "that drops with the lips\")")
     shading_refinement: bool = Field(True, description="refine the depth along the camera ray by shading "
                                      "(step 6); off = points slide on the average surface only")
     smoothness: float = Field(0.003, ge=0, description="λ_s: weight of ||Δδ||², the squared 5-point "
@@ -517,7 +522,9 @@ def landmark_guide(model: DriverModel, landmarks: np.ndarray | None, pose: Pose,
 
     Points on the rim of the average's mask stay in place: the 49 fiducials have no jaw line, and
     without them the spline's affine part stretches the whole face when the mouth opens and the
-    brows rise (on a synthetic frame at λ = 10: 4.9 px RMS from the truth instead of 2.1; no motion 3.1)."""
+    brows rise (on a synthetic frame at λ = 10: 4.9 px RMS from the truth instead of 2.1; no motion 3.1).
+    Those below the mouth move with the lower lip (``guide_jaw`` of :func:`mesh.jaw_motion`): the chin
+    drops with the jaw."""
     if not params.landmark_guide or model.fiducials is None or landmarks is None:
         return None
     points = np.asarray(landmarks, np.float64)
@@ -526,6 +533,8 @@ def landmark_guide(model: DriverModel, landmarks: np.ndarray | None, pose: Pose,
         return None
     canonical, _ = canonical_landmarks(points, model.depth, pose, model.fiducials)
     rim = model.rim_points(params.guide_rim_spacing)
+    if params.guide_jaw:
+        rim = rim + params.guide_jaw * jaw_motion(model.fiducials, canonical - model.fiducials, rim)
     return model.guide_warp(params.guide_lambda, params.guide_rim_spacing, params.guide_step).map(
         np.concatenate([canonical, rim]))
 

@@ -5,12 +5,37 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from .template import IDX49
+
 
 def rim_points(mask: np.ndarray, spacing: int) -> np.ndarray:
     """(k, 2) float64 canonical (x, y) points every ``spacing`` px along ``mask``'s outer contour:
     where a spline that moves the face's inside holds still."""
     contours = cv2.findContours(np.asarray(mask, np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)[0]
     return max(contours, key=len)[::spacing, 0].astype(np.float64)
+
+
+#: iBUG indices of the mouth's outer corners and of the middle of the outer lower lip
+MOUTH_CORNERS, LOWER_LIP = (48, 54), (56, 57, 58)
+
+
+def jaw_motion(fiducials49: np.ndarray, offsets49: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """(k, 2): how far the ``points`` (k, 2; x, y on the grid of the 49 ``fiducials49``) move with the
+    jaw when the fiducials move by ``offsets49`` (49, 2). A rim held still while the lips part squeezes
+    the chin between the lower lip and the rim; a jaw is rigid, and the chin drops with it.
+
+    Each point takes a share of the mean offset of the lower lip's middle (iBUG 56-58): 0 at and above
+    the mouth's corners, rising smoothly to 1 at the lower lip's middle and below, times a Gaussian
+    across the face whose σ is the mouth's width: the chin moves with the lip, the cheeks beside the
+    mouth less (docs/expression.md, "A jaw that drops with the lips")."""
+    f, points = np.asarray(fiducials49, np.float64), np.asarray(points, np.float64)
+    lower = [IDX49.index(i) for i in LOWER_LIP]
+    corners = f[[IDX49.index(i) for i in MOUTH_CORNERS]]
+    lip = f[lower].mean(axis=0)
+    top, width = corners[:, 1].mean(), abs(corners[1, 0] - corners[0, 0])
+    t = np.clip((points[:, 1] - top) / max(lip[1] - top, 1e-6), 0, 1)
+    share = t * t * (3 - 2 * t) * np.exp(-0.5 * ((points[:, 0] - lip[0]) / max(width, 1e-6)) ** 2)
+    return share[:, None] * np.asarray(offsets49, np.float64)[lower].mean(axis=0)
 
 
 def grid_triangles(mask: np.ndarray) -> np.ndarray:

@@ -21,7 +21,7 @@ from persona.plugins.builtin.flow import DISFlow, VariationalRefinementFlow
 from persona.plugins.builtin.pose import solve_pose
 from persona.plugins.face import dynamics as dy
 from persona.plugins.face.synthetic import Expression, Light, look_at_pose, make_face, render_photo
-from persona.plugins.face.template import FaceIdentity
+from persona.plugins.face.template import IDX49, FaceIdentity
 from persona.plugins.kinds import Pose
 from pydantic import ValidationError
 
@@ -267,11 +267,35 @@ def test_landmark_guide_alone_moves_the_face_towards_the_truth(video):
         assert err < 0.85 * still, (t, err, still)
 
 
+def test_the_guide_drops_the_chin_with_the_jaw(video):
+    """The synthetic jaw drops the chin with the lower lip. With the guide alone (no flow) on the three
+    most expressive frames, the error below the lower lip was 3.95 px RMS with the whole rim held still
+    (``guide_jaw`` 0) and 2.09 with the rim below the mouth moving with the lip (the default 0.8; no
+    motion 6.05); over the whole face 2.28 and 1.84. Asked: below the lip under 0.7 of the still rim's,
+    and the whole face no worse."""
+    model = guided(video)
+    below = video["mask"] & (np.arange(model.shape[0])[:, None] > model.fiducials[IDX49.index(57), 1])
+    error = {}
+    for jaw in (0.0, dy.DynamicsParams().guide_jaw):
+        params = dy.DynamicsParams(shading_refinement=False, guide_jaw=jaw)
+        out = []
+        for t in (2, 3, 4):
+            frame, pose = video["frames"][t], video["poses"][t]
+            mesh = dy.frame_mesh(model, dy.track_frame(model, frame.image, pose, NoFlow(), params, frame.landmarks), pose)
+            out.append([dy.mesh_error(mesh, video["truths"][t], m) for m in (below, video["mask"])])
+        error[jaw] = np.mean(out, axis=0)
+    still, moved = error.values()
+    assert moved[0] < 0.7 * still[0] and moved[1] <= still[1], error
+
+
 def test_landmark_guide_costs_little_where_the_flow_alone_succeeds(video):
     """On these clean synthetic frames the flow alone tracks well, and the guide (TPS through the
     landmarks, which is not the skin's true motion between them) costs a little. Measured (varref,
-    λ = 1, no shading), mean RMS px: 0.919 without the guide, 0.999 with exact landmarks, 1.205 with
-    1.5 px of landmark noise (no motion: 1.96). On real video the flow alone misses most of the mouth
+    λ 0.1, no shading), mean RMS px: 0.919 without the guide, 1.036 with exact landmarks, 1.414 with
+    1.5 px of landmark noise (no motion: 1.96). With the rim held still below the mouth too
+    (``guide_jaw`` 0): 1.011 and 1.374. This synthetic jaw drops the chin only under the mouth (σ 0.45
+    mouth widths across); real jaws, by dlib's jaw points on the example drivers, about one mouth
+    width, which the guide's jaw follows. On real video the flow alone misses most of the mouth
     and eye motion (benchmarks/driver_motion.py: the meshes' mouth/eye r against the frame's
     landmarks 0.41 / 0.29 without the guide, 0.98 / 0.98 with it, Powell/woman driver)."""
     model, params = guided(video), dy.DynamicsParams(shading_refinement=False)
@@ -284,7 +308,7 @@ def test_landmark_guide_costs_little_where_the_flow_alone_succeeds(video):
             out.append(dy.mesh_error(dy.frame_mesh(model, track, pose), truth, video["mask"]))
     baseline = no_motion(video).mean()
     assert np.mean(exact) < 1.15 * np.mean(plain) and np.mean(exact) < 0.6 * baseline
-    assert np.mean(noisy) < 1.5 * np.mean(plain) and np.mean(noisy) < 0.7 * baseline
+    assert np.mean(noisy) < 1.6 * np.mean(plain) and np.mean(noisy) < 0.75 * baseline
 
 
 def test_landmark_guide_is_skipped_without_usable_landmarks(video):
