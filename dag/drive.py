@@ -41,17 +41,21 @@ def run_drive(runner, cast: Cast, output: str) -> Collection:
               "puppet": puppet.provenance("aligned/mean").key}
     motion = runner.motion_params()
     sigma, lips, steady, widen = motion["pose_sigma"], motion["lips"], motion["steady"], motion["widen"]
-    # lips at the paper's 'mean', steady off and widen at 'opening' are left out of the key: stores made
-    # before the switches existed stay valid
+    neutral = motion["neutral"]
+    if neutral == "collection":
+        inputs["driver"] = Collection(runner.root, cast.driver).provenance("aligned/mean").key
+    # lips at the paper's 'mean', steady off, widen at 'opening' and the clip's neutral are left out of the
+    # key: stores made before the switches existed stay valid
     prov = Provenance.make(stage="retarget", backend="-", backend_version="2",
                            params={"pose_sigma": sigma, **({"lips": lips} if lips != "mean" else {}),
                                    **({"steady": steady} if steady else {}),
-                                   **({"widen": widen} if widen != "opening" else {})},
+                                   **({"widen": widen} if widen != "opening" else {}),
+                                   **({"neutral": neutral} if neutral != "clip" else {})},
                            inputs=inputs, persona_version=runner.version)
     drive = Collection(runner.root, cast.drive)
     # the status is created before the targets and written after them: done only when no frame is pending
     if not (drive.exists() and drive.made_by("status/retarget/state", prov)) or (drive.state("retarget") == PENDING).any():
-        _retarget(runner, cast, drive, frames, puppet, found, prov, sigma, lips, steady, widen)
+        _retarget(runner, cast, drive, frames, puppet, found, prov, sigma, lips, steady, widen, neutral)
     with runner.step("frame textures", cast.drive):
         textures = run_frame_textures(runner, drive, puppet, prov)
     inputs = {"retarget": prov.key, "texture": textures.key}
@@ -115,7 +119,7 @@ def _teeth(runner, drive: Collection, frames: Collection, puppet: Collection, mo
 
 
 def _retarget(runner, cast, drive, frames, puppet, found, prov, sigma: float, lips: str, steady: int,
-              widen: str) -> None:
+              widen: str, neutral: str) -> None:
     n = frames.n
     group = runner.root.require_group(cast.drive)
     cast.record(group)
@@ -125,7 +129,9 @@ def _retarget(runner, cast, drive, frames, puppet, found, prov, sigma: float, li
     pose = bridge(frames.array("pose")[:], found)
     pose[:, :6] = smooth_in_time(pose[:, :6], sigma)  # rvec, tvec
     driver_fiducials = bridge(steadied(fiducials, frames.array("aligned/rgb"), found, steady), found)
-    target = retarget(driver_fiducials, mean_shape(fiducials[found]),
+    driver_neutral = (mean_shape(fiducials[found]) if neutral == "clip"
+                      else Collection(runner.root, cast.driver).array("aligned/mean_fiducials")[...].astype(np.float64))
+    target = retarget(driver_fiducials, driver_neutral,
                       puppet.array("aligned/mean_fiducials")[...].astype(np.float64), lips=lips, widen=widen)
     for name, value, tail, dims in (
             ("target", target, (49, 2), ("frame", "fiducial", "xy")),

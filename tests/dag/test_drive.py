@@ -285,6 +285,39 @@ def test_2d_baseline_renders_into_the_same_store(drive_run, capsys):
     assert media.VideoReader(folder / "output_2d" / "puppet.mp4").n_frames == 16
 
 
+def test_the_drivers_neutral_from_its_collection_retargets_again(drive_run, tmp_path):
+    """``neutral: collection`` measures the driver's offsets from its photo collection's mean rather than
+    its clip's: the retarget runs again rather than keep the clip's targets, and at the brows and the nose
+    (no lid or lip rule moves them) each target is B's mean plus the frame's offset from the collection's
+    mean, scaled by the faces' proportions, to 1e-6 px."""
+    from persona.dag.stages import accepted
+    from persona.plugins.face.fiducials import mean_shape
+    from persona.plugins.face.warp import eye_mouth_scale
+    from persona.stores.layout import Collection, open_store
+
+    folder = tmp_path / "copy"  # a copy: the other tests read the run's own targets
+    shutil.copytree(drive_run[0], folder)
+    path = folder / drive_run[1].name
+
+    def read():
+        root = open_store(str(folder / "run.zarr"), mode="r")
+        return root, Collection(root, "drive").array("target")[:]
+    root, clip_targets = read()
+    assert cli(["run", str(path), "--scheduler", "sync", "--quiet", "--set", "stages.render.backend=tps2d",
+                "--set", "stages.motion.params.neutral=collection", "--set", "output=output_neutral"]) == 0
+    root, targets = read()
+    frames, puppet = Collection(root, "driver/frames"), Collection(root, "puppet")
+    mean = puppet.array("aligned/mean_fiducials")[...]
+    clip = mean_shape(frames.array("aligned/fiducials")[:][accepted(frames)])
+    collection = Collection(root, "driver").array("aligned/mean_fiducials")[...]
+    assert np.abs(clip - collection).max() > 0.5  # the two neutrals differ
+    still = slice(0, 19)  # the brows and the nose among the 49
+    offsets = (clip_targets - mean) / (eye_mouth_scale(mean) / eye_mouth_scale(clip)) + clip - collection
+    expected = mean + offsets * (eye_mouth_scale(mean) / eye_mouth_scale(collection))
+    np.testing.assert_allclose(targets[:, still], expected[:, still], atol=1e-6)
+    assert Collection(root, "drive").provenance("target").params["neutral"] == "collection"
+
+
 def test_3d_run_after_a_2d_run_renders_again(drive_run):
     """The 2D and 3D renderers write the same render/* arrays: after a 2D run into the store, the
     3D run's own finished render stage is stale and runs again (it once kept the 2D frames)."""
