@@ -5,6 +5,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from .mouth import outer_corners
 from .template import IDX49
 
 
@@ -15,8 +16,8 @@ def rim_points(mask: np.ndarray, spacing: int) -> np.ndarray:
     return max(contours, key=len)[::spacing, 0].astype(np.float64)
 
 
-#: iBUG indices of the mouth's outer corners and of the middle of the outer lower lip
-MOUTH_CORNERS, LOWER_LIP = (48, 54), (56, 57, 58)
+#: iBUG indices of the middle of the outer lower lip
+LOWER_LIP = (56, 57, 58)
 
 
 def jaw_motion(fiducials49: np.ndarray, offsets49: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -30,7 +31,7 @@ def jaw_motion(fiducials49: np.ndarray, offsets49: np.ndarray, points: np.ndarra
     mouth less (docs/expression.md, "A jaw that drops with the lips")."""
     f, points = np.asarray(fiducials49, np.float64), np.asarray(points, np.float64)
     lower = [IDX49.index(i) for i in LOWER_LIP]
-    corners = f[[IDX49.index(i) for i in MOUTH_CORNERS]]
+    corners = outer_corners(f)
     lip = f[lower].mean(axis=0)
     top, width = corners[:, 1].mean(), abs(corners[1, 0] - corners[0, 0])
     t = np.clip((points[:, 1] - top) / max(lip[1] - top, 1e-6), 0, 1)
