@@ -297,7 +297,8 @@ def _composite(backend, params, inputs, context):
     h, w = inputs["@frames/photos/size"]
     return {"composite/rgb": blend(inputs["render/rgb"][:h, :w], inputs["@frames/photos/rgb"][:h, :w],
                                    render_alpha(inputs["render/mask"][:h, :w]), plane=inputs["composite/light"],
-                                   lighting=params["lighting"], tone=params["tone"], hair=params["hair"],
+                                   lighting=params["lighting"], tone=params["tone"], tone_reach=params["tone_reach"],
+                                   hair=params["hair"],
                                    own=render_alpha(inputs["render/own"][:h, :w]))}
 
 

@@ -160,7 +160,7 @@ def _skin_likeness(logc: np.ndarray, skin: np.ndarray, tint: float, shade: float
 
 
 def match_lighting(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, lighting: float = 1.0,
-                   tone: float = 1.0, band: float = 0.06, max_gain: float = 2.0, tint: float = 0.1,
+                   tone: float = 1.0, tone_reach: float = 0.0, band: float = 0.06, max_gain: float = 2.0, tint: float = 0.1,
                    shade: float = 0.5) -> np.ndarray:
     """``face`` (h, w, 3) uint8 with its colour and light matched to ``frame`` at the edge of the mask
     ``alpha`` (h, w) in [0, 1] (see the module's docstring).
@@ -182,7 +182,7 @@ def match_lighting(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, li
     if lighting <= 0:
         return face
     plane = light_plane(face, frame, alpha, band=band, tint=tint, shade=shade)
-    return apply_light(face, alpha, plane, lighting=lighting, tone=tone, max_gain=max_gain)
+    return apply_light(face, alpha, plane, lighting=lighting, tone=tone, tone_reach=tone_reach, max_gain=max_gain)
 
 
 def light_plane(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, band: float = 0.06,
@@ -225,15 +225,18 @@ def light_plane(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, band:
 
 
 def apply_light(face: np.ndarray, alpha: np.ndarray, plane: np.ndarray, *, lighting: float = 1.0,
-                tone: float = 1.0, max_gain: float = 2.0) -> np.ndarray:
+                tone: float = 1.0, tone_reach: float = 0.0, max_gain: float = 2.0) -> np.ndarray:
     """``face`` times the gain exp(lighting · ``plane``) (:func:`light_plane`), less (1 - ``tone``)
     of its mean along the edge (B's own mean tone kept), each channel's factor within 1 / ``max_gain``
-    .. ``max_gain``, where the mask ``alpha`` is; unchanged where the plane is NaN or there is no mask."""
+    .. ``max_gain``, where the mask ``alpha`` is; unchanged where the plane is NaN or there is no mask.
+
+    ``tone_reach`` > 0: ``tone`` is what the face's middle takes; at the mask's edge the face takes all of
+    A's tone (no step there), and the share falls from all to ``tone`` as a smoothstep of the depth inside
+    the mask, reaching ``tone`` at ``tone_reach`` times the face's smaller side (0.5: the face's middle)."""
     bounds = _bounds(np.asarray(alpha) > 0.5)
     if lighting <= 0 or bounds is None or not np.all(np.isfinite(plane)):
         return face
     edge, plane = np.asarray(plane[3], np.float64), np.array(plane[:3], np.float64)
-    plane[0] -= (1 - tone) * edge  # B's own mean tone: that part of the gain along the edge left out
     y0, y1, x0, x1 = bounds
     box = np.s_[y0:y1, x0:x1]
     # exp(lighting · clip(plane)) = clip(exp(lighting · plane)), and the exponential of a plane is the
@@ -241,8 +244,15 @@ def apply_light(face: np.ndarray, alpha: np.ndarray, plane: np.ndarray, *, light
     gx = np.arange(x1 - x0, dtype=np.float64)[None, :, None] / (x1 - x0)
     gy = np.arange(y1 - y0, dtype=np.float64)[:, None, None] / (y1 - y0)
     bound = max_gain ** lighting
-    gain = np.clip(np.exp(lighting * (plane[0] + gy * plane[2])).astype(np.float32)
-                   * np.exp(lighting * gx * plane[1]).astype(np.float32), 1 / bound, bound)
+    gain = np.exp(lighting * (plane[0] + gy * plane[2])).astype(np.float32) * np.exp(lighting * gx * plane[1]).astype(np.float32)
+    if tone < 1:  # B's own mean tone: that part of the gain along the edge left out, all over or inside
+        kept = np.float32(1 - tone)
+        if tone_reach > 0:
+            depth = cv2.distanceTransform((np.asarray(alpha)[box] > 0.5).astype(np.uint8), cv2.DIST_L2, 5)
+            t = np.clip(depth / (tone_reach * min(y1 - y0, x1 - x0)), 0, 1)
+            kept = kept * (t * t * (3 - 2 * t))[..., None]
+        gain = gain * np.exp(-lighting * kept * edge.astype(np.float32))
+    gain = np.clip(gain, 1 / bound, bound)
     matched = np.clip((np.asarray(face)[box].astype(np.float32) + 1) * gain - 1, 0, 255).round().astype(np.uint8)
     out = np.array(face, copy=True)
     out[box] = np.where((np.asarray(alpha)[box] > 0)[..., None], matched, out[box])
@@ -321,7 +331,7 @@ def hair_in_front(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, rea
 
 
 def blend(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, lighting: float = 1.0,
-          tone: float = 1.0, hair: float = 1.0, plane: np.ndarray | None = None,
+          tone: float = 1.0, tone_reach: float = 0.0, hair: float = 1.0, plane: np.ndarray | None = None,
           own: np.ndarray | None = None) -> np.ndarray:
     """The composite as ``composite.mp4`` shows it: B's face matched to A's light and tone at its edge
     (:func:`apply_light` of ``plane``, by ``lighting`` and ``tone`` in [0, 1]; by default the plane
@@ -330,8 +340,8 @@ def blend(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, lighting: f
     driver's own already (its mouth interior drawn into B's gap, Rendered.own), which keeps its colour;
     then blended band by band (:func:`multiband`) through the mask less ``hair`` (in [0, 1]) times
     :func:`hair_in_front`."""
-    matched = (match_lighting(face, frame, alpha, lighting=lighting, tone=tone) if plane is None
-               else apply_light(face, alpha, plane, lighting=lighting, tone=tone))
+    light = {"lighting": lighting, "tone": tone, "tone_reach": tone_reach}
+    matched = (match_lighting(face, frame, alpha, **light) if plane is None else apply_light(face, alpha, plane, **light))
     if own is not None and np.any(own > 0):
         kept = np.asarray(own, np.float32)[..., None]
         matched = np.round(face * kept + matched * (1 - kept)).astype(np.uint8)

@@ -134,6 +134,21 @@ def test_tone_zero_keeps_b_mean_tone_and_takes_a_light():
     assert abs(ratio - frame[95:105, 145:155].mean() / frame[95:105, 45:55].mean()) < 0.1
 
 
+def test_tone_within_reach_meets_a_at_the_edge_and_keeps_b_in_the_middle():
+    """``tone_reach``: B's face takes all of A's tone at its edge (no step, as with ``tone`` 1) and
+    ``tone`` of it in its middle: with ``tone`` 0.5 the middle's log colour lies half way between B's
+    own tone (``tone`` 0) and A's (``tone`` 1), within 0.03, where a seam with ``tone`` 0 alone steps."""
+    face, frame, alpha = lit_scene()
+    own, taken = (composite.blend(face, frame, alpha, tone=t, hair=0) for t in (0, 1))
+    ramped = composite.blend(face, frame, alpha, tone=0.5, tone_reach=0.5, hair=0)
+    steps = [composite.seam(img, frame, alpha)["colour_step"] for img in (own, taken, ramped)]
+    middle = np.s_[92:108, 92:108]
+    log = [np.log1p(img[middle].astype(float).mean(axis=(0, 1))) for img in (own, taken, ramped)]
+    print(f"\nsteps B's tone / A's / within reach {np.round(steps, 1)}; middle {[np.round(np.expm1(v)) for v in log]}")
+    assert steps[0] > 15 and abs(steps[1]) < 2 and abs(steps[2]) < 2  # measured 46.5 / 0.5 / 1.2
+    assert np.abs(log[2] - (log[0] + log[1]) / 2).max() < 0.03
+
+
 def test_a_fringe_stays_in_front_and_a_collar_does_not():
     face, frame, alpha = lit_scene()  # the disk spans rows 40-160; reach: 12 % of 120 px
     hair = (30, 22, 18)
