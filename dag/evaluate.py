@@ -11,6 +11,9 @@ Figures (paper §6, with dlib's descriptor and landmarks only; nothing downloade
   1 = the same amplitude, which a correlation cannot see), the correlation and both ranges, of the
   face alone (puppet.mp4) and of composite.mp4's frames (the same face, found by dlib with A's head
   around it);
+- held: per signal, the expression each face holds through the clip (its mean less its resting face's:
+  A's mean photo, B's neutral texture), of the driver, the face alone and composite.mp4's frames; a
+  smile held throughout has no amplitude for a gain to see;
 - stability: landmark jitter and face-colour flicker, output over driver; the jitter of the face
   alone over the 51 points inside the jaw line (its mask ends above the chin, and dlib's jaw on it is
   a guess that wanders), and on composite.mp4's frames over all 68 (the output as a viewer sees it:
@@ -34,6 +37,7 @@ from __future__ import annotations
 
 from typing import Callable
 
+import cv2
 import numpy as np
 
 from persona.plugins.builtin import evaluate as ev
@@ -186,6 +190,7 @@ def evaluate(store: str, executor, *, identity: tuple[str, dict], threshold: flo
         "expression": video["expression"],
         "amplitude": video["amplitude"],
         "amplitude_composite": on_composite_video["amplitude"],
+        "held": held_figures(root, cast, driver_landmarks, joined["landmarks"], joined["composite_landmarks"]),
         "stability": stability,
         "composite": {k: {"colour_step": _median(joined[f"seam_{k}"][:, 0]),
                           "gradient_ratio": _median(joined[f"seam_{k}"][:, 1])} for k in ("blend", "paste")},
@@ -248,6 +253,35 @@ def texture_figures(root, cast: Cast, sample: int = 100, every: int = 8) -> dict
         figures["ratio"] = _ratio(figures["frames"], figures["photos"])
         out[name] = figures
     return out
+
+
+def resting_face(coll: Collection, name: str, detector: DlibLandmarks) -> np.ndarray | None:
+    """dlib's landmarks (68, 2) on the collection's canonical picture ``name`` (a mean face): the median of
+    its readings at 2-6× its size (it is small and soft, and one reading of its mouth moves by up to 0.05
+    IOD with the scale); None when the store has none or dlib finds no face on it."""
+    if not coll.has(name):
+        return None
+    image = np.clip(coll.array(name)[...], 0, 255).round().astype(np.uint8)
+    found = []
+    for scale in (2, 3, 4, 5, 6):
+        try:
+            big = cv2.resize(image, None, fx=scale, fy=scale, interpolation=cv2.INTER_CUBIC)
+            found.append(detector.detect(big).points / scale)
+        except Rejected:
+            pass
+    return np.median(found, axis=0) if found else None
+
+
+def held_figures(root, cast: Cast, driver: np.ndarray, alone: np.ndarray, composited: np.ndarray) -> dict:
+    """Per signal, the expression held through the clip (ev.held_expression) by the driver (against A's mean
+    photo, ``aligned/mean``), the face alone and composite.mp4's frames (against B's neutral texture,
+    ``texture/neutral``), from their landmarks (T, 68, 2) each."""
+    detector = DlibLandmarks()
+    rest_a = resting_face(Collection(root, cast.driver), "aligned/mean", detector)
+    rest_b = resting_face(Collection(root, cast.puppet), "texture/neutral", detector)
+    figures = {who: ev.held_expression(points, rest) for who, points, rest in
+               (("driver", driver, rest_a), ("output", alone, rest_b), ("composite", composited, rest_b))}
+    return {k: {who: f[k] for who, f in figures.items()} for k in figures["driver"]}
 
 
 def driver_frame_landmarks(root, path: str = Cast.frames) -> np.ndarray:

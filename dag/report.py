@@ -158,6 +158,11 @@ def figure_rows(ev: dict) -> list[tuple]:
               (0.85, None) if k == "mouth_open" else None) for k, v in ev["expression"].items()]
     rows += _gain_rows("(output / driver)", ev.get("amplitude", {}))
     rows += _gain_rows("on composite.mp4", ev.get("amplitude_composite", {}))
+    rows += [(f"held expression: {k.replace('_', ' ')} (driver / face alone / composite, IOD)",
+              " / ".join(f"{h[who]:+.3f}" for who in ("driver", "output", "composite")),
+              "the mean over the clip less the resting face (A's mean photo, B's neutral texture): a smile or "
+              "surprise held throughout, which no gain sees; the face's near the driver's = it reached B", None)
+             for k, h in ev.get("held", {}).items()]
     rows += [(k.replace("_", " "), v, _STABILITY.get(k, "lower is better"),
               (None, 1.0) if k in _STABILITY else None) for k, v in ev["stability"].items()]
     for how, f in ev.get("composite", {}).items():  # composite.mp4's blend, and a plain paste to compare

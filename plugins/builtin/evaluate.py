@@ -299,6 +299,21 @@ def amplitude(driver, output) -> dict[str, float]:
     return {"gain": gain, "r": pearson(d, o), "driver_range": spread[0], "output_range": spread[1]}
 
 
+def held_expression(landmarks, rest) -> dict[str, float]:
+    """The expression a face holds through a clip, which a gain cannot see (a face that smiles
+    throughout smiles in no frame more than in the others): per expression signal, its mean over the
+    frames of ``landmarks`` (n, 68, 2; NaN for a frame without a face) less its value on the resting
+    face ``rest`` (68, 2): the actor's mean photo, or the puppet's neutral texture. NaN where no frame
+    has a face, or the resting face has none (``rest`` None or NaN)."""
+    moving = expression_signals(landmarks)
+    resting = expression_signals(np.full((1, 68, 2), np.nan) if rest is None else np.asarray(rest)[None])
+    out = {}
+    for k, v in moving.items():
+        v = v[np.isfinite(v)]
+        out[k] = float(v.mean() - resting[k][0]) if len(v) and np.isfinite(resting[k][0]) else float("nan")
+    return out
+
+
 # --------------------------------------------------------------------------- stability
 
 

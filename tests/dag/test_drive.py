@@ -169,6 +169,8 @@ def test_evaluate_command_prints_json(drive_run, capsys):
     result = json.loads(capsys.readouterr().out)
     assert result["identity"]["fraction_b_not_a"] == pytest.approx(report["evaluation"]["identity"]["fraction_b_not_a"])
     assert result["expression"]["mouth_open"] == pytest.approx(report["evaluation"]["expression"]["mouth_open"], nan_ok=True)
+    assert set(result["held"]) == set(result["amplitude"])  # each signal held: driver, face alone, composite
+    assert all(set(h) == {"driver", "output", "composite"} for h in result["held"].values())
 
 
 def test_identity_judged_on_a_few_frames_gives_every_frames_own_distances(drive_run):

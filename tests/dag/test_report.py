@@ -12,6 +12,7 @@ def evaluation(to_b: float, to_a: float) -> dict:
             "expression": {k: 0.9 for k in signals},
             "amplitude": {"mouth_open": {"gain": 0.8, "r": 0.9, "driver_range": 0.2},
                           "eye_open": {"gain": 0.3, "r": 0.5, "driver_range": 0.02}},
+            "held": {"mouth_open": {"driver": 0.1, "output": 0.05, "composite": -0.02}},
             "stability": {"jitter_ratio": 0.9, "colour_change_ratio": 0.5, "texture_change_ratio": 0.2},
             "composite": {"blend": {"colour_step": 20.0, "gradient_ratio": 1.2}},
             "self_reenactment": {"psnr_db": 26.0, "ssim": 0.76}}
@@ -19,10 +20,12 @@ def evaluation(to_b: float, to_a: float) -> dict:
 
 def test_every_figure_says_what_is_good():
     rows = figure_rows(evaluation(0.3, 0.9))
-    assert len(rows) == 19  # 8 identity, 2 + 2 expression, 3 stability, 2 composite, 2 self-reenactment
+    assert len(rows) == 20  # 8 identity, 2 + 2 expression, 1 held, 3 stability, 2 composite, 2 self-reenactment
     for label, _, guide, _ in rows[1:]:  # all but the frame count
         assert "better" in guide or "target" in guide or "= " in guide, label
     assert dict((r[0], r[2]) for r in rows)["self-reenactment psnr_db"] == "higher is better; target ≥ 28 dB"
+    held = dict((r[0], r[1]) for r in rows)["held expression: mouth open (driver / face alone / composite, IOD)"]
+    assert held == "+0.100 / +0.050 / -0.020"
 
 
 def test_identity_caveat_when_dlib_sees_one_person():

@@ -138,6 +138,25 @@ def test_a_track_scaled_by_half_has_gain_one_half_and_correlation_one():
     assert gapped["gain"] == pytest.approx(2.0)
 
 
+def test_a_mouth_held_open_through_the_clip_is_held_expression_the_gain_cannot_see():
+    """A face whose lower lip hangs 4 px lower in every frame than on its resting face: its mouth
+    opening is held 4 / 40 IOD above rest, with the same gain as the track without it; no resting face
+    or no frame with a face gives NaN."""
+    from persona.plugins.builtin.evaluate import amplitude, held_expression
+
+    track = talking_track()
+    held = track.copy()
+    held[:, 65:68, 1] += 4
+    rest = hand_face()
+    before, after = held_expression(track, rest), held_expression(held, rest)
+    assert after["mouth_open"] - before["mouth_open"] == pytest.approx(0.1, abs=1e-3)
+    assert after["brow_height"] == pytest.approx(before["brow_height"], abs=1e-12)
+    still = expression_signals(track)["mouth_open"]
+    assert amplitude(still, expression_signals(held)["mouth_open"])["gain"] == pytest.approx(1.0, abs=1e-2)
+    assert np.isnan(held_expression(track, None)["mouth_open"])
+    assert np.isnan(held_expression(np.full((3, 68, 2), np.nan), rest)["eye_open"])
+
+
 def test_posed_landmarks_are_the_meshes_fiducials_where_the_camera_sees_them():
     """B's meshes seen at the frame's pose (the chain's step between the meshes and dlib on the render):
     a flat mesh at 1000 units from a camera of focal 2000 is drawn twice its size, offset by the
