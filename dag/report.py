@@ -161,7 +161,9 @@ def figure_rows(ev: dict) -> list[tuple]:
     rows += [(f"held expression: {k.replace('_', ' ')} (driver / face alone / composite, IOD)",
               " / ".join(f"{h[who]:+.3f}" for who in ("driver", "output", "composite")),
               "the mean over the clip less the resting face (A's mean photo, B's neutral texture): a smile or "
-              "surprise held throughout, which no gain sees; the face's near the driver's = it reached B", None)
+              "surprise held throughout, which no gain sees; the face's near the driver's = it reached B (the resting "
+              "faces are soft means: a few hundredths is none, and the mouth's opening can read 0.13 high; "
+              "docs/expression.md)", None)
              for k, h in ev.get("held", {}).items()]
     rows += [(k.replace("_", " "), v, _STABILITY.get(k, "lower is better"),
               (None, 1.0) if k in _STABILITY else None) for k, v in ev["stability"].items()]
