@@ -299,17 +299,20 @@ def _composite(backend, params, inputs, context):
                                    render_alpha(inputs["render/mask"][:h, :w]), plane=inputs["composite/light"],
                                    lighting=params["lighting"], tone=params["tone"], tone_reach=params["tone_reach"],
                                    hair=params["hair"],
-                                   own=render_alpha(inputs["render/own"][:h, :w]))}
+                                   own=render_alpha(inputs["render/own"][:h, :w]),
+                                   points=inputs.get("@frames/landmarks/points"))}
 
 
 #: B's rendered face blended into each driver frame (composite.mp4's frames; params: the workflow's
 #: stages.composite), in the light made steady in time (``composite/light``: drive._steady_light); a frame
 #: without a render is the driver's own
 COMPOSITE = PhotoStage("composite", None, None, ("render/rgb", "render/mask", "render/own", "composite/light",
-                                                 "@frames/photos/rgb", "@frames/photos/size"),
+                                                 "@frames/photos/rgb", "@frames/photos/size",
+                                                 "@frames/landmarks/points"),
                        (Output("composite/rgb", (), "uint8", ("frame", "y", "x", "channel")),), _composite,
-                       version="4")  # 2: the hair in front fades out about half the face's height; 3: it reaches
-                       # down the sides to the jaw, all but the chin's sector; 4: the driver's own pixels not relit
+                       version="5")  # 2: the hair in front fades out about half the face's height; 3: it reaches
+                       # down the sides to the jaw, all but the chin's sector; 4: the driver's own pixels not relit;
+                       # 5: never A's eyes in front
 
 
 def driver_model(root, path) -> dict:

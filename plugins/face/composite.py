@@ -287,8 +287,27 @@ def steady_light(planes: np.ndarray, sigma: float) -> np.ndarray:
     return out.reshape(planes.shape)
 
 
+def eyes_of(points: np.ndarray | None, shape: tuple[int, int], grow: float = 0.5) -> np.ndarray:
+    """(h, w) bool of an image ``shape``: the face's eyes by its iBUG landmarks ``points`` (68, 2), each
+    the hull of its six points (36-41, 42-47) grown by ``grow`` times its width all round, so that its
+    lashes, lids and corners are in; all False for an eye with a missing point, or without points."""
+    out = np.zeros(shape[:2], np.uint8)
+    if points is None:
+        return out.astype(bool)
+    for eye in (slice(36, 42), slice(42, 48)):
+        p = np.asarray(points, np.float64)[eye]
+        if not np.all(np.isfinite(p)):
+            continue
+        one = np.zeros_like(out)
+        cv2.fillConvexPoly(one, np.round(p).astype(np.int32), 1)
+        r = max(1, int(round(grow * np.ptp(p[:, 0]))))
+        out |= cv2.dilate(one, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1)))
+    return out.astype(bool)
+
+
 def hair_in_front(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, reach: float = 0.12,
-                  chin: float = 35.0, tint: float = 0.1, shade: float = 0.5) -> np.ndarray:
+                  chin: float = 35.0, tint: float = 0.1, shade: float = 0.5,
+                  eyes: np.ndarray | None = None) -> np.ndarray:
     """How much of A's frame stays in front of B's face (h, w) in [0, 1]: what is not A's skin inside
     the edge of B's mask, where B's render shows skin: A's hair that falls over it (a fringe, strands
     at the temples) and, where A's head is turned or narrower than B's, the background beside A's
@@ -296,7 +315,10 @@ def hair_in_front(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, rea
     under 0.1: all; over 0.5: none) and B's render near B's skin, only within ``reach`` (a fraction of
     the face's smaller side) of the mask's edge and outside the sector of the chin: the edge within
     ``chin`` degrees of straight down from the mask's centre (its jaw, chin and the collar below are
-    left to B), fading in over the next 20 degrees; softened over a pixel. (The hair's first version
+    left to B), fading in over the next 20 degrees; and never within A's ``eyes`` ((h, w) bool,
+    :func:`eyes_of`): their lashes and corners are dark and not skin, but not in front of B's face
+    either (they showed as a smudge beside B's eye where A's face is narrower than B's); softened over
+    a pixel. (The hair's first version
     counted the upper half only, then faded it over a tenth of the height: B's cheek was drawn over
     the wall beside a turned head as a soft band.)"""
     alpha = np.asarray(alpha, np.float32)
@@ -325,6 +347,8 @@ def hair_in_front(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, rea
     a, b = (np.log1p(img[ys, xs].astype(np.float32)) for img in (a, b))
     not_skin = np.clip((0.5 - _skin_likeness(a, skin_a, tint, shade)) / 0.4, 0, 1)
     out[y0 + ys, x0 + xs] = not_skin * _skin_likeness(b, skin_b, tint, shade) * beside  # 0 off the band
+    if eyes is not None:
+        out[eyes] = 0
     near = np.s_[max(y0 - 4, 0):y1 + 4, max(x0 - 4, 0):x1 + 4]  # softened over a pixel: nothing further
     out[near] = cv2.GaussianBlur(out[near], (0, 0), 1.0)
     return out
@@ -332,21 +356,22 @@ def hair_in_front(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, rea
 
 def blend(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, lighting: float = 1.0,
           tone: float = 1.0, tone_reach: float = 0.0, hair: float = 1.0, plane: np.ndarray | None = None,
-          own: np.ndarray | None = None) -> np.ndarray:
+          own: np.ndarray | None = None, points: np.ndarray | None = None) -> np.ndarray:
     """The composite as ``composite.mp4`` shows it: B's face matched to A's light and tone at its edge
     (:func:`apply_light` of ``plane``, by ``lighting`` and ``tone`` in [0, 1]; by default the plane
     fitted on this frame, :func:`light_plane`; a drive gives its planes made steady in time,
     :func:`steady_light`), but for ``own`` (h, w) in [0, 1], the share of each pixel that is the
     driver's own already (its mouth interior drawn into B's gap, Rendered.own), which keeps its colour;
     then blended band by band (:func:`multiband`) through the mask less ``hair`` (in [0, 1]) times
-    :func:`hair_in_front`."""
+    :func:`hair_in_front`, which leaves A's eyes out by A's landmarks ``points`` (68, 2), when given."""
     light = {"lighting": lighting, "tone": tone, "tone_reach": tone_reach}
     matched = (match_lighting(face, frame, alpha, **light) if plane is None else apply_light(face, alpha, plane, **light))
     if own is not None and np.any(own > 0):
         kept = np.asarray(own, np.float32)[..., None]
         matched = np.round(face * kept + matched * (1 - kept)).astype(np.uint8)
     if hair > 0:
-        alpha = np.asarray(alpha, np.float32) * (1 - hair * hair_in_front(face, frame, alpha))
+        eyes = None if points is None else eyes_of(points, np.shape(alpha))
+        alpha = np.asarray(alpha, np.float32) * (1 - hair * hair_in_front(face, frame, alpha, eyes=eyes))
     return multiband(matched, frame, alpha)
 
 

@@ -167,6 +167,30 @@ def test_a_fringe_stays_in_front_and_a_collar_does_not():
     assert not composite.hair_in_front(face, frame, alone).any()
 
 
+def test_the_drivers_eye_beside_the_edge_is_not_kept_in_front_but_its_fringe_is():
+    """A's eye whose outer corner and lashes (dark, not skin) lie in B's edge band, where A's face is
+    narrower than B's: kept in front of B's face as if it were hair without A's landmarks (a smudge
+    beside B's eye, seen on Powell driven by the woman), covered by B's face with them (``eyes_of``:
+    the eye's hull grown by half its width); A's fringe across the top is kept either way."""
+    face, frame, alpha = lit_scene()  # the disk spans columns 40-160; the band: 14 px inside its edge
+    hair = (30, 22, 18)
+    frame[:50] = hair  # a fringe, 10 px into the top of B's face
+    points = np.full((68, 2), np.nan)
+    points[36:42] = [[44, 100], [50, 96], [56, 96], [62, 100], [56, 104], [50, 104]]  # A's right eye, 18 px wide
+    frame[97:104, 40:50] = (40, 30, 30)  # its outer corner and lashes, on B's edge band
+    lashes, fringe = np.s_[98:103, 43:49], np.s_[44:48, 90:110]
+    without, with_eyes = (composite.blend(face, frame, alpha, points=p) for p in (None, points))
+    covered = composite.blend(face, frame, alpha, hair=0)
+    print(f"\nlashes: without landmarks {without[lashes].mean():.1f}, with {with_eyes[lashes].mean():.1f}, "
+          f"B's face over them {covered[lashes].mean():.1f}")
+    assert without[lashes].mean() < covered[lashes].mean() - 20  # the lashes in front: darker
+    assert np.abs(with_eyes[lashes].astype(float) - covered[lashes]).mean() < 3  # B's face over them
+    assert np.array_equal(with_eyes[fringe], without[fringe])  # the fringe as before
+    eyes = composite.eyes_of(points, alpha.shape)
+    assert eyes[100, 35] and eyes[100, 70] and not eyes[100, 75] and not eyes[80, 53]  # grown 9 px, not more
+    assert not composite.eyes_of(None, alpha.shape).any()
+
+
 def test_a_background_beside_a_turned_head_is_kept_down_to_the_jaw_without_a_step():
     """A's head turned: his background (not skin) lies under B's right edge from top to bottom. It
     stays in front of B's face along that edge from the temple down to the jaw (B's cheek drawn over
