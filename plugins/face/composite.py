@@ -289,8 +289,9 @@ def steady_light(planes: np.ndarray, sigma: float) -> np.ndarray:
 
 def eyes_of(points: np.ndarray | None, shape: tuple[int, int], grow: float = 0.5) -> np.ndarray:
     """(h, w) bool of an image ``shape``: the face's eyes by its iBUG landmarks ``points`` (68, 2), each
-    the hull of its six points (36-41, 42-47) grown by ``grow`` times its width all round, so that its
-    lashes, lids and corners are in; all False for an eye with a missing point, or without points."""
+    the hull of its six points (36-41, 42-47) grown by ``grow`` times its width sideways and half that
+    up and down, so that its corners, lids and lashes are in and the brow above is not; all False for
+    an eye with a missing point, or without points."""
     out = np.zeros(shape[:2], np.uint8)
     if points is None:
         return out.astype(bool)
@@ -300,8 +301,9 @@ def eyes_of(points: np.ndarray | None, shape: tuple[int, int], grow: float = 0.5
             continue
         one = np.zeros_like(out)
         cv2.fillConvexPoly(one, np.round(p).astype(np.int32), 1)
-        r = max(1, int(round(grow * np.ptp(p[:, 0]))))
-        out |= cv2.dilate(one, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1)))
+        rx = max(1, int(round(grow * np.ptp(p[:, 0]))))
+        ry = max(1, int(round(grow * np.ptp(p[:, 0]) / 2)))
+        out |= cv2.dilate(one, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * rx + 1, 2 * ry + 1)))
     return out.astype(bool)
 
 
