@@ -37,7 +37,6 @@ from __future__ import annotations
 
 from typing import Callable
 
-import cv2
 import numpy as np
 
 from persona.plugins.builtin import evaluate as ev
@@ -256,20 +255,12 @@ def texture_figures(root, cast: Cast, sample: int = 100, every: int = 8) -> dict
 
 
 def resting_face(coll: Collection, name: str, detector: DlibLandmarks) -> np.ndarray | None:
-    """dlib's landmarks (68, 2) on the collection's canonical picture ``name`` (a mean face): the median of
-    its readings at 2-6× its size (it is small and soft, and one reading of its mouth moves by up to 0.05
-    IOD with the scale); None when the store has none or dlib finds no face on it."""
+    """dlib's landmarks (68, 2) on the collection's canonical picture ``name`` (a mean face), read at
+    several sizes (ev.resting_landmarks); None when the store has none or dlib finds no face on it."""
     if not coll.has(name):
         return None
     image = np.clip(coll.array(name)[...], 0, 255).round().astype(np.uint8)
-    found = []
-    for scale in (2, 3, 4, 5, 6):
-        try:
-            big = cv2.resize(image, None, fx=scale, fy=scale, interpolation=cv2.INTER_CUBIC)
-            found.append(detector.detect(big).points / scale)
-        except Rejected:
-            pass
-    return np.median(found, axis=0) if found else None
+    return ev.resting_landmarks(image, lambda big: detector.detect(big).points)
 
 
 def held_figures(root, cast: Cast, driver: np.ndarray, alone: np.ndarray, composited: np.ndarray) -> dict:

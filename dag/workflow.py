@@ -428,7 +428,7 @@ class CompositeParams(Strict):
     tone: float = Field(1.0, ge=0, le=1, description="how much of A's mean skin tone B's face takes with the light: "
                         "1 = all (no colour step at the edge), 0 = B's own mean tone kept, only the way A's light "
                         "varies along the edge matched (the blend spreads the rest; docs/composite.md)")
-    tone_reach: float = Field(0.0, ge=0, le=0.5, description="how deep inside B's face (a fraction of its smaller "
+    tone_reach: float = Field(0.5, ge=0, le=0.5, description="how deep inside B's face (a fraction of its smaller "
                               "side) its middle's tone is reached: at the edge B's face takes all of A's tone, so no "
                               "step, and within the reach it passes smoothly to `tone`; 0 = `tone` up to the edge "
                               "(docs/composite.md)")

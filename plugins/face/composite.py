@@ -160,7 +160,7 @@ def _skin_likeness(logc: np.ndarray, skin: np.ndarray, tint: float, shade: float
 
 
 def match_lighting(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, lighting: float = 1.0,
-                   tone: float = 1.0, tone_reach: float = 0.0, band: float = 0.06, max_gain: float = 2.0, tint: float = 0.1,
+                   tone: float = 1.0, tone_reach: float = 0.5, band: float = 0.06, max_gain: float = 2.0, tint: float = 0.1,
                    shade: float = 0.5) -> np.ndarray:
     """``face`` (h, w, 3) uint8 with its colour and light matched to ``frame`` at the edge of the mask
     ``alpha`` (h, w) in [0, 1] (see the module's docstring).
@@ -225,7 +225,7 @@ def light_plane(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, band:
 
 
 def apply_light(face: np.ndarray, alpha: np.ndarray, plane: np.ndarray, *, lighting: float = 1.0,
-                tone: float = 1.0, tone_reach: float = 0.0, max_gain: float = 2.0) -> np.ndarray:
+                tone: float = 1.0, tone_reach: float = 0.5, max_gain: float = 2.0) -> np.ndarray:
     """``face`` times the gain exp(lighting · ``plane``) (:func:`light_plane`), less (1 - ``tone``)
     of its mean along the edge (B's own mean tone kept), each channel's factor within 1 / ``max_gain``
     .. ``max_gain``, where the mask ``alpha`` is; unchanged where the plane is NaN or there is no mask.
@@ -357,7 +357,7 @@ def hair_in_front(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, rea
 
 
 def blend(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, lighting: float = 1.0,
-          tone: float = 1.0, tone_reach: float = 0.0, hair: float = 1.0, plane: np.ndarray | None = None,
+          tone: float = 1.0, tone_reach: float = 0.5, hair: float = 1.0, plane: np.ndarray | None = None,
           own: np.ndarray | None = None, points: np.ndarray | None = None) -> np.ndarray:
     """The composite as ``composite.mp4`` shows it: B's face matched to A's light and tone at its edge
     (:func:`apply_light` of ``plane``, by ``lighting`` and ``tone`` in [0, 1]; by default the plane

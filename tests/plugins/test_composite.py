@@ -125,7 +125,7 @@ def test_hair_under_the_edge_does_not_darken_the_face():
 
 def test_tone_zero_keeps_b_mean_tone_and_takes_a_light():
     face, frame, alpha = lit_scene()
-    kept = composite.match_lighting(face, frame, alpha, tone=0)
+    kept = composite.match_lighting(face, frame, alpha, tone=0, tone_reach=0)
     inside = alpha > 0.5
     print(f"\nB's mean tone {face[inside].mean(axis=0)}, kept {kept[inside].mean(axis=0)}")
     assert np.abs(kept[inside].mean(axis=0) - face[inside].mean(axis=0)).max() < 0.05 * face[inside].mean()
@@ -139,7 +139,7 @@ def test_tone_within_reach_meets_a_at_the_edge_and_keeps_b_in_the_middle():
     ``tone`` of it in its middle: with ``tone`` 0.5 the middle's log colour lies half way between B's
     own tone (``tone`` 0) and A's (``tone`` 1), within 0.03, where a seam with ``tone`` 0 alone steps."""
     face, frame, alpha = lit_scene()
-    own, taken = (composite.blend(face, frame, alpha, tone=t, hair=0) for t in (0, 1))
+    own, taken = (composite.blend(face, frame, alpha, tone=t, tone_reach=0, hair=0) for t in (0, 1))
     ramped = composite.blend(face, frame, alpha, tone=0.5, tone_reach=0.5, hair=0)
     steps = [composite.seam(img, frame, alpha)["colour_step"] for img in (own, taken, ramped)]
     middle = np.s_[92:108, 92:108]

@@ -157,6 +157,24 @@ def test_a_mouth_held_open_through_the_clip_is_held_expression_the_gain_cannot_s
     assert np.isnan(held_expression(np.full((3, 68, 2), np.nan), rest)["eye_open"])
 
 
+def test_a_resting_face_is_read_at_several_sizes_in_its_own_pixels():
+    """ev.resting_landmarks: each reading's points divided by its scale, the median taken; a scale at
+    which no face is found is left out, and none found anywhere gives None."""
+    from persona.plugins.builtin.evaluate import resting_landmarks
+
+    image = np.zeros((40, 30, 3), np.uint8)
+    face = hand_face()
+
+    def detect(big):  # the face, in the enlarged image's pixels, read 1 px off at 3x; none at 5x
+        scale = big.shape[1] / 30
+        if scale == 5:
+            raise Rejected("no face")
+        return face * scale + (1.0 if scale == 3 else 0.0)
+
+    assert np.allclose(resting_landmarks(image, detect), face)
+    assert resting_landmarks(image, lambda big: (_ for _ in ()).throw(Rejected("none"))) is None
+
+
 def test_posed_landmarks_are_the_meshes_fiducials_where_the_camera_sees_them():
     """B's meshes seen at the frame's pose (the chain's step between the meshes and dlib on the render):
     a flat mesh at 1000 units from a camera of focal 2000 is drawn twice its size, offset by the
