@@ -292,19 +292,26 @@ def eyes_of(points: np.ndarray | None, shape: tuple[int, int], grow: float = 0.5
     the hull of its six points (36-41, 42-47) grown by ``grow`` times its width sideways and half that
     up and down, so that its corners, lids and lashes are in and the brow above is not; all False for
     an eye with a missing point, or without points."""
-    out = np.zeros(shape[:2], np.uint8)
+    out = np.zeros(shape[:2], bool)
     if points is None:
-        return out.astype(bool)
+        return out
     for eye in (slice(36, 42), slice(42, 48)):
         p = np.asarray(points, np.float64)[eye]
         if not np.all(np.isfinite(p)):
             continue
-        one = np.zeros_like(out)
-        cv2.fillConvexPoly(one, np.round(p).astype(np.int32), 1)
         rx = max(1, int(round(grow * np.ptp(p[:, 0]))))
         ry = max(1, int(round(grow * np.ptp(p[:, 0]) / 2)))
-        out |= cv2.dilate(one, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * rx + 1, 2 * ry + 1)))
-    return out.astype(bool)
+        p = np.round(p)
+        # drawn and grown in a box about the eye, not over the whole frame (an HD composite's every frame)
+        lo = np.maximum(p.min(axis=0).astype(int) - (rx, ry), 0)
+        hi = np.minimum(p.max(axis=0).astype(int) + (rx, ry) + 1, (shape[1], shape[0]))
+        if np.any(hi <= lo):
+            continue
+        one = np.zeros((hi[1] - lo[1], hi[0] - lo[0]), np.uint8)
+        cv2.fillConvexPoly(one, (p - lo).astype(np.int32), 1)
+        grown = cv2.dilate(one, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * rx + 1, 2 * ry + 1)))
+        out[lo[1]:hi[1], lo[0]:hi[0]] |= grown.astype(bool)
+    return out
 
 
 def hair_in_front(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, reach: float = 0.12,
