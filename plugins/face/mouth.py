@@ -42,6 +42,11 @@ interior, whose teeth are sharp, keeps its rows at their size both ways (:func:`
 has a dark gap (:func:`dark_row`), it is parted there and more of that dark fills what the jaw dropped
 further, so upper teeth that fill A's gap stay on B's upper lip, not split between both lips with B's
 dark between.
+
+**The lower lip's shadow.** :func:`from_frame` takes the driver's interior a little inside A's lips, so
+the dark band where A's lower lip meets the teeth or tongue is left out with the lip, and a tongue
+drawn from it meets B's lower lip pink on pink: the lip is lost in it. :func:`draw` puts that band
+back along B's lower lip (``shadow``; :func:`lower_lip_shadow`).
 """
 
 from __future__ import annotations
@@ -332,8 +337,24 @@ def _rows_fitted(image: np.ndarray, height: float, gap: float, split: int | None
     return np.concatenate([image[:split + 1], dark, image[split + 1:]]).astype(image.dtype)
 
 
+#: how far up from the lower lip its shadow reaches (:func:`lower_lip_shadow`), as a share of the gap's height
+SHADOW_REACH = 0.1
+
+
+def lower_lip_shadow(rows: int, strength: float) -> np.ndarray:
+    """(rows,) float32: what each of the ``rows`` of a quad of the opening (top to bottom) is multiplied by
+    for the lower lip's shadow of ``strength`` (0: none): 1 - strength · exp(-u / SHADOW_REACH) at a row
+    whose centre is a share u of the gap's height above the lower lip. The shadow scales with the gap: a
+    gap one row tall, its row half of it above the lip, is barely touched (0.3 % at strength 0.5); a tall
+    one gets a dark band about a tenth of its height."""
+    if not strength > 0 or rows < 1:
+        return np.ones(rows, np.float32)
+    up = (rows - np.arange(rows) - 0.5) / rows  # each row's centre above the lower lip, as a share of the gap
+    return (1 - strength * np.exp(-up / SHADOW_REACH)).astype(np.float32)
+
+
 def draw(out: np.ndarray, face: np.ndarray, image: np.ndarray, curves: np.ndarray,
-         gap: float = np.inf, keep_rows: bool = False) -> np.ndarray:
+         gap: float = np.inf, keep_rows: bool = False, shadow: float = 0.0) -> np.ndarray:
     """Draw the interior ``image`` into the frame ``out`` (h, w, 3) uint8, in place, between the
     frame's inner-lip ``curves`` (2, 5, 2), :func:`rounded`, where the rendered ``face`` mask (h, w)
     float is. ``gap``: how far apart (frame px) the lips of the photos the interior comes from were;
@@ -343,8 +364,9 @@ def draw(out: np.ndarray, face: np.ndarray, image: np.ndarray, curves: np.ndarra
     (:func:`_rows_fitted`; the driver's own interior, whose teeth are sharp): where the lips are
     closer the image's middle is left out; where further and it has a dark gap (:func:`dark_row`),
     it is parted there and more of that dark goes between, rather than the whole image squeezed or
-    stretched into the gap (and no :func:`depth` is drawn). Returns how much of each pixel of ``out`` (h, w) float32
-    the interior covers.
+    stretched into the gap (and no :func:`depth` is drawn). ``shadow``: with ``keep_rows``, the strength of
+    the lower lip's shadow drawn along it (:func:`lower_lip_shadow`; 0: none). Returns how much of each
+    pixel of ``out`` (h, w) float32 the interior covers.
 
     Quad by quad between the outline's points, the image is first averaged down (area resampling) to
     the quad's own height and the mouth's length in pixels, so that a gap a pixel or two tall shows
@@ -377,6 +399,8 @@ def draw(out: np.ndarray, face: np.ndarray, image: np.ndarray, curves: np.ndarra
         kept = _rows_fitted(image, height, gap, split) if keep_rows else image
         small = kept if (rows_px, cols_px) == kept.shape[:2] else cv2.resize(kept, (cols_px, rows_px),
                                                                              interpolation=cv2.INTER_AREA)
+        if keep_rows and shadow > 0:
+            small = small * lower_lip_shadow(rows_px, shadow)[:, None, None]
         left, right = k * (cols_px - 1) / (nodes - 1), (k + 1) * (cols_px - 1) / (nodes - 1)
         top, bottom = -0.5, rows_px - 0.5  # the image's pixel edges onto the lips
         quad_dst = np.array([curves[0, k], curves[0, k + 1], curves[1, k + 1], curves[1, k]]) - offset

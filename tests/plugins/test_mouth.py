@@ -366,3 +366,27 @@ def test_the_frames_inner_corners_move_in_as_far_as_the_drivers_do():
     np.testing.assert_array_equal(placed[:, 1:-1], curves[:, 1:-1])  # the other nodes stay
     lm[60] = np.nan
     assert mouth.frame_insets(np.array([0.07, 0.07]), np.array([0.08, 0.08]), lm) is None
+
+
+def test_the_lower_lips_shadow_darkens_a_band_above_it_a_tenth_of_the_gap():
+    """A grey interior (200) drawn as the driver's own between lips 30 px apart (rows 20 to 50) with the
+    lower lip's shadow at 0.5: the last whole pixel above the lip (1 to 2 px up, where the factor is
+    0.58-0.72) is under 0.75 of the grey and no darker than half of it; 7 px up it is within 5 % of the
+    grey, and the upper half is untouched. With no shadow the gap is grey to the lip. A gap 1 px tall is
+    untouched within a grey level (0.3 %)."""
+    image = np.full((32, 64, 3), 200, np.float32)
+    xs = np.linspace(20, 80, 5)
+
+    def column(top, bottom, shadow):
+        curves = np.stack([np.c_[xs, np.full(5, top)], np.c_[xs, np.full(5, bottom)]])
+        out = np.full((70, 100, 3), 128, np.uint8)
+        mouth.draw(out, np.ones((70, 100), np.float32), image, curves, gap=30.0, keep_rows=True, shadow=shadow)
+        return out[:, 45:56].astype(float).mean(axis=(1, 2))
+
+    shaded, plain = column(20.0, 50.0, 0.5), column(20.0, 50.0, 0.0)
+    assert np.allclose(plain[21:50], 200, atol=1)
+    assert 100 <= shaded[49] < 150
+    assert shaded[43] > 190 and np.allclose(shaded[21:35], 200, atol=1)
+    thin = column(30.0, 31.0, 0.5)
+    assert abs(thin[30] - column(30.0, 31.0, 0.0)[30]) <= 1
+    assert np.allclose(mouth.lower_lip_shadow(4, 0.0), 1)
