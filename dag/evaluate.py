@@ -14,7 +14,9 @@ Figures (paper §6, with dlib's descriptor and landmarks only; nothing downloade
 - held: per signal, the expression each face holds through the clip (its mean less its resting face's:
   A's mean photo, B's neutral texture), of the driver, the face alone and composite.mp4's frames; a
   smile held throughout has no amplitude for a gain to see;
-- stability: landmark jitter and face-colour flicker, output over driver; the jitter of the face
+- stability: landmark jitter and face-colour flicker, output over driver (the colour inside the rendered
+  face less both mouths, A's and B's outer lips and the interior drawn between B's: a mouth that opens
+  changes the mean colour by what it shows, which is expression, not flicker); the jitter of the face
   alone over the 51 points inside the jaw line (its mask ends above the chin, and dlib's jaw on it is
   a guess that wanders), and on composite.mp4's frames over all 68 (the output as a viewer sees it:
   B's face in A's frame, with A's jaw line); the texture's own
@@ -72,7 +74,7 @@ def analyse_frames(url: str, start: int, stop: int, identity: tuple[str, dict], 
                    every: int = 1) -> dict:
     """For output frames [start, stop) of the drive of ``cast``: landmarks found anew, descriptors
     (of every ``every``-th frame of the drive, NaN for the others: :func:`identity_every`), the mean
-    face colour of output and driver inside the rendered face, and (``compare``) PSNR and SSIM against
+    face colour of output and driver inside the rendered face less both mouths (ev.without_mouths), and (``compare``) PSNR and SSIM against
     the driver, of the render and of the composite (the composite stage's frames, composite.mp4's)."""
     root = open_store(url, mode="r")
     drive, frames = Collection(root, cast.drive), Collection(root, cast.frames)
@@ -80,6 +82,10 @@ def analyse_frames(url: str, start: int, stop: int, identity: tuple[str, dict], 
     alphas = drive.array("render/mask")[start:stop]
     composites = drive.array("composite/rgb")[start:stop]
     masks = alphas > 127
+    drawn = drive.array("render/own")[start:stop] > 0  # the driver's mouth interior drawn into B's
+    theirs = frames.array("landmarks/points")[start:stop].astype(np.float64)
+    theirs[frames.state("landmarks")[start:stop] != OK] = np.nan
+    skin = np.zeros_like(masks)  # the face less both mouths, where the colour's flicker is judged
     original = frames.array("photos/rgb")[start:stop]
     detector, backend = DlibLandmarks(), _identity(identity)
     n = stop - start
@@ -99,6 +105,7 @@ def analyse_frames(url: str, start: int, stop: int, identity: tuple[str, dict], 
                     descriptors[j, k] = backend.describe(image, found[j])
             except Rejected:
                 pass
+        skin[j] = ev.without_mouths(masks[j] & ~drawn[j], theirs[j], landmarks[j])
         if compare and masks[j].any():
             for k, image in enumerate((face, blended)):
                 psnr[j, k] = ev.masked_psnr(image, original[j], masks[j])
@@ -114,9 +121,9 @@ def analyse_frames(url: str, start: int, stop: int, identity: tuple[str, dict], 
             "descriptors": descriptors, "psnr": psnr, "ssim": ssim,
             "texture_change": texture_change, "driver_change": driver_change,
             **{f"seam_{k}": np.array(v).reshape(-1, 2) for k, v in seams.items()},
-            "colour_output": ev.masked_mean_colours(rendered, masks),
-            "colour_composite": ev.masked_mean_colours(composites, masks),
-            "colour_driver": ev.masked_mean_colours(original, masks)}
+            "colour_output": ev.masked_mean_colours(rendered, skin),
+            "colour_composite": ev.masked_mean_colours(composites, skin),
+            "colour_driver": ev.masked_mean_colours(original, skin)}
 
 
 def identity_every(n: int, frames: int) -> int:

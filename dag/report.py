@@ -114,7 +114,8 @@ def targets_summary(rows: list[tuple]) -> str:
 _STABILITY = {"jitter_ratio": "lower is better; target ≤ 1 (the output as steady as the driver), over the 51 "
                               "points inside the jaw line: the face alone shows no jaw",
               "jitter_ratio_composite": "the same on composite.mp4 (B's face in A's frame, A's jaw line), all 68",
-              "colour_change_ratio": "lower is better; target ≤ 1",
+              "colour_change_ratio": "lower is better; target ≤ 1; the face's mean colour, both mouths left out "
+                                     "(an opening mouth changes it by what it shows: expression, not flicker)",
               "colour_change_ratio_composite": "the same on composite.mp4, in A's light made steady in time",
               "texture_change_ratio": "lower is better; ≤ 1: B's texture changes no more than A's face does"}
 #: the composite's seam figures: (label, key, what is good, target, its bound)

@@ -385,6 +385,27 @@ def masked_mean_colours(frames, masks) -> np.ndarray:
     return out
 
 
+#: the iBUG points of the outer lips, round the mouth
+OUTER_LIPS = slice(48, 60)
+
+
+def without_mouths(mask: np.ndarray, *landmarks) -> np.ndarray:
+    """The face region ``mask`` (h, w) bool less each face's mouth: the polygon of its outer lips
+    (:data:`OUTER_LIPS`) in each of ``landmarks`` (68, 2; the driver's and the output's, in the mask's
+    pixels). A mouth that opens changes the face's mean colour by what it shows (teeth, tongue, the
+    dark inside), which is expression, not flicker: the colour flicker is judged without it. All False
+    where any of them lacks a point, so that the frame is not judged."""
+    out = np.asarray(mask, bool).copy()
+    for points in landmarks:
+        lips = np.asarray(points, np.float64)[OUTER_LIPS]
+        if not np.isfinite(lips).all():
+            return np.zeros_like(out)
+        mouth = np.zeros(out.shape, np.uint8)
+        cv2.fillPoly(mouth, [np.round(lips * 16).astype(np.int32)], 1, cv2.LINE_8, shift=4)
+        out &= mouth == 0
+    return out
+
+
 def colour_change(frames, masks) -> float:
     """Colour flicker of the face region between consecutive frames.
 

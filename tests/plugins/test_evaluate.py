@@ -242,6 +242,28 @@ def test_colour_change_of_a_known_step():
     json.dumps(figures)
 
 
+def test_a_mouth_that_opens_is_not_colour_flicker_once_both_mouths_are_left_out():
+    """Skin of one colour (150) whose mouth, a 12 x 6 px rectangle, shows 0-4 px of dark (20) from frame to
+    frame: over the whole face the mean colour changes; without the mouths (the driver's lips here, the
+    output's 30 px to the right) it does not change at all, and the mouths' pixels are out of the mask.
+    A face whose lips were not found is not judged (an empty mask)."""
+    n, h, w = 5, 40, 80
+    lips = np.full((68, 2), np.nan)
+    lips[48:60] = [[10, 20], [14, 18], [18, 18], [22, 18], [22, 21], [22, 24], [22, 26], [18, 26], [14, 26],
+                   [10, 26], [10, 24], [10, 22]]
+    output = lips + [30, 0]
+    frames = np.full((n, h, w, 3), 150, np.uint8)
+    for i in range(n):
+        frames[i, 20:20 + i, 12:21] = 20  # the driver's opening
+        frames[i, 20:20 + i, 42:51] = 20  # the output's
+    face = np.ones((h, w), bool)
+    skin = ev.without_mouths(face, lips, output)
+    assert not skin[20:24, 12:21].any() and not skin[20:24, 42:51].any() and skin[5:15].all()
+    assert colour_change(frames, np.repeat(face[None], n, axis=0)) > 1
+    assert colour_change(frames, np.repeat(skin[None], n, axis=0)) == 0.0
+    assert not ev.without_mouths(face, lips, np.full((68, 2), np.nan)).any()
+
+
 # --------------------------------------------------------------------------- image fidelity
 
 
