@@ -74,8 +74,9 @@ def analyse_frames(url: str, start: int, stop: int, identity: tuple[str, dict], 
                    every: int = 1) -> dict:
     """For output frames [start, stop) of the drive of ``cast``: landmarks found anew, descriptors
     (of every ``every``-th frame of the drive, NaN for the others: :func:`identity_every`), the mean
-    face colour of output and driver inside the rendered face less both mouths (ev.without_mouths), and (``compare``) PSNR and SSIM against
-    the driver, of the render and of the composite (the composite stage's frames, composite.mp4's)."""
+    face colour of output and driver inside the rendered face less both mouths (ev.without_mouths), and
+    (``compare``) PSNR and SSIM against the driver, of the render and of the composite (the composite
+    stage's frames, composite.mp4's)."""
     root = open_store(url, mode="r")
     drive, frames = Collection(root, cast.drive), Collection(root, cast.frames)
     rendered = drive.array("render/rgb")[start:stop]

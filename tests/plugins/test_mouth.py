@@ -371,7 +371,7 @@ def test_the_frames_inner_corners_move_in_as_far_as_the_drivers_do():
 def test_the_lower_lips_shadow_darkens_a_band_above_it_a_tenth_of_the_gap():
     """A grey interior (200) drawn as the driver's own between lips 30 px apart (rows 20 to 50) with the
     lower lip's shadow at 0.5: the last whole pixel above the lip (1 to 2 px up, where the factor is
-    0.58-0.72) is under 0.75 of the grey and no darker than half of it; 7 px up it is within 5 % of the
+    0.58-0.70) is under 0.75 of the grey and no darker than half of it; 7 px up it is within 5 % of the
     grey, and the upper half is untouched. With no shadow the gap is grey to the lip. A gap 1 px tall is
     untouched within a grey level (0.3 %)."""
     image = np.full((32, 64, 3), 200, np.float32)
