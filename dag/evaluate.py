@@ -84,8 +84,7 @@ def analyse_frames(url: str, start: int, stop: int, identity: tuple[str, dict], 
     composites = drive.array("composite/rgb")[start:stop]
     masks = alphas > 127
     drawn = drive.array("render/own")[start:stop] > 0  # the driver's mouth interior drawn into B's
-    theirs = frames.array("landmarks/points")[start:stop].astype(np.float64)
-    theirs[frames.state("landmarks")[start:stop] != OK] = np.nan
+    theirs = driver_frame_landmarks(root, cast.frames, slice(start, stop))
     skin = np.zeros_like(masks)  # the face less both mouths, where the colour's flicker is judged
     original = frames.array("photos/rgb")[start:stop]
     detector, backend = DlibLandmarks(), _identity(identity)
@@ -283,12 +282,12 @@ def held_figures(root, cast: Cast, driver: np.ndarray, alone: np.ndarray, compos
     return {k: {who: f[k] for who, f in figures.items()} for k in figures["driver"]}
 
 
-def driver_frame_landmarks(root, path: str = Cast.frames) -> np.ndarray:
-    """(T, 68, 2) dlib's landmarks on the driver's frames (the collection at ``path``), the reference
-    of every expression figure; NaN for a frame without a face."""
+def driver_frame_landmarks(root, path: str = Cast.frames, rows: slice = slice(None)) -> np.ndarray:
+    """(T, 68, 2) dlib's landmarks on the driver's frames (the collection at ``path``; its frames ``rows``),
+    the reference of every expression figure; NaN for a frame without a face."""
     frames = Collection(root, path)
-    landmarks = frames.array("landmarks/points")[:].astype(np.float64)
-    landmarks[frames.state("landmarks") != OK] = np.nan
+    landmarks = frames.array("landmarks/points")[rows].astype(np.float64)
+    landmarks[frames.state("landmarks")[rows] != OK] = np.nan
     return landmarks
 
 

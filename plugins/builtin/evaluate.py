@@ -395,15 +395,14 @@ def without_mouths(mask: np.ndarray, *landmarks) -> np.ndarray:
     pixels). A mouth that opens changes the face's mean colour by what it shows (teeth, tongue, the
     dark inside), which is expression, not flicker: the colour flicker is judged without it. All False
     where any of them lacks a point, so that the frame is not judged."""
-    out = np.asarray(mask, bool).copy()
-    for points in landmarks:
-        lips = np.asarray(points, np.float64)[OUTER_LIPS]
-        if not np.isfinite(lips).all():
-            return np.zeros_like(out)
-        mouth = np.zeros(out.shape, np.uint8)
-        cv2.fillPoly(mouth, [np.round(lips * 16).astype(np.int32)], 1, cv2.LINE_8, shift=4)
-        out &= mouth == 0
-    return out
+    mask = np.asarray(mask, bool)
+    lips = [np.asarray(points, np.float64)[OUTER_LIPS] for points in landmarks]
+    if not all(np.isfinite(p).all() for p in lips):
+        return np.zeros_like(mask)
+    mouths = np.zeros(mask.shape, np.uint8)
+    for p in lips:  # one at a time: overlapping mouths in one call would leave their overlap out
+        cv2.fillPoly(mouths, [np.round(p * 16).astype(np.int32)], 1, cv2.LINE_8, shift=4)
+    return mask & (mouths == 0)
 
 
 def colour_change(frames, masks) -> float:

@@ -347,8 +347,6 @@ def lower_lip_shadow(rows: int, strength: float) -> np.ndarray:
     whose centre is a share u of the gap's height above the lower lip. The shadow scales with the gap: a
     gap one row tall, its row half of it above the lip, is barely touched (0.3 % at strength 0.5); a tall
     one gets a dark band about a tenth of its height."""
-    if not strength > 0 or rows < 1:
-        return np.ones(rows, np.float32)
     up = (rows - np.arange(rows) - 0.5) / rows  # each row's centre above the lower lip, as a share of the gap
     return (1 - strength * np.exp(-up / SHADOW_REACH)).astype(np.float32)
 
