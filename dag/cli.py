@@ -194,7 +194,9 @@ def _print_figures(figures: dict, indent: str = "") -> None:
             print(f"{indent}{k}:")
             _print_figures(v, indent + "  ")
         else:
-            print(f"{indent}{k:<24} {v:.3f}" if isinstance(v, float) else f"{indent}{k:<24} {v}")
+            interval = isinstance(v, list) and v and all(isinstance(x, float) for x in v)
+            shown = f"{v:.3f}" if isinstance(v, float) else " - ".join(f"{x:.3f}" for x in v) if interval else v
+            print(f"{indent}{k:<24} {shown}")
 
 
 def _refresh_report(wf) -> Path | str | None:

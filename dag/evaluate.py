@@ -8,9 +8,10 @@ Figures (paper §6, with dlib's descriptor and landmarks only; nothing downloade
 - expression: Pearson correlation of mouth opening, eye openness, brow height and mouth
   width between A's video and the output (landmarks found anew in the output frames);
 - amplitude: for the same signals, the gain (slope of the output's signal on the driver's:
-  1 = the same amplitude, which a correlation cannot see), the correlation and both ranges, of the
-  face alone (puppet.mp4) and of composite.mp4's frames (the same face, found by dlib with A's head
-  around it);
+  1 = the same amplitude, which a correlation cannot see) with its 95 % interval (a block bootstrap
+  of the frames: how far the gain could move with the same drive's noise), the correlation and both
+  ranges, of the face alone (puppet.mp4) and of composite.mp4's frames (the same face, found by dlib
+  with A's head around it);
 - held: per signal, the expression each face holds through the clip (its mean less its resting face's:
   A's mean photo, B's neutral texture), of the driver, the face alone and composite.mp4's frames; a
   smile held throughout has no amplitude for a gain to see;
@@ -51,6 +52,10 @@ from persona.stores.errors import InputError
 from persona.stores.layout import OK, Cast, Collection, open_store
 
 from .stages import RENDER_3D, accepted, render_alpha
+
+#: the figures' version: a run keeps its last evaluation only when this is the same (raise it whenever a
+#: figure is added or computed differently)
+VERSION = 2
 
 
 def _identity(spec: tuple[str, dict]):

@@ -15,6 +15,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from persona.plugins.builtin.evaluate import GAIN_BLOCK
 from persona.plugins.face import composite
 from persona.stores import media, storage
 from persona.stores.layout import Cast, Collection, item
@@ -135,6 +136,10 @@ def _gain_rows(where: str, amplitudes: dict) -> list[tuple]:
         guide = ("1 = the driver's amplitude; target 0.7-1.4" if counted else
                  f"1 = the driver's amplitude; no target: the driver's eyes range over "
                  f"{a['driver_range']:.3f} IOD, under {EYE_RANGE}")
+        low, high = a.get("gain_interval", (float("nan"),) * 2)
+        if np.isfinite(low) and np.isfinite(high):
+            guide += (f"; 95 % interval {low:.2f}-{high:.2f} (the frames drawn again in runs of {GAIN_BLOCK}: "
+                      "evaluate.gain_interval)")
         rows.append((f"expression gain {where}: {k.replace('_', ' ')}", a["gain"], guide,
                      (0.7, 1.4) if counted else None))
     return rows

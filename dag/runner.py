@@ -35,7 +35,7 @@ from . import stages as st
 from .drive import run_drive, write_videos
 from .shape import run_alignment, run_shape
 from .texture import run_texture
-from .evaluate import evaluate
+from .evaluate import VERSION as EVALUATION_VERSION, evaluate
 from .report import collection_pictures, write_batch_page, write_run_report
 from .workflow import TLS, Cluster, VideoRange, Workflow, tls_problem
 
@@ -796,7 +796,7 @@ class Runner:
             speed = {"ms_per_driver_frame": 1000 * drive_seconds / drive.n,
                      "render_ms_per_frame_one_worker": 1000 * render["task_seconds"] / drive.n}
         key = cache_key(composite=drive.provenance("composite/rgb").key, identity=self.wf.stage("identity"),
-                        evaluate=self.wf.evaluate.model_dump(mode="json"))
+                        evaluate=self.wf.evaluate.model_dump(mode="json"), figures=EVALUATION_VERSION)
         kept = self.kept_outputs(plan.output, key)
         if kept is not None:
             log.info("%s: nothing new since its videos and evaluation were made: kept", plan.cast.drive)

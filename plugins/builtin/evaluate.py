@@ -271,7 +271,12 @@ def posed_landmarks(meshes, fiducials, poses) -> np.ndarray:
     return out
 
 
-def amplitude(driver, output) -> dict[str, float]:
+#: consecutive frames resampled together for a gain's interval (:func:`gain_interval`): a second at 25
+#: frames/s, about how long a reading's error and an expression last
+GAIN_BLOCK = 25
+
+
+def amplitude(driver, output) -> dict:
     """How far an output signal moves with its driver's, which a correlation cannot see (a puppet
     that moves a tenth as far correlates perfectly).
 
@@ -284,19 +289,42 @@ def amplitude(driver, output) -> dict[str, float]:
     -------
     dict
         ``gain``: the least-squares slope of the output on the driver (1 = the same amplitude;
-        NaN when fewer than 3 frames have both or the driver does not move); ``r``: their
-        Pearson correlation; ``driver_range``, ``output_range``: the 5th-95th percentile spread
-        of each over those frames.
+        NaN when fewer than 3 frames have both or the driver does not move); ``gain_interval``:
+        [low, high], its 95 % interval (:func:`gain_interval`); ``r``: their Pearson correlation;
+        ``driver_range``, ``output_range``: the 5th-95th percentile spread of each over those frames.
     """
     d = np.asarray(driver, np.float64).ravel()
     o = np.asarray(output, np.float64).ravel()
     ok = np.isfinite(d) & np.isfinite(o)
     if ok.sum() < 3:
-        return {"gain": float("nan"), "r": float("nan"), "driver_range": float("nan"), "output_range": float("nan")}
+        return {"gain": float("nan"), "gain_interval": [float("nan")] * 2, "r": float("nan"),
+                "driver_range": float("nan"), "output_range": float("nan")}
     dd, do = d[ok] - d[ok].mean(), o[ok] - o[ok].mean()
     spread = [float(np.subtract(*np.percentile(v, [95, 5]))) for v in (d[ok], o[ok])]
     gain = _ratio(dd @ do, dd @ dd) if np.ptp(d[ok]) > 0 else float("nan")
-    return {"gain": gain, "r": pearson(d, o), "driver_range": spread[0], "output_range": spread[1]}
+    return {"gain": gain, "gain_interval": gain_interval(d[ok], o[ok]), "r": pearson(d, o),
+            "driver_range": spread[0], "output_range": spread[1]}
+
+
+def gain_interval(driver: np.ndarray, output: np.ndarray, block: int = GAIN_BLOCK, resamples: int = 2000,
+                  seed: int = 0) -> list[float]:
+    """[low, high]: the 2.5th and 97.5th percentiles of the :func:`amplitude` gain over a moving-block
+    bootstrap of the frames (the frames of ``driver`` and ``output``, (n,) each, none missing, drawn
+    again ``resamples`` times as runs of ``block`` consecutive frames, so that the error dlib makes on
+    neighbouring frames, which is alike, is not counted as independent). How far the gain could move on
+    another clip of the same drive: a gain whose driver barely moves (a brow still to a pixel) has a wide
+    one. Seeded: the same frames give the same interval. NaN where the driver does not move."""
+    n = len(driver)
+    if n < 3 or np.ptp(driver) == 0:
+        return [float("nan")] * 2
+    block = min(block, n)
+    starts = np.random.default_rng(seed).integers(0, n - block + 1, (resamples, -(-n // block)))
+    rows = (starts[..., None] + np.arange(block)).reshape(resamples, -1)[:, :n]  # (resamples, n) frames
+    d, o = driver[rows], output[rows]
+    dd = d - d.mean(axis=1, keepdims=True)
+    var = np.einsum("ij,ij->i", dd, dd)
+    gains = np.einsum("ij,ij->i", dd, o - o.mean(axis=1, keepdims=True))[var > 0] / var[var > 0]
+    return [float(g) for g in np.percentile(gains, [2.5, 97.5])] if len(gains) else [float("nan")] * 2
 
 
 def resting_landmarks(image: np.ndarray, detect, scales=(2, 3, 4, 5, 6)) -> np.ndarray | None:

@@ -656,3 +656,22 @@ def test_a_drive_made_again_reports_its_own_speed(drive_run):
     assert after["evaluation"] == before["evaluation"]
     assert after["speed"]["ms_per_driver_frame"] != before["speed"]["ms_per_driver_frame"]
     assert after["speed"]["evaluate_seconds"] == before["speed"]["evaluate_seconds"]
+
+
+def test_new_figures_evaluate_a_finished_drive_again(drive_run, monkeypatch):
+    """A run whose evaluation's figures changed since (dag/evaluate.py's VERSION raised: a figure added,
+    as the gains' intervals were) evaluates again, though nothing it is made from changed; it kept the
+    old metrics.json before, without the new figure."""
+    from persona.dag import runner
+
+    folder, path, _ = drive_run
+    metrics = folder / "output" / "metrics.json"
+    first = metrics.read_text()
+    monkeypatch.setattr(runner, "EVALUATION_VERSION", runner.EVALUATION_VERSION + 1)
+    try:
+        assert cli(["run", str(path), "--scheduler", "sync", "--quiet"]) == 0
+        after = json.loads(metrics.read_text())
+    finally:
+        metrics.write_text(first)  # as the other tests of the module know it
+    assert after["outputs_key"] != json.loads(first)["outputs_key"]
+    assert "evaluate" in {r["stage"] for r in after["stages"]}

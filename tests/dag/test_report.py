@@ -10,7 +10,7 @@ def evaluation(to_b: float, to_a: float) -> dict:
             "identity": {"fraction_b_not_a": 0.0, "fraction_b_not_a_composite": 0.0, "mean_distance_to_b": to_b, "mean_distance_to_a": to_a,
                          "frames_without_face": 0},
             "expression": {k: 0.9 for k in signals},
-            "amplitude": {"mouth_open": {"gain": 0.8, "r": 0.9, "driver_range": 0.2},
+            "amplitude": {"mouth_open": {"gain": 0.8, "r": 0.9, "driver_range": 0.2, "gain_interval": [0.7, 0.9]},
                           "eye_open": {"gain": 0.3, "r": 0.5, "driver_range": 0.02}},
             "held": {"mouth_open": {"driver": 0.1, "output": 0.05, "composite": -0.02}},
             "stability": {"jitter_ratio": 0.9, "colour_change_ratio": 0.5, "texture_change_ratio": 0.2},
@@ -26,6 +26,9 @@ def test_every_figure_says_what_is_good():
     assert dict((r[0], r[2]) for r in rows)["self-reenactment psnr_db"] == "higher is better; target ≥ 28 dB"
     held = dict((r[0], r[1]) for r in rows)["held expression: mouth open (driver / face alone / composite, IOD)"]
     assert held == "+0.100 / +0.050 / -0.020"
+    guides = dict((r[0], r[2]) for r in rows)
+    assert "95 % interval 0.70-0.90" in guides["expression gain (output / driver): mouth open"]
+    assert "interval" not in guides["expression gain (output / driver): eye open"]  # none given
 
 
 def test_identity_caveat_when_dlib_sees_one_person():
