@@ -103,10 +103,20 @@ def _table(rows: list[tuple]) -> str:
     return f"<table>{body}</table>"
 
 
+def _missed_by(value: float, target: tuple) -> str:
+    """A missed figure with two decimals, or as many more (up to four) as it takes not to round onto the
+    bound it misses: a gain of 0.696 against 0.7 reads 0.696, not 0.70."""
+    for digits in (2, 3, 4):
+        text = f"{value:.{digits}f}"
+        if not met(float(text), target):
+            break
+    return text
+
+
 def targets_summary(rows: list[tuple]) -> str:
     """One line over :func:`figure_rows`: how many of its targets are met, and which are not."""
     judged = [(r[0], r[1], r[3]) for r in rows if met(r[1], r[3]) is not None]
-    missed = [f"{label} {value:.2f}" for label, value, target in judged if not met(value, target)]
+    missed = [f"{label} {_missed_by(value, target)}" for label, value, target in judged if not met(value, target)]
     line = f"{len(judged) - len(missed)} of {len(judged)} targets met"
     return line + (f"; not met: {'; '.join(missed)}." if missed else ".")
 
