@@ -314,17 +314,47 @@ def gain_interval(driver: np.ndarray, output: np.ndarray, block: int = GAIN_BLOC
     neighbouring frames, which is alike, is not counted as independent). How far the gain could move on
     another clip of the same drive: a gain whose driver barely moves (a brow still to a pixel) has a wide
     one. Seeded: the same frames give the same interval. NaN where the driver does not move."""
+    gains = _drawn_gains(driver, [output], block, resamples, seed)
+    return _percentiles(gains[0]) if gains is not None else [float("nan")] * 2
+
+
+def gain_difference(driver, first, second, block: int = GAIN_BLOCK, resamples: int = 2000,
+                    seed: int = 0) -> dict:
+    """How two runs of one drive differ in gain, judged on the same frames: ``difference``, the second's
+    :func:`amplitude` gain less the first's, and ``interval``, its 95 % interval over the same draws of
+    frames for both (a paired :func:`gain_interval`: the drive's own noise, in both, largely cancels, so
+    it is much narrower than either run's interval). ``driver``, ``first``, ``second``: (n,) signals of
+    the same frames, NaN to leave a frame out (of all three)."""
+    d, a, b = (np.asarray(v, np.float64).ravel() for v in (driver, first, second))
+    ok = np.isfinite(d) & np.isfinite(a) & np.isfinite(b)
+    gains = _drawn_gains(d[ok], [a[ok], b[ok]], block, resamples, seed)
+    if gains is None:
+        return {"difference": float("nan"), "interval": [float("nan")] * 2}
+    whole = amplitude(d[ok], b[ok])["gain"] - amplitude(d[ok], a[ok])["gain"]
+    return {"difference": whole, "interval": _percentiles(gains[1] - gains[0])}
+
+
+def _drawn_gains(driver: np.ndarray, outputs: list[np.ndarray], block: int, resamples: int,
+                 seed: int) -> np.ndarray | None:
+    """(len(outputs), draws): the gain of each output on ``driver`` over the same moving-block draws of
+    the frames (none missing), draws where the driver moves in the drawn frames; None for a driver that
+    does not move at all."""
+    driver = np.asarray(driver, np.float64)
     n = len(driver)
     if n < 3 or np.ptp(driver) == 0:
-        return [float("nan")] * 2
+        return None
     block = min(block, n)
     starts = np.random.default_rng(seed).integers(0, n - block + 1, (resamples, -(-n // block)))
     rows = (starts[..., None] + np.arange(block)).reshape(resamples, -1)[:, :n]  # (resamples, n) frames
-    d, o = driver[rows], output[rows]
-    dd = d - d.mean(axis=1, keepdims=True)
+    dd = driver[rows] - driver[rows].mean(axis=1, keepdims=True)
     var = np.einsum("ij,ij->i", dd, dd)
-    gains = np.einsum("ij,ij->i", dd, o - o.mean(axis=1, keepdims=True))[var > 0] / var[var > 0]
-    return [float(g) for g in np.percentile(gains, [2.5, 97.5])] if len(gains) else [float("nan")] * 2
+    moves = var > 0
+    drawn = [np.asarray(o, np.float64)[rows] for o in outputs]
+    return np.stack([np.einsum("ij,ij->i", dd, o - o.mean(axis=1, keepdims=True))[moves] / var[moves] for o in drawn])
+
+
+def _percentiles(values: np.ndarray) -> list[float]:
+    return [float(v) for v in np.percentile(values, [2.5, 97.5])] if len(values) else [float("nan")] * 2
 
 
 def resting_landmarks(image: np.ndarray, detect, scales=(2, 3, 4, 5, 6)) -> np.ndarray | None:

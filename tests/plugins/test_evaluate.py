@@ -164,6 +164,28 @@ def test_a_gains_interval_holds_the_true_gain_and_widens_as_the_driver_moves_les
     assert np.isnan(amplitude(np.full(10, 0.3), np.arange(10.0))["gain_interval"]).all()
 
 
+def test_two_runs_gains_are_compared_on_the_same_frames():
+    """evaluate.gain_difference: a second run that moves 0.1 further than the first, with the same noise,
+    differs by exactly 0.1 in every draw of frames; one that differs from the first by a little noise of
+    its own has a difference whose interval holds 0 and is under half as wide as either run's own."""
+    from persona.plugins.builtin.evaluate import gain_difference, gain_interval
+
+    rng = np.random.default_rng(1)
+    t = np.arange(400)
+    driver = 0.1 * np.sin(2 * np.pi * t / 50)
+    noise = np.convolve(rng.normal(0, 0.02, len(t)), np.ones(5) / 5, mode="same")  # lasts a few frames
+    first = 0.5 * driver + noise
+    further = gain_difference(driver, first, 0.6 * driver + noise)
+    assert further["difference"] == pytest.approx(0.1, abs=1e-9)
+    assert further["interval"] == pytest.approx([0.1, 0.1], abs=1e-9)
+    again = gain_difference(driver, first, first + rng.normal(0, 0.002, len(t)))
+    low, high = again["interval"]
+    assert low <= 0 <= high
+    own_low, own_high = gain_interval(driver, first)
+    assert high - low < (own_high - own_low) / 2
+    assert np.isnan(gain_difference(np.ones(5), first[:5], first[:5])["difference"])
+
+
 def test_a_mouth_held_open_through_the_clip_is_held_expression_the_gain_cannot_see():
     """A face whose lower lip hangs 4 px lower in every frame than on its resting face: its mouth
     opening is held 4 / 40 IOD above rest, with the same gain as the track without it; no resting face
