@@ -51,4 +51,5 @@ def test_each_target_is_marked_met_or_not():
     assert summary.startswith("7 of 10 targets met; not met: ")
     assert "colour step" in summary and "psnr_db 26.00" in summary and "ssim 0.76" in summary
     near = targets_summary([("eye gain", 0.696, "", (0.7, 1.4)), ("brow gain", 0.6996, "", (0.7, 1.4))])
-    assert near == "0 of 2 targets met; not met: eye gain 0.696; brow gain 0.6996."  # never "0.70" or "0.700": they missed
+    # never "0.70" or "0.700": they missed
+    assert near == "0 of 2 targets met; not met: eye gain 0.696; brow gain 0.6996."
