@@ -299,11 +299,16 @@ def amplitude(driver, output) -> dict:
     if ok.sum() < 3:
         return {"gain": float("nan"), "gain_interval": [float("nan")] * 2, "r": float("nan"),
                 "driver_range": float("nan"), "output_range": float("nan")}
-    dd, do = d[ok] - d[ok].mean(), o[ok] - o[ok].mean()
     spread = [float(np.subtract(*np.percentile(v, [95, 5]))) for v in (d[ok], o[ok])]
-    gain = _ratio(dd @ do, dd @ dd) if np.ptp(d[ok]) > 0 else float("nan")
-    return {"gain": gain, "gain_interval": gain_interval(d[ok], o[ok]), "r": pearson(d, o),
+    return {"gain": _slope(d[ok], o[ok]), "gain_interval": gain_interval(d[ok], o[ok]), "r": pearson(d, o),
             "driver_range": spread[0], "output_range": spread[1]}
+
+
+def _slope(driver: np.ndarray, output: np.ndarray) -> float:
+    """The least-squares slope of ``output`` on ``driver`` (n,) each, none missing; NaN where the driver
+    does not move."""
+    dd, do = driver - driver.mean(), output - output.mean()
+    return _ratio(dd @ do, dd @ dd) if np.ptp(driver) > 0 else float("nan")
 
 
 def gain_interval(driver: np.ndarray, output: np.ndarray, block: int = GAIN_BLOCK, resamples: int = 2000,
@@ -330,8 +335,7 @@ def gain_difference(driver, first, second, block: int = GAIN_BLOCK, resamples: i
     gains = _drawn_gains(d[ok], [a[ok], b[ok]], block, resamples, seed)
     if gains is None:
         return {"difference": float("nan"), "interval": [float("nan")] * 2}
-    whole = amplitude(d[ok], b[ok])["gain"] - amplitude(d[ok], a[ok])["gain"]
-    return {"difference": whole, "interval": _percentiles(gains[1] - gains[0])}
+    return {"difference": _slope(d[ok], b[ok]) - _slope(d[ok], a[ok]), "interval": _percentiles(gains[1] - gains[0])}
 
 
 def _drawn_gains(driver: np.ndarray, outputs: list[np.ndarray], block: int, resamples: int,
