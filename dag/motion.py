@@ -25,7 +25,8 @@ import numpy as np
 
 from persona.plugins.base import Rejected
 from persona.plugins.face.dynamics import FrameTrack, frame_mesh, smooth_in_time, smooth_tracks
-from persona.plugins.face.transfer import DeformationTransfer, FiducialFollow, guided_correspondence
+from persona.plugins.face.transfer import (DeformationTransfer, FiducialFollow, below_mouth, guided_correspondence,
+                                          unfolded)
 from persona.plugins.kinds import Pose
 from persona.stores.layout import OK, Cast, Collection, open_store
 from persona.stores.provenance import Provenance, cache_key
@@ -103,21 +104,28 @@ def driver_meshes(url: str, path: str, start: int, stop: int, key: str) -> np.nd
 
 
 def transfer_meshes(url: str, path: str, start: int, stop: int, key: str, puppet: str, denoise) -> None:
-    """One shard's task: B's meshes M_P^t of frames [start, stop) into ``mesh`` (NaN off B's face);
-    the transfer and the follower are built once per worker."""
+    """One shard's task: B's meshes M_P^t of frames [start, stop) into ``mesh`` (NaN off B's face): transferred,
+    moved onto the fiducials' targets and kept from folding below the mouth; the transfer and the follower are
+    built once per worker."""
     root = open_store(url)
     drive = Collection(root, path)
-    transfer, follow, targets, mask = st.per_process(
+    transfer, follow, targets, mask, below = st.per_process(
         key, lambda: _transfer(root, drive, Collection(root, puppet), denoise))
-    block = np.stack([transfer(m) if follow is None else follow(transfer(m), targets[t], transfer.params.fiducials)
-                      for t, m in zip(range(start, stop), drive.array("motion/driver_mesh")[start:stop])])
+    tp = transfer.params
+
+    def mesh(t: int, driver_mesh: np.ndarray) -> np.ndarray:
+        out = transfer(driver_mesh) if follow is None else follow(transfer(driver_mesh), targets[t], tp.fiducials)
+        return out if below is None else unfolded(out, below, tp.unfold_step)
+
+    block = np.stack([mesh(t, m) for t, m in zip(range(start, stop), drive.array("motion/driver_mesh")[start:stop])])
     block[:, ~mask] = np.nan
     drive.array("mesh")[start:stop] = block.astype(np.float32)
 
 
 def _transfer(root, drive: Collection, puppet: Collection, denoise) -> tuple:
     """The magnitude-adjusted transfer onto ``puppet``, the fiducial follower (None when
-    ``transfer.fiducials`` is 0), the targets it follows (smoothed over time) and B's mask."""
+    ``transfer.fiducials`` is 0), the targets it follows (smoothed over time), B's mask and the part of it
+    below the mouth that is kept from folding (None when ``transfer.unfold`` is off)."""
     motion = drive.attrs["motion"]
     depth = puppet.array("shape/depth")[...]
     ys, xs = np.mgrid[0:depth.shape[0], 0:depth.shape[1]]
@@ -128,12 +136,13 @@ def _transfer(root, drive: Collection, puppet: Collection, denoise) -> tuple:
                                    st.driver_model(root, drive.path)["model"].mask, params=motion["transfer"],
                                    denoiser=denoiser)
     tp = transfer.params
+    fiducials = puppet.array("aligned/mean_fiducials")[...]
+    below = below_mouth(mask, fiducials) if tp.unfold else None
     if not tp.fiducials:
-        return transfer, None, None, mask
-    follow = FiducialFollow(puppet.array("aligned/mean_fiducials")[...], mask, lam=tp.fiducial_lambda,
-                            corner_reach=tp.corner_reach)
+        return transfer, None, None, mask, below
+    follow = FiducialFollow(fiducials, mask, lam=tp.fiducial_lambda, corner_reach=tp.corner_reach)
     targets = smooth_in_time(drive.array("target")[:].astype(np.float64), tp.fiducial_sigma)
-    return transfer, follow, targets, mask
+    return transfer, follow, targets, mask, below
 
 
 def export_meshes(runner, cast: Cast, output: str, every: int) -> list[str]:

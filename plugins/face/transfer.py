@@ -66,6 +66,7 @@ from ..base import Params
 from ..kinds import DenoiseBackend, FlowBackend
 from .mesh import rim_points
 from .subspace import project
+from .template import IDX49
 from .warp import TpsWarp, compose, pin, tps_map
 
 #: the TV weight of the default denoiser (the paper's is 1; see DeformationTransfer)
@@ -74,8 +75,8 @@ DEFAULT_TV_WEIGHT = 0.3
 #: Δ̂·Δ'_D (canonical px) below which the driver's point counts as landing on itself (``ratio``)
 _LANDS = 0.5
 
-__all__ = ["DeformationTransfer", "FiducialFollow", "TransferFrame", "TransferParams", "correspondence", "grid_normals",
-           "transfer_sequence"]
+__all__ = ["DeformationTransfer", "FiducialFollow", "TransferFrame", "TransferParams", "below_mouth", "correspondence",
+           "fold_depths", "grid_normals", "transfer_sequence", "unfolded"]
 
 
 class TransferParams(Params):
@@ -104,6 +105,14 @@ class TransferParams(Params):
         "motion is held at the corner's, fading to none at that distance (0: off; not in the paper; "
         ":class:`FiducialFollow`; 30 raised Bush <- Obama's mouth-width gain 0.64 -> 0.70 on the "
         "composite and lowered Powell <- woman's 0.75 -> 0.71: docs/expression.md)")
+    unfold: bool = Field(
+        True, description="below the mouth's middle, a column of B's mesh that folds (the lower lip dropped over "
+        "the skin under it, which the renderer drew as a ragged edge) is made to run down again, that skin "
+        "squeezed into a band under the lip (:func:`unfolded`; not in the paper; on the example drives folds "
+        "reached 13 canonical px, none after: docs/expression.md)")
+    unfold_step: float = Field(0.3, ge=0, le=1, description="with unfold: the squeezed skin's band, canonical px a "
+                               "row (0: laid flat on a line of no area, which met the chin with a hard, stepped "
+                               "edge)")
     small_motion: float = Field(
         0.3, ge=0, description="δ in canonical px: the displacement is w Δ̂ f* + (1 - w) Δ with "
         "w = min(1, |Δ|/δ), so that sub-pixel motions, whose nearest vertex is the point itself, pass "
@@ -396,6 +405,48 @@ class FiducialFollow:
         out = np.array(mesh, np.float64, copy=True)
         out[..., :2] += self.warp.map(np.concatenate([miss, beyond, self._still]))
         return out
+
+
+def below_mouth(mask: np.ndarray, fiducials: np.ndarray) -> np.ndarray:
+    """(H, W) bool: B's face ``mask`` from the middle of its mouth down (the mean row of the inner lips' middle
+    points, iBUG 62 and 66, among B's 49 mean ``fiducials``)."""
+    middle = np.asarray(fiducials, np.float64)[[IDX49.index(i) for i in (62, 66)], 1].mean()
+    out = np.array(mask, bool, copy=True)
+    out[: int(np.ceil(middle))] = False
+    return out
+
+
+def fold_depths(mesh: np.ndarray, below: np.ndarray, step: float = 0.0) -> np.ndarray:
+    """(H, W): how far (canonical px) each texel of ``below`` (H, W) bool must move down its column of the
+    mesh (H, W, 3) to lie at least ``step`` px per row below every texel over it (0: not above any of
+    them, where the mesh folds); 0 where its rows already lie that far apart, and outside ``below``."""
+    y = np.asarray(mesh, np.float64)[..., 1]
+    inside = np.asarray(below, bool) & np.isfinite(y)
+    rows = step * np.arange(y.shape[0], dtype=np.float64)[:, None]
+    least = np.maximum.accumulate(np.where(inside, y - rows, -np.inf), axis=0) + rows
+    return np.where(inside, least - np.where(inside, y, 0.0), 0.0)
+
+
+def unfolded(mesh: np.ndarray, below: np.ndarray, step: float = 0.3) -> np.ndarray:
+    """The mesh (H, W, 3) with no texel of ``below`` (H, W) bool, the face below the mouth's middle, drawn
+    over by one above it in its column.
+
+    The transfer carries the driver's lower lip down with its own magnitude and the skin below with
+    smaller ones, and the fiducial follower pulls B's lower lip to its target with the rim held still:
+    where the lip drops further than the skin under it, the mesh folds, the lip's texels over the
+    chin's, and the renderer draws the overlap as a ragged edge under the lip and along the chin (on
+    Powell <- woman up to 13 canonical px deep; docs/expression.md). A jaw does not fold: in a column that
+    folds, the lip keeps its drop and the skin that was under it is squeezed into a band ``step`` px a row
+    below it (:func:`fold_depths`), down to where the column's own rows run lower again; laid on a line
+    of no area (``step`` 0), it met the chin under it with a hard, stepped edge. A column folded by d px
+    takes min(d, 1) of the band and the rest of that line, so the band fades out beside a fold; a column
+    that does not fold, however squeezed, is not touched, nor are texels above the mouth or outside
+    ``below`` (:func:`below_mouth`)."""
+    out = np.array(mesh, np.float64, copy=True)
+    flat = fold_depths(out, below)
+    share = np.clip(flat.max(axis=0), 0, 1)  # per column: how far it folds, up to a pixel
+    out[..., 1] += flat + share * (fold_depths(out, below, step) - flat)  # both rise down the column: so does this
+    return out
 
 
 def transfer_sequence(driver_meshes, phi, puppet_mean, puppet_mask, driver_mask=None, *,

@@ -360,3 +360,37 @@ def test_fiducial_follow_closes_the_puppets_blink(driver_seed, puppet_seed):
           f"{lids(transferred).round(2)}, followed {lids(followed).round(2)}")
     assert np.abs(lids(followed) - truth_gaps).max() < 0.3
     assert np.abs(lids(transferred) - truth_gaps).mean() > np.abs(lids(followed) - truth_gaps).mean()
+
+
+def test_a_mesh_folded_below_the_mouth_is_unfolded_and_nothing_else_moves():
+    """A lower lip dropped 6 px over the skin under it: after `unfolded`, the rows below the mouth follow
+    one another at least `step` px apart, the lip's rows keep their drop, the skin it folded over is
+    squeezed into a band under it (laid flat with step 0), the rows below where the column runs lower
+    again, those above the mouth, x and depth are untouched; a mesh without a fold is returned as it was,
+    and so is one squeezed to 0.1 px a row without folding."""
+    template = generic_template()
+    mask, fiducials = template.mask, template.fiducials3d[:, :2]
+    ys, xs = np.mgrid[0:mask.shape[0], 0:mask.shape[1]].astype(np.float64)
+    mesh = np.stack([xs, ys, template.depth], axis=-1)
+    below = transfer_module.below_mouth(mask, fiducials)
+    top = int(np.ceil(fiducials[[IDX49.index(62), IDX49.index(66)], 1].mean()))  # the mouth's middle
+    assert not below[:top].any() and below[top:].sum() == mask[top:].sum()
+    np.testing.assert_array_equal(transfer_module.unfolded(mesh, below), mesh)
+    pressed = mesh.copy()
+    pressed[top:top + 20, :, 1] = top + 0.1 * np.arange(20)[:, None]  # 20 rows within 2 px, then a jump
+    np.testing.assert_array_equal(transfer_module.unfolded(pressed, below), pressed)
+
+    lip = top + 4  # the lower lip's rows: 4 below the mouth's middle, 4 rows thick
+    folded = mesh.copy()
+    folded[lip:lip + 4, :, 1] += 6.0  # dropped 6 px: over the next rows, which have not moved
+    col = int(fiducials[:, 0].mean())
+    for step, caught_up in ((0.3, lip + 12), (0.0, lip + 10)):  # where y = row meets the lip's last + step a row
+        out = transfer_module.unfolded(folded, below, step)
+        steps = np.diff(np.where(below, out[..., 1], np.nan), axis=0)
+        assert np.nanmin(steps) >= step - 1e-9
+        np.testing.assert_array_equal(out[lip:lip + 4], folded[lip:lip + 4])  # the lip keeps its drop
+        squeezed = folded[lip + 3, col, 1] + step * np.arange(1, caught_up - lip - 3)
+        np.testing.assert_allclose(out[lip + 4:caught_up, col, 1], squeezed)  # the band under the lip
+        np.testing.assert_array_equal(out[caught_up:, col, 1], folded[caught_up:, col, 1])  # as it was
+        np.testing.assert_array_equal(out[:lip], folded[:lip])
+        np.testing.assert_array_equal(out[..., [0, 2]], folded[..., [0, 2]])
