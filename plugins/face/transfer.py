@@ -445,7 +445,8 @@ def unfolded(mesh: np.ndarray, below: np.ndarray, step: float = 0.3) -> np.ndarr
     out = np.array(mesh, np.float64, copy=True)
     flat = fold_depths(out, below)
     share = np.clip(flat.max(axis=0), 0, 1)  # per column: how far it folds, up to a pixel
-    out[..., 1] += flat + share * (fold_depths(out, below, step) - flat)  # both rise down the column: so does this
+    if share.any():  # most frames do not fold: nothing to move
+        out[..., 1] += flat + share * (fold_depths(out, below, step) - flat)  # both rise down the column: so does this
     return out
 
 
