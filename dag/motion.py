@@ -26,7 +26,7 @@ import numpy as np
 from persona.plugins.base import Rejected
 from persona.plugins.face.dynamics import FrameTrack, frame_mesh, smooth_in_time, smooth_tracks
 from persona.plugins.face.transfer import (DeformationTransfer, FiducialFollow, below_mouth, guided_correspondence,
-                                          unfolded)
+                                          lower_lip, unfolded)
 from persona.plugins.kinds import Pose
 from persona.stores.layout import OK, Cast, Collection, open_store
 from persona.stores.provenance import Provenance, cache_key
@@ -52,8 +52,9 @@ def run_motion(runner, cast: Cast, retargeted: Provenance) -> Provenance:
 
     # the workflow's denoiser when it names one, else the transfer's own default (huber_rof, off-mask excluded)
     denoise = runner.wf.stage("denoise") if "denoise" in runner.wf.stages else None
-    # version 2: ``mesh`` marks the step complete (1: the correspondence, written after the meshes)
-    prov = Provenance.make(stage="motion", backend="-", backend_version="2",
+    # version 2: ``mesh`` marks the step complete (1: the correspondence, written after the meshes); 3: with
+    # ``unfold``, the lower lip's body is squeezed over its outer edge rather than pushing it off its target
+    prov = Provenance.make(stage="motion", backend="-", backend_version="3",
                            params={"transfer": motion["transfer"], "dynamics": motion["dynamics"], "denoise": denoise,
                                    "correspondence": motion["correspondence"]},
                            inputs={"dynamics": dynamics.key, "puppet_shape": puppet.provenance("shape/depth").key,
@@ -109,13 +110,13 @@ def transfer_meshes(url: str, path: str, start: int, stop: int, key: str, puppet
     built once per worker."""
     root = open_store(url)
     drive = Collection(root, path)
-    transfer, follow, targets, mask, below = st.per_process(
+    transfer, follow, targets, mask, fold = st.per_process(
         key, lambda: _transfer(root, drive, Collection(root, puppet), denoise))
     tp = transfer.params
 
     def mesh(t: int, driver_mesh: np.ndarray) -> np.ndarray:
         out = transfer(driver_mesh) if follow is None else follow(transfer(driver_mesh), targets[t], tp.fiducials)
-        return out if below is None else unfolded(out, below, tp.unfold_step)
+        return out if fold is None else unfolded(out, fold[0], tp.unfold_step, lip=fold[1])
 
     block = np.stack([mesh(t, m) for t, m in zip(range(start, stop), drive.array("motion/driver_mesh")[start:stop])])
     block[:, ~mask] = np.nan
@@ -124,8 +125,9 @@ def transfer_meshes(url: str, path: str, start: int, stop: int, key: str, puppet
 
 def _transfer(root, drive: Collection, puppet: Collection, denoise) -> tuple:
     """The magnitude-adjusted transfer onto ``puppet``, the fiducial follower (None when
-    ``transfer.fiducials`` is 0), the targets it follows (smoothed over time), B's mask and the part of it
-    below the mouth that is kept from folding (None when ``transfer.unfold`` is off)."""
+    ``transfer.fiducials`` is 0), the targets it follows (smoothed over time), B's mask, and the part of it
+    below the mouth that is kept from folding with the lower lip's body in it (None when ``transfer.unfold``
+    is off)."""
     motion = drive.attrs["motion"]
     depth = puppet.array("shape/depth")[...]
     ys, xs = np.mgrid[0:depth.shape[0], 0:depth.shape[1]]
@@ -138,11 +140,12 @@ def _transfer(root, drive: Collection, puppet: Collection, denoise) -> tuple:
     tp = transfer.params
     fiducials = puppet.array("aligned/mean_fiducials")[...]
     below = below_mouth(mask, fiducials) if tp.unfold else None
+    fold = None if below is None else (below, lower_lip(below, fiducials))
     if not tp.fiducials:
-        return transfer, None, None, mask, below
+        return transfer, None, None, mask, fold
     follow = FiducialFollow(fiducials, mask, lam=tp.fiducial_lambda, corner_reach=tp.corner_reach)
     targets = smooth_in_time(drive.array("target")[:].astype(np.float64), tp.fiducial_sigma)
-    return transfer, follow, targets, mask, below
+    return transfer, follow, targets, mask, fold
 
 
 def export_meshes(runner, cast: Cast, output: str, every: int) -> list[str]:

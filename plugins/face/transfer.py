@@ -76,7 +76,7 @@ DEFAULT_TV_WEIGHT = 0.3
 _LANDS = 0.5
 
 __all__ = ["DeformationTransfer", "FiducialFollow", "TransferFrame", "TransferParams", "below_mouth", "correspondence",
-           "fold_depths", "grid_normals", "transfer_sequence", "unfolded"]
+           "fold_depths", "grid_normals", "lower_lip", "transfer_sequence", "unfolded"]
 
 
 class TransferParams(Params):
@@ -107,9 +107,10 @@ class TransferParams(Params):
         "composite and lowered Powell <- woman's 0.75 -> 0.71: docs/expression.md)")
     unfold: bool = Field(
         True, description="below the mouth's middle, a column of B's mesh that folds (the lower lip dropped over "
-        "the skin under it, which the renderer drew as a ragged edge) is made to run down again, that skin "
-        "squeezed into a band under the lip (:func:`unfolded`; not in the paper; on the example drives folds "
-        "reached 13 canonical px, none after: docs/expression.md)")
+        "the skin under it, which the renderer drew as a ragged edge) is made to run down again: the lip's body "
+        "squeezed over its outer edge, which stays on its target, and the skin under the lip into a band under it "
+        "(:func:`unfolded`; not in the paper; on the example drives folds reached 13 canonical px, none after: "
+        "docs/expression.md)")
     unfold_step: float = Field(0.3, ge=0, le=1, description="with unfold: the squeezed skin's band, canonical px a "
                                "row (0: laid flat on a line of no area, which met the chin with a hard, stepped "
                                "edge)")
@@ -427,7 +428,17 @@ def fold_depths(mesh: np.ndarray, below: np.ndarray, step: float = 0.0) -> np.nd
     return np.where(inside, least - np.where(inside, y, 0.0), 0.0)
 
 
-def unfolded(mesh: np.ndarray, below: np.ndarray, step: float = 0.3) -> np.ndarray:
+def lower_lip(below: np.ndarray, fiducials: np.ndarray) -> np.ndarray:
+    """(H, W) bool: the texels of ``below`` (:func:`below_mouth`) down to B's outer lower lip, the line
+    through its mean ``fiducials`` iBUG 48, 59-55, 54 (the nearest row in each column between the mouth's
+    corners): the lower lip's body, from the mouth's middle to its lower edge."""
+    outer = np.asarray(fiducials, np.float64)[[IDX49.index(i) for i in (48, 59, 58, 57, 56, 55, 54)]]
+    cols = np.arange(below.shape[1], dtype=np.float64)
+    edge = np.interp(cols, outer[:, 0], outer[:, 1], left=-1, right=-1)  # -1: beside the mouth, no lip
+    return np.asarray(below, bool) & (np.arange(below.shape[0])[:, None] <= np.round(edge)[None, :])
+
+
+def unfolded(mesh: np.ndarray, below: np.ndarray, step: float = 0.3, lip: np.ndarray | None = None) -> np.ndarray:
     """The mesh (H, W, 3) with no texel of ``below`` (H, W) bool, the face below the mouth's middle, drawn
     over by one above it in its column.
 
@@ -435,14 +446,25 @@ def unfolded(mesh: np.ndarray, below: np.ndarray, step: float = 0.3) -> np.ndarr
     smaller ones, and the fiducial follower pulls B's lower lip to its target with the rim held still:
     where the lip drops further than the skin under it, the mesh folds, the lip's texels over the
     chin's, and the renderer draws the overlap as a ragged edge under the lip and along the chin (on
-    Powell <- woman up to 13 canonical px deep; docs/expression.md). A jaw does not fold: in a column that
-    folds, the lip keeps its drop and the skin that was under it is squeezed into a band ``step`` px a row
-    below it (:func:`fold_depths`), down to where the column's own rows run lower again; laid on a line
-    of no area (``step`` 0), it met the chin under it with a hard, stepped edge. A column folded by d px
-    takes min(d, 1) of the band and the rest of that line, so the band fades out beside a fold; a column
-    that does not fold, however squeezed, is not touched, nor are texels above the mouth or outside
-    ``below`` (:func:`below_mouth`)."""
+    Powell <- woman up to 13 canonical px deep; docs/expression.md). A jaw does not fold.
+
+    First, with ``lip`` (H, W) bool, the lower lip's body (:func:`lower_lip`): the follower puts the lip's
+    inner and outer edges on their targets, but its smooth correction added to the transfer's uneven drop
+    inside the lip can carry the lip's middle rows below its outer edge; there they are squeezed into a
+    band ``step`` px a row over that edge, which stays where the follower put it (pushed down with the
+    chin instead, the edge left its target by up to 5 px on Bush <- man with glasses and the lip was drawn
+    half as tall again). Then, in a column that still folds, the lip keeps its drop and the skin that was
+    under it is squeezed into a band ``step`` px a row below it (:func:`fold_depths`), down to where the
+    column's own rows run lower again; laid on a line of no area (``step`` 0), it met the chin under it
+    with a hard, stepped edge. A column folded by d px takes min(d, 1) of the band and the rest of that
+    line, so the band fades out beside a fold; a column that does not fold, however squeezed, is not
+    touched, nor are texels above the mouth or outside ``below`` (:func:`below_mouth`)."""
     out = np.array(mesh, np.float64, copy=True)
+    if lip is not None:
+        rows = step * np.arange(out.shape[0], dtype=np.float64)[:, None]
+        inside = np.asarray(lip, bool) & np.isfinite(out[..., 1])
+        lowest = np.minimum.accumulate(np.where(inside, out[..., 1] - rows, np.inf)[::-1], axis=0)[::-1] + rows
+        out[..., 1] = np.where(inside, lowest, out[..., 1])  # each lip texel at least step a row over those below
     flat = fold_depths(out, below)
     share = np.clip(flat.max(axis=0), 0, 1)  # per column: how far it folds, up to a pixel
     if share.any():  # most frames do not fold: nothing to move

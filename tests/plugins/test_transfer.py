@@ -394,3 +394,39 @@ def test_a_mesh_folded_below_the_mouth_is_unfolded_and_nothing_else_moves():
         np.testing.assert_array_equal(out[caught_up:, col, 1], folded[caught_up:, col, 1])  # as it was
         np.testing.assert_array_equal(out[:lip], folded[:lip])
         np.testing.assert_array_equal(out[..., [0, 2]], folded[..., [0, 2]])
+
+
+def test_a_lower_lip_hanging_below_its_own_edge_is_squeezed_over_it():
+    """The lower lip's middle rows dropped 6 px, below its outer edge (iBUG 57's row, which the follower put on its
+    target): with `lip`, those rows are squeezed into a band `step` px a row over the edge, and the edge, the
+    rows above the drop and the chin under it stay where they were; without it, the edge and the chin are pushed
+    down instead (the lip drawn taller than its target)."""
+    template = generic_template()
+    mask, fiducials = template.mask, template.fiducials3d[:, :2]
+    ys, xs = np.mgrid[0:mask.shape[0], 0:mask.shape[1]].astype(np.float64)
+    mesh = np.stack([xs, ys, template.depth], axis=-1)
+    below = transfer_module.below_mouth(mask, fiducials)
+    lip = transfer_module.lower_lip(below, fiducials)
+    x, y = fiducials[IDX49.index(57)]
+    col, edge = int(round(x)), int(round(y))
+    top = int(np.ceil(fiducials[[IDX49.index(62), IDX49.index(66)], 1].mean()))  # the mouth's middle
+    assert lip[top:edge + 1, col].all() and not lip[edge + 1:, col].any() and not lip[:top].any()
+    corners = fiducials[[IDX49.index(48), IDX49.index(54)], 0]
+    assert not lip[:, :int(np.floor(corners.min()))].any() and not lip[:, int(np.ceil(corners.max())) + 1:].any()
+    np.testing.assert_array_equal(transfer_module.unfolded(mesh, below, lip=lip), mesh)  # nothing hangs: as it was
+
+    hanging = mesh.copy()
+    hanging[top + 2:edge, :, 1] += 6.0  # the lip's middle rows dropped below the edge
+    step = 0.3
+    out = transfer_module.unfolded(hanging, below, step, lip=lip)
+    steps = np.diff(np.where(below, out[..., 1], np.nan), axis=0)
+    assert np.nanmin(steps) >= step - 1e-9
+    np.testing.assert_array_equal(out[edge:, col], hanging[edge:, col])  # the edge and the chin stay
+    band = hanging[edge, col, 1] - step * np.arange(edge - top - 2, 0, -1)
+    caught = band < hanging[top + 2:edge, col, 1]  # rows that hung lower than the band: squeezed onto it
+    assert caught.sum() >= 4
+    np.testing.assert_allclose(out[top + 2:edge, col, 1][caught], band[caught])
+    np.testing.assert_array_equal(out[:top + 2], hanging[:top + 2])
+    np.testing.assert_array_equal(out[..., [0, 2]], hanging[..., [0, 2]])
+    pushed = transfer_module.unfolded(hanging, below, step)
+    assert pushed[edge, col, 1] > hanging[edge, col, 1] + 3  # without `lip`: the edge pushed off its place
