@@ -433,6 +433,7 @@ def lower_lip(below: np.ndarray, fiducials: np.ndarray) -> np.ndarray:
     through its mean ``fiducials`` iBUG 48, 59-55, 54 (the nearest row in each column between the mouth's
     corners): the lower lip's body, from the mouth's middle to its lower edge."""
     outer = np.asarray(fiducials, np.float64)[[IDX49.index(i) for i in (48, 59, 58, 57, 56, 55, 54)]]
+    outer = outer[np.argsort(outer[:, 0], kind="stable")]  # np.interp needs them left to right
     cols = np.arange(below.shape[1], dtype=np.float64)
     edge = np.interp(cols, outer[:, 0], outer[:, 1], left=-1, right=-1)  # -1: beside the mouth, no lip
     return np.asarray(below, bool) & (np.arange(below.shape[0])[:, None] <= np.round(edge)[None, :])
