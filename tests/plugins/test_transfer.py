@@ -426,6 +426,7 @@ def test_a_lower_lip_hanging_below_its_own_edge_is_squeezed_over_it():
     caught = band < hanging[top + 2:edge, col, 1]  # rows that hung lower than the band: squeezed onto it
     assert caught.sum() >= 4
     np.testing.assert_allclose(out[top + 2:edge, col, 1][caught], band[caught])
+    np.testing.assert_array_equal(out[top + 2:edge, col, 1][~caught], hanging[top + 2:edge, col, 1][~caught])
     np.testing.assert_array_equal(out[:top + 2], hanging[:top + 2])
     np.testing.assert_array_equal(out[..., [0, 2]], hanging[..., [0, 2]])
     pushed = transfer_module.unfolded(hanging, below, step)
