@@ -30,8 +30,8 @@ def folds(store: str, every: int, over: float) -> dict:
     root = open_store(store, mode="r")
     cast = Cast.of(root, "drive")
     puppet, drive = Collection(root, cast.puppet), Collection(root, cast.drive)
-    below = below_mouth(puppet.array("shape/mask")[...], puppet.array("aligned/mean_fiducials")[...])
     fiducials = puppet.array("aligned/mean_fiducials")[...]
+    below = below_mouth(puppet.array("shape/mask")[...], fiducials)
     meshes, targets = drive.array("mesh"), drive.array("target")
     inner, outer = IDX49.index(66), IDX49.index(57)
     share, deepest, taller = [], [], []

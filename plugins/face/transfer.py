@@ -461,11 +461,8 @@ def unfolded(mesh: np.ndarray, below: np.ndarray, step: float = 0.3, lip: np.nda
     line, so the band fades out beside a fold; a column that does not fold, however squeezed, is not
     touched, nor are texels above the mouth or outside ``below`` (:func:`below_mouth`)."""
     out = np.array(mesh, np.float64, copy=True)
-    if lip is not None:
-        rows = step * np.arange(out.shape[0], dtype=np.float64)[:, None]
-        inside = np.asarray(lip, bool) & np.isfinite(out[..., 1])
-        lowest = np.minimum.accumulate(np.where(inside, out[..., 1] - rows, np.inf)[::-1], axis=0)[::-1] + rows
-        out[..., 1] = np.where(inside, lowest, out[..., 1])  # each lip texel at least step a row over those below
+    if lip is not None:  # the same rule read from the bottom up: each lip texel at least step a row over those below
+        out[..., 1] -= fold_depths(-out[::-1], np.asarray(lip, bool)[::-1], step)[::-1]
     flat = fold_depths(out, below)
     share = np.clip(flat.max(axis=0), 0, 1)  # per column: how far it folds, up to a pixel
     if share.any():  # most frames do not fold: nothing to move

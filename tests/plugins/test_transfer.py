@@ -362,17 +362,22 @@ def test_fiducial_follow_closes_the_puppets_blink(driver_seed, puppet_seed):
     assert np.abs(lids(transferred) - truth_gaps).mean() > np.abs(lids(followed) - truth_gaps).mean()
 
 
+def _template_at_rest():
+    """The generic template's mask and fiducials, its mesh (x, y, depth) where nothing has moved, and the part
+    of it below the mouth's middle (transfer.below_mouth)."""
+    template = generic_template()
+    mask, fiducials = template.mask, template.fiducials3d[:, :2]
+    ys, xs = np.mgrid[0:mask.shape[0], 0:mask.shape[1]].astype(np.float64)
+    return mask, fiducials, np.stack([xs, ys, template.depth], axis=-1), transfer_module.below_mouth(mask, fiducials)
+
+
 def test_a_mesh_folded_below_the_mouth_is_unfolded_and_nothing_else_moves():
     """A lower lip dropped 6 px over the skin under it: after `unfolded`, the rows below the mouth follow
     one another at least `step` px apart, the lip's rows keep their drop, the skin it folded over is
     squeezed into a band under it (laid flat with step 0), the rows below where the column runs lower
     again, those above the mouth, x and depth are untouched; a mesh without a fold is returned as it was,
     and so is one squeezed to 0.1 px a row without folding."""
-    template = generic_template()
-    mask, fiducials = template.mask, template.fiducials3d[:, :2]
-    ys, xs = np.mgrid[0:mask.shape[0], 0:mask.shape[1]].astype(np.float64)
-    mesh = np.stack([xs, ys, template.depth], axis=-1)
-    below = transfer_module.below_mouth(mask, fiducials)
+    mask, fiducials, mesh, below = _template_at_rest()
     top = int(np.ceil(fiducials[[IDX49.index(62), IDX49.index(66)], 1].mean()))  # the mouth's middle
     assert not below[:top].any() and below[top:].sum() == mask[top:].sum()
     np.testing.assert_array_equal(transfer_module.unfolded(mesh, below), mesh)
@@ -401,11 +406,7 @@ def test_a_lower_lip_hanging_below_its_own_edge_is_squeezed_over_it():
     target): with `lip`, those rows are squeezed into a band `step` px a row over the edge, and the edge, the
     rows above the drop and the chin under it stay where they were; without it, the edge and the chin are pushed
     down instead (the lip drawn taller than its target)."""
-    template = generic_template()
-    mask, fiducials = template.mask, template.fiducials3d[:, :2]
-    ys, xs = np.mgrid[0:mask.shape[0], 0:mask.shape[1]].astype(np.float64)
-    mesh = np.stack([xs, ys, template.depth], axis=-1)
-    below = transfer_module.below_mouth(mask, fiducials)
+    mask, fiducials, mesh, below = _template_at_rest()
     lip = transfer_module.lower_lip(below, fiducials)
     x, y = fiducials[IDX49.index(57)]
     col, edge = int(round(x)), int(round(y))
