@@ -53,8 +53,9 @@ def run_motion(runner, cast: Cast, retargeted: Provenance) -> Provenance:
     # the workflow's denoiser when it names one, else the transfer's own default (huber_rof, off-mask excluded)
     denoise = runner.wf.stage("denoise") if "denoise" in runner.wf.stages else None
     # version 2: ``mesh`` marks the step complete (1: the correspondence, written after the meshes); 3: with
-    # ``unfold``, the lower lip's body is squeezed over its outer edge rather than pushing it off its target
-    prov = Provenance.make(stage="motion", backend="-", backend_version="3",
+    # ``unfold``, the lower lip's body is squeezed over its outer edge rather than pushing it off its target; 4:
+    # ``corner_reach`` only ever carries skin further the corner's way (and is on by default)
+    prov = Provenance.make(stage="motion", backend="-", backend_version="4",
                            params={"transfer": motion["transfer"], "dynamics": motion["dynamics"], "denoise": denoise,
                                    "correspondence": motion["correspondence"]},
                            inputs={"dynamics": dynamics.key, "puppet_shape": puppet.provenance("shape/depth").key,

@@ -67,7 +67,7 @@ from ..kinds import DenoiseBackend, FlowBackend
 from .mesh import rim_points
 from .subspace import project
 from .template import IDX49
-from .warp import TpsWarp, compose, pin, tps_map
+from .warp import TpsWarp, compose, pin, tps_map, tps_weights
 
 #: the TV weight of the default denoiser (the paper's is 1; see DeformationTransfer)
 DEFAULT_TV_WEIGHT = 0.3
@@ -101,10 +101,12 @@ class TransferParams(Params):
                                   "halves speech's 5 Hz at 25 fps: on Bush driven by Obama the targets' mouth "
                                   "gain is 0.92 unsmoothed, 0.89 at σ 0.5, 0.79 at 1)")
     corner_reach: float = Field(
-        0.0, ge=0, description="canonical px beyond each mouth corner over which the skin's sideways "
-        "motion is held at the corner's, fading to none at that distance (0: off; not in the paper; "
-        ":class:`FiducialFollow`; 30 raised Bush <- Obama's mouth-width gain 0.64 -> 0.70 on the "
-        "composite and lowered Powell <- woman's 0.75 -> 0.71: docs/expression.md)")
+        30.0, ge=0, description="canonical px beyond each mouth corner over which the skin is carried "
+        "sideways at least a share of the corner's way, fading to none at that distance; skin the transfer "
+        "already moves further is left (0: off, the paper; :class:`FiducialFollow`). 30 raised Bush <- "
+        "Obama's face-alone mouth-width gain 0.70 -> 0.77 and the self-reenactment's 0.70 -> 0.74, and left the "
+        "woman's drives within 0.01, which the two-sided hold of sessions 24-42 lowered (Powell 0.72 -> 0.62): "
+        "docs/expression.md, session 43")
     unfold: bool = Field(
         True, description="below the mouth's middle, a column of B's mesh that folds (the lower lip dropped over "
         "the skin under it, which the renderer drew as a ragged edge) is made to run down again: the lip's body "
@@ -362,7 +364,10 @@ class FiducialFollow:
     half the corner's 15 px beyond it, so a narrowing mouth left the end of B's lip line behind,
     where dlib reads the corner (docs/expression.md). Two points on the line from the mouth's centre
     through each corner, a third and two thirds of the reach out, are moved sideways by
-    (1 - distance / reach) of what separates their motion from the corner's.
+    (1 - distance / reach) of what separates their motion from the corner's, but only where that
+    carries them further the corner's way than the follower alone would (which they otherwise keep,
+    sideways and down): where the transfer already pulls the cheeks in further than the corners, as in
+    an "O", holding them back to the corner's share stretched B's lip line outwards.
     """
 
     def __init__(self, fiducials: np.ndarray, mask: np.ndarray, *, lam: float = 0.1, spacing: int = 12,
@@ -379,6 +384,8 @@ class FiducialFollow:
             out = [(self.fiducials[c] + d * (self.fiducials[c] - centre) / np.linalg.norm(self.fiducials[c] - centre),
                     c, 1 - d / corner_reach) for c in _MOUTH_CORNERS for d in steps]
             self._beyond, self._corner, self._fade = (np.array(v) for v in zip(*out))
+            # the sideways move the follower gives those points without them (one-sided reach, below)
+            self._free = tps_weights(np.concatenate([self.fiducials, rim]), self._beyond, lam=lam)
         self.warp = TpsWarp(np.concatenate([self.fiducials, self._beyond, rim]), np.asarray(mask).shape, lam=lam,
                             step=step)
 
@@ -398,11 +405,14 @@ class FiducialFollow:
         now = self.landmarks(mesh)
         miss = weight * (np.asarray(target, np.float64) - now)
         miss[~np.isfinite(miss).all(axis=1)] = 0.0
-        beyond = np.zeros_like(self._beyond)  # sideways: a share of the corner's motion after this move
-        if len(beyond):
+        beyond = np.zeros_like(self._beyond)
+        if len(beyond):  # what the follower alone would move them by; sideways, at least a share of the corner's
+            beyond = self._free @ np.concatenate([miss, self._still])
             corner = now[self._corner] + miss[self._corner] - self.fiducials[self._corner]
             shift = self.moved(mesh, self._beyond) - self._beyond
-            beyond[:, 0] = self._fade * (corner[:, 0] - shift[:, 0])
+            held = self._fade * (corner[:, 0] - shift[:, 0])
+            # where the skin already goes further the corner's way (the woman's "O" pulls the cheeks in), it is left
+            beyond[:, 0] = np.where((held - beyond[:, 0]) * corner[:, 0] > 0, held, beyond[:, 0])
         out = np.array(mesh, np.float64, copy=True)
         out[..., :2] += self.warp.map(np.concatenate([miss, beyond, self._still]))
         return out

@@ -103,6 +103,16 @@ def _upsample(coarse: np.ndarray, shape: tuple[int, int], step: int) -> np.ndarr
     return cv2.remap(coarse, fx, fy, cv2.INTER_LINEAR)
 
 
+def tps_weights(target: np.ndarray, points: np.ndarray, *, lam: float = 10.0,
+                scaling: Scaling = "objective") -> np.ndarray:
+    """(len(points), len(target)): the smoothing TPS through values at ``target`` points, read at
+    ``points``, as a linear operator on those values (``weights @ values``)."""
+    target = np.asarray(target, float)
+    spline = RBFInterpolator(target, np.eye(len(target)), kernel="thin_plate_spline",
+                             smoothing=tps_smoothing(lam, len(target), scaling), degree=1)
+    return spline(np.asarray(points, float))
+
+
 class TpsWarp:
     """The smoothing TPS to fixed ``target`` points as a linear operator on the ``source`` points.
 
@@ -116,9 +126,7 @@ class TpsWarp:
         target = np.asarray(target, float)
         self.shape, self.step = tuple(shape), step
         self.nodes, points = _nodes(shape, step)
-        spline = RBFInterpolator(target, np.eye(len(target)), kernel="thin_plate_spline",
-                                 smoothing=tps_smoothing(lam, len(target), scaling), degree=1)
-        self.weights = spline(points)
+        self.weights = tps_weights(target, points, lam=lam, scaling=scaling)
 
     def map(self, source: np.ndarray) -> np.ndarray:
         """(H, W, 2) float32: the backward sampling map of the spline with r(target_k) ≈ source_k."""

@@ -330,6 +330,31 @@ def test_corner_reach_moves_the_skin_beyond_a_mouth_corner_sideways_with_it():
         assert np.abs(follow.moved(moved, brow[None])[0] - follow.moved(mesh, brow[None])[0]).max() < 0.3, corner_reach
 
 
+def test_corner_reach_leaves_skin_that_already_moves_further_than_the_corner():
+    """An "O" whose cheeks come in further than the mouth's corners (the transfer's sideways motion 1.5
+    times the corners' 10 px beyond them, as on Powell <- woman), the corners' targets 2 px lower: with a
+    reach of 30 px the follower moves the whole mesh as it does without one (to 1e-6 px), sideways and
+    down; the reach only ever carries skin further the corner's way."""
+    fiducials = generic_template().fiducials3d[:, :2]
+    mask = np.zeros((H, W), bool)
+    mask[10:-10, 10:-10] = True
+    left, right = fiducials[31], fiducials[37]
+    centre, half = (left + right) / 2, (right[0] - left[0]) / 2
+    grid = _identity_grid()
+    u = np.abs(grid[..., 0] - centre[0])
+    reach = np.where(u <= half, u / half, np.clip(1 + (u - half) / 20, 0, 1.5))  # 1.5 10 px out
+    dx = -4.0 * np.sign(grid[..., 0] - centre[0]) * reach * np.exp(-((grid[..., 1] - centre[1]) / 15) ** 2)
+    mesh = np.dstack([grid[..., 0] + dx, grid[..., 1], np.zeros((H, W))])
+    mesh[~mask] = np.nan
+    moved = []
+    for corner_reach in (0.0, 30.0):
+        follow = FiducialFollow(fiducials, mask, corner_reach=corner_reach)
+        target = follow.landmarks(mesh)
+        target[[31, 37], 1] += 2.0
+        moved.append(follow(mesh, target))
+    np.testing.assert_allclose(moved[1], moved[0], atol=1e-6)
+
+
 @pytest.mark.parametrize("driver_seed, puppet_seed", [(19, 12), (12, 19)])
 def test_fiducial_follow_closes_the_puppets_blink(driver_seed, puppet_seed):
     """The driver's full blink closes the puppet's own eye, whose opening differs by 40 %: after the
