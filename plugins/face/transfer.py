@@ -405,8 +405,8 @@ class FiducialFollow:
         now = self.landmarks(mesh)
         miss = weight * (np.asarray(target, np.float64) - now)
         miss[~np.isfinite(miss).all(axis=1)] = 0.0
-        beyond = np.zeros_like(self._beyond)
-        if len(beyond):  # what the follower alone would move them by; sideways, at least a share of the corner's
+        beyond = np.zeros((0, 2))  # without corner_reach there are no points beyond the corners
+        if len(self._beyond):  # what the follower alone would move them by; sideways, at least a share of the corner's
             beyond = self._free @ np.concatenate([miss, self._still])
             corner = now[self._corner] + miss[self._corner] - self.fiducials[self._corner]
             shift = self.moved(mesh, self._beyond) - self._beyond

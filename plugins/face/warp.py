@@ -123,7 +123,6 @@ class TpsWarp:
 
     def __init__(self, target: np.ndarray, shape: tuple[int, int], *, lam: float = 10.0,
                  scaling: Scaling = "objective", step: int = 1):
-        target = np.asarray(target, float)
         self.shape, self.step = tuple(shape), step
         self.nodes, points = _nodes(shape, step)
         self.weights = tps_weights(target, points, lam=lam, scaling=scaling)
