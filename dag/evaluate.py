@@ -27,7 +27,9 @@ Figures (paper §6, with dlib's descriptor and landmarks only; nothing downloade
   the driver frame's own, gradient energy on it over the frame's), medians over every 4th frame,
   beside the same for a plain paste through the mask;
 - self-reenactment (when asked): PSNR and SSIM of the output against A's real frames
-  inside the rendered face, of the render and of composite.mp4's frame;
+  inside the rendered face, of the render and of composite.mp4's frame, and the landmark registration:
+  how far dlib's 68 points on each lie from those on the real frame, per region (jaw, brows, nose, eyes,
+  mouth), median % of the eye distance;
 - motion (3D runs): the same expression signals computed from the fiducials moved by A's
   per-frame meshes M_D^t and by B's meshes M_P^t after the transfer, against A's landmarks
   (gain, correlation, ranges): how much of A's expression each step of the 3D method carries,
@@ -223,7 +225,10 @@ def evaluate(store: str, executor, *, identity: tuple[str, dict], threshold: flo
     if self_reenactment:
         result["self_reenactment"] = {"psnr_db": _nanmean(joined["psnr"][:, 0]), "ssim": _nanmean(joined["ssim"][:, 0]),
                                       "psnr_db_composite": _nanmean(joined["psnr"][:, 1]),
-                                      "ssim_composite": _nanmean(joined["ssim"][:, 1])}
+                                      "ssim_composite": _nanmean(joined["ssim"][:, 1]),
+                                      "registration": ev.registration(driver_landmarks, joined["landmarks"]),
+                                      "registration_composite": ev.registration(driver_landmarks,
+                                                                                joined["composite_landmarks"])}
     return result
 
 
