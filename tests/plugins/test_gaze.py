@@ -1,0 +1,91 @@
+"""Gaze against known iris positions: the iris is found in a drawn eye where it was drawn, and a
+texture's iris moved by a shift lands where the shift says, with the eye's corners left in place."""
+
+import cv2
+import numpy as np
+import pytest
+
+from persona.plugins.face import gaze
+
+
+def drawn_eye(width: float, u: float, v: float, seed: int = 0):
+    """(image, the eye's six iBUG points): an almond eye ``width`` px from corner to corner on skin, with a lash
+    line along its upper lid and an iris 0.42 of its width across whose centre is (u, v) eye widths from the
+    middle of its corners (u right, v down), drawn 4 times finer and averaged down, with noise (σ 3)."""
+    fine, side = 4, int(width * 3)
+    image = np.full((side * fine, side * fine, 3), (200, 160, 140), np.uint8)
+    cx = cy = side / 2
+    height = 0.32 * width
+    t = np.linspace(0, np.pi, 40)
+    upper = np.c_[cx - np.cos(t) * width / 2, cy - np.sin(t) * height / 2 * 1.15]
+    lower = np.c_[cx + np.cos(t) * width / 2, cy + np.sin(t) * height / 2 * 1.15]
+    opening = np.zeros(image.shape[:2], np.uint8)
+    cv2.fillPoly(opening, [np.round(np.vstack([upper, lower]) * fine).astype(np.int32)], 1)
+    eye = np.full_like(image, 235)
+    centre = (int((cx + u * width) * fine), int((cy + v * width) * fine))
+    cv2.circle(eye, centre, int(0.21 * width * fine), (90, 60, 40), -1)
+    cv2.circle(eye, centre, int(0.08 * width * fine), (15, 10, 10), -1)
+    image = np.where(opening[..., None] > 0, eye, image)
+    cv2.polylines(image, [np.round(upper * fine).astype(np.int32)], False, (30, 25, 25), max(1, int(0.04 * width * fine)))
+    image = cv2.resize(image, (side, side), interpolation=cv2.INTER_AREA)
+    image = np.clip(image + np.random.default_rng(seed).normal(0, 3, image.shape), 0, 255).astype(np.uint8)
+    points = np.array([[cx - width / 2, cy], [cx - width / 6, cy - height / 2], [cx + width / 6, cy - height / 2],
+                       [cx + width / 2, cy], [cx + width / 6, cy + height / 2], [cx - width / 6, cy + height / 2]])
+    return image, points
+
+
+@pytest.mark.parametrize("width, tolerance", [(60, 0.03), (25, 0.035), (14, 0.05)])
+def test_the_iris_is_found_where_it_was_drawn(width, tolerance):
+    """Within ``tolerance`` eye widths, along and across, from an HD eye (60 px) to a tight crop's (14 px,
+    about 5 px between the lids); 15 places from -0.2 to 0.2 along and -0.04 to 0.04 across."""
+    for u in (-0.2, -0.1, 0.0, 0.1, 0.2):
+        for v in (-0.04, 0.0, 0.04):
+            image, points = drawn_eye(width, u, v)
+            found = gaze.iris_offset(image, points)
+            assert np.abs(found - (u, v)).max() < tolerance, (width, u, v, found)
+
+
+def test_a_closed_eye_or_no_face_has_no_gaze():
+    image, points = drawn_eye(40, 0.1, 0.0)
+    shut = points.copy()
+    shut[[1, 2], 1] = shut[[5, 4], 1] - 0.05 * 40  # lids 5 % of the width apart
+    assert np.isnan(gaze.iris_offset(image, shut)).all()
+    assert np.isnan(gaze.iris_offsets(image, np.full((68, 2), np.nan))).all()
+
+
+def test_a_texture_iris_moves_by_the_shift_and_the_corners_stay():
+    """B's texture's eye with its iris in the middle, shifted 0.15 of its width right: the iris is then found
+    0.15 from the middle (within 0.04); a shift of 0.1 right and 0.05 down moves the eye's middle texel 4 px right
+    and 2 px down (40 px wide: within a hundredth of a grey level on a smooth ramp); the
+    texels outside the opening do not change."""
+    image, points = drawn_eye(40, 0.0, 0.0)
+    neutral = np.full((49, 2), np.nan)
+    for eye in gaze.EYES49:
+        neutral[list(eye)] = points
+    moved = gaze.look(image.astype(np.float32), neutral, np.array([[0.15, 0.0], [0.15, 0.0]]))
+    found = gaze.iris_offset(np.clip(moved, 0, 255).round().astype(np.uint8), points)
+    assert abs(found[0] - 0.15) < 0.04 and abs(found[1]) < 0.03, found
+    opening = np.zeros(image.shape[:2], np.uint8)
+    cv2.fillPoly(opening, [np.round(points).astype(np.int32)], 1)
+    outside = cv2.dilate(opening, np.ones((5, 5), np.uint8)) == 0
+    assert np.array_equal(moved[outside], image[outside])  # the lids, the corners and the skin stay
+    ys, xs = np.mgrid[0:image.shape[0], 0:image.shape[1]].astype(np.float32)
+    ramp = np.dstack([xs * 2, ys * 3, xs + ys])  # smooth: bilinear sampling is exact on it
+    x, y = ((points[0] + points[3]) / 2).astype(int)  # the eye's middle, on a texel
+    moved = gaze.look(ramp, neutral, np.array([[0.1, 0.05], [0.1, 0.05]]))
+    assert np.abs(moved[y + 2, x + 4] - ramp[y, x]).max() < 0.01
+    assert gaze.look(image, neutral, np.zeros((2, 2))) is image  # nothing to move
+
+
+def test_a_clips_gaze_is_taken_from_its_usual_one_and_clipped():
+    """Offsets (T, 2 eyes, 2) of a clip that looks ahead, at 0.05 eye widths right, in most frames: the shift is the
+    mean of the two eyes less the clip's median (0.07 and 0.05: 0.01), clipped to MAX_SHIFT (0.3 and 0.3: 0.25 is
+    more); a frame without either eye measured moves nothing."""
+    offsets = np.zeros((6, 2, 2))
+    offsets[:, 0, 0] = [0.05, 0.05, 0.05, 0.07, 0.3, np.nan]
+    offsets[:, 1, 0] = [0.05, 0.05, 0.05, 0.05, 0.3, np.nan]
+    offsets[5] = np.nan
+    shift = gaze.gaze_shift(offsets)
+    assert shift.shape == (6, 2, 2)
+    assert np.abs(shift[:3]).max() < 1e-12 and shift[3, 1, 0] == pytest.approx(0.01)
+    assert shift[4, 0, 0] == pytest.approx(gaze.MAX_SHIFT[0]) and not shift[5].any()
