@@ -121,16 +121,17 @@ def gaze_shift(offsets: np.ndarray) -> np.ndarray:
     return np.repeat(moved[:, None], 2, axis=1)
 
 
-def _slid(length: int, middle: float, move: float) -> np.ndarray:
-    """(length,) where each texel of a run of ``length`` texels takes its value from when the run's ``middle``
-    (a position in it) moves by ``move`` and its two ends stay: two linear pieces, never outside the run."""
+def _slid(length: int, middle: float, move: float, rigid: float) -> np.ndarray:
+    """(length,) where each texel of a run of ``length`` texels takes its value from when the ``rigid``
+    texels either side of the run's ``middle`` (a position in it) move by ``move`` as one, the iris, and
+    the run's two ends stay: linear in between, never outside the run (the move and the rigid part are
+    made smaller where the run is too short for them)."""
     x = np.arange(length, dtype=np.float64)
-    if length < 3:
-        return x
     a, b = -0.5, length - 0.5
     c = float(np.clip(middle, a + 1, b - 1))
     m = float(np.clip(move, a + 1 - c, b - 1 - c))  # the middle stays in the run
-    return np.where(x <= c + m, a + (x - a) * (c - a) / (c + m - a), c + (x - c - m) * (b - c) / (b - c - m))
+    r = max(min(rigid, c + m - a - 1, b - c - m - 1, c - a - 1, b - c - 1), 0.0)
+    return np.interp(x, [a, c - r + m, c + r + m, b], [a, c - r, c + r, b])
 
 
 def _runs(row: np.ndarray) -> list[tuple[int, int]]:
@@ -143,8 +144,8 @@ def look(texture: np.ndarray, neutral: np.ndarray, shift: np.ndarray, *, grow: i
     """``texture`` (H, W, 3) at the geometry of the fiducials ``neutral`` (49, 2), the inside of each eye's
     opening (the polygon of its six fiducials grown by ``grow`` texels) slid by ``shift`` (2, 2): per eye,
     along and across it, in its widths (:func:`gaze_shift`). Each row of the opening is slid along itself
-    (:func:`_slid`: the eye's middle moves by the shift along, the row's two ends, at the lids and corners,
-    stay), then each column across, inside the opening less a texel at its edge (its lashes stay); a texel
+    (:func:`_slid`: the iris about the eye's middle moves by the shift along as one, the row's two ends, at
+    the lids and corners, stay), then each column across, inside the opening less a texel at its edge (its lashes stay); a texel
     only ever takes another of the opening's."""
     shift = np.asarray(shift, np.float64)
     if not np.any(shift):
@@ -170,6 +171,6 @@ def look(texture: np.ndarray, neutral: np.ndarray, shift: np.ndarray, *, grow: i
             target = mx if along_rows else my.T
             for k in np.flatnonzero(lines.any(axis=1)):
                 for a, b in _runs(lines[k]):
-                    target[k, a:b] = a + _slid(b - a, middle - a, move)
+                    target[k, a:b] = a + _slid(b - a, middle - a, move, IRIS * width / 2)
             out = cv2.remap(out, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     return out
