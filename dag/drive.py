@@ -14,7 +14,7 @@ import logging
 
 import numpy as np
 
-from persona.plugins.face import mouth
+from persona.plugins.face import gaze, mouth
 from persona.plugins.face.composite import alone, steady_light
 from persona.plugins.face.dynamics import smooth_in_time
 from persona.plugins.face.fiducials import mean_shape
@@ -56,8 +56,10 @@ def run_drive(runner, cast: Cast, output: str) -> Collection:
     # the status is created before the targets and written after them: done only when no frame is pending
     if not (drive.exists() and drive.made_by("status/retarget/state", prov)) or (drive.state("retarget") == PENDING).any():
         _retarget(runner, cast, drive, frames, puppet, found, prov, sigma, lips, steady, widen, neutral)
+    with runner.step("gaze", cast.drive):
+        looks = _gaze(runner, drive, frames, found)
     with runner.step("frame textures", cast.drive):
-        textures = run_frame_textures(runner, drive, puppet, prov)
+        textures = run_frame_textures(runner, drive, puppet, prov, looks)
     inputs = {"retarget": prov.key, "texture": textures.key}
     stage = st.RENDER
     if st.default_registry().get("render", runner.wf.stage("render")[0]).uses_mesh:
@@ -92,6 +94,27 @@ def _steady_light(runner, drive: Collection, render: Provenance) -> Provenance:
         planes = steady_light(drive.array("render/light")[:], sigma)
         drive.create("composite/light", (4, 3), "float32", ("frame", "term", "channel"), prov, pending=True)[:] = planes
         drive.mark_done("composite/light", prov)  # after the data: a run killed before this does it again
+    return prov
+
+
+def _gaze(runner, drive: Collection, frames: Collection, found: np.ndarray) -> Provenance:
+    """``eyes/gaze`` (frame, eye, along / across): how far the driver's irises sit from where they usually do
+    in the clip, in eye widths (gaze.iris_offsets on each frame and its landmarks, gaze.gaze_shift), made
+    steady over the frames around (the poses' ``pose_sigma``); frames without a face look where they usually do."""
+    sigma = runner.motion_params()["pose_sigma"]
+    prov = Provenance.make(stage="gaze", backend="-", backend_version="1", params={"sigma": sigma},
+                           inputs={"frames": frames.provenance("status/screen/state").key},
+                           persona_version=runner.version)
+    if not drive.made_by("eyes/gaze", prov):
+        offsets = np.full((drive.n, 2, 2), np.nan)
+        rgb, size, points = (frames.array(array) for array in ("photos/rgb", "photos/size", "landmarks/points"))
+        for start, stop in drive.shard_ranges():
+            for i, (image, (h, w), lm) in enumerate(zip(rgb[start:stop], size[start:stop], points[start:stop])):
+                if found[start + i]:
+                    offsets[start + i] = gaze.iris_offsets(image[:h, :w], lm)
+        shift = smooth_in_time(gaze.gaze_shift(offsets).reshape(drive.n, 4), sigma).reshape(drive.n, 2, 2)
+        drive.create("eyes/gaze", (2, 2), "float32", ("frame", "eye", "axis"), prov, pending=True)[:] = shift
+        drive.mark_done("eyes/gaze", prov)  # after the data: a run killed before this does it again
     return prov
 
 

@@ -12,6 +12,8 @@ Figures (paper §6, with dlib's descriptor and landmarks only; nothing downloade
   of the frames: how far the gain could move with the same drive's noise), the correlation and both
   ranges, of the face alone (puppet.mp4) and of composite.mp4's frames (the same face, found by dlib
   with A's head around it);
+- gaze: where the irises sit in the eyes (persona.plugins.face.gaze.iris_offsets, along and across the
+  eye, in eye widths), the gain and correlation of the face alone's and composite.mp4's on the driver's;
 - held: per signal, the expression each face holds through the clip (its mean less its resting face's:
   A's mean photo, B's neutral texture), of the driver, the face alone and composite.mp4's frames; a
   smile held throughout has no amplitude for a gain to see;
@@ -46,7 +48,7 @@ import numpy as np
 
 from persona.plugins.builtin import evaluate as ev
 from persona.plugins.builtin.landmarks import DlibLandmarks
-from persona.plugins.face import composite
+from persona.plugins.face import composite, gaze
 from persona.plugins.face.template import generic_template
 from persona.plugins.base import Rejected
 from persona.plugins.manager import default_registry
@@ -57,7 +59,7 @@ from .stages import RENDER_3D, accepted, render_alpha
 
 #: the figures' version: a run keeps its last evaluation only when this is the same (raise it whenever a
 #: figure is added or computed differently)
-VERSION = 2
+VERSION = 3
 
 
 def _identity(spec: tuple[str, dict]):
@@ -100,6 +102,7 @@ def analyse_frames(url: str, start: int, stop: int, identity: tuple[str, dict], 
     composite_landmarks = np.full((n, 68, 2), np.nan)  # on composite.mp4's frames
     descriptors = np.full((n, 2, 128), np.nan)  # of the render, of the composite
     psnr, ssim = np.full((n, 2), np.nan), np.full((n, 2), np.nan)  # the render's, the composite's
+    irises = np.full((n, 3, 2, 2), np.nan)  # where the eyes look: the driver's, the face alone's, the composite's
     seams = {"blend": [], "paste": []}
     for j in range(n):
         alpha = render_alpha(alphas[j])
@@ -112,6 +115,9 @@ def analyse_frames(url: str, start: int, stop: int, identity: tuple[str, dict], 
                     descriptors[j, k] = backend.describe(image, found[j])
             except Rejected:
                 pass
+        for k, (image, points) in enumerate(((original[j], theirs[j]), (face, landmarks[j]),
+                                             (blended, composite_landmarks[j]))):
+            irises[j, k] = gaze.iris_offsets(image, points)
         skin[j] = ev.without_mouths(masks[j] & ~drawn[j], theirs[j], landmarks[j])
         if compare and masks[j].any():
             for k, image in enumerate((face, blended)):
@@ -125,7 +131,7 @@ def analyse_frames(url: str, start: int, stop: int, identity: tuple[str, dict], 
     texture_change = ev.frame_changes(drive.array("texture/rgb")[start:stop], face)
     driver_change = ev.frame_changes(frames.array("aligned/rgb")[start:stop], face)
     return {"start": start, "landmarks": landmarks, "composite_landmarks": composite_landmarks,
-            "descriptors": descriptors, "psnr": psnr, "ssim": ssim,
+            "descriptors": descriptors, "psnr": psnr, "ssim": ssim, "irises": irises,
             "texture_change": texture_change, "driver_change": driver_change,
             **{f"seam_{k}": np.array(v).reshape(-1, 2) for k, v in seams.items()},
             "colour_output": ev.masked_mean_colours(rendered, skin),
@@ -203,6 +209,7 @@ def evaluate(store: str, executor, *, identity: tuple[str, dict], threshold: flo
         "expression": video["expression"],
         "amplitude": video["amplitude"],
         "amplitude_composite": on_composite_video["amplitude"],
+        "gaze": gaze_figures(joined["irises"]),
         "held": held_figures(root, cast, driver_landmarks, joined["landmarks"], joined["composite_landmarks"]),
         "stability": stability,
         "composite": {k: {"colour_step": _median(joined[f"seam_{k}"][:, 0]),
@@ -230,6 +237,15 @@ def evaluate(store: str, executor, *, identity: tuple[str, dict], threshold: flo
                                       "registration_composite": ev.registration(driver_landmarks,
                                                                                 joined["composite_landmarks"])}
     return result
+
+
+def gaze_figures(irises: np.ndarray) -> dict[str, dict[str, dict]]:
+    """Where the eyes look, output against driver: per signal of ev.gaze_signals (along and across the eye,
+    eye widths), the ev.amplitude (gain, interval, r, ranges) of the face alone and of composite.mp4's
+    frames, from the iris offsets (T, 3, 2, 2) of the driver's, the face alone's and the composite's frames."""
+    driver, alone, composited = (ev.gaze_signals(irises[:, k]) for k in range(3))
+    return {where: {k: ev.amplitude(driver[k], output[k]) for k in driver}
+            for where, output in (("face_alone", alone), ("composite", composited))}
 
 
 def own_photos(puppet: Collection, sample: int = 100):

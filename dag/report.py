@@ -139,6 +139,25 @@ _SEAM = (("colour step beyond the driver's own (grey levels)", "colour_step",
 EYE_RANGE = 0.05
 
 
+#: the driver's gaze must range over more than this (eye widths, 5th-95th percentile) for its gain to have a
+#: target: an iris that moves less than a tenth of the eye is a driver looking ahead
+GAZE_RANGE = 0.1
+
+
+def _gaze_rows(figures: dict) -> list[tuple]:
+    """Where the eyes look, output on driver: a row per place (face alone, composite.mp4) and signal."""
+    rows = []
+    for where, signals in figures.items():
+        for k, a in signals.items():
+            counted = a.get("driver_range", 0.0) > GAZE_RANGE
+            guide = (f"1 = the driver's amplitude; r {a['r']:.2f}; target 0.7-1.4" if counted else
+                     f"1 = the driver's amplitude; no target: the driver's irises range over {a['driver_range']:.3f} "
+                     f"eye widths {k}, under {GAZE_RANGE}")
+            rows.append((f"gaze gain ({where.replace('_', ' ')}): {k} the eye", a["gain"], guide,
+                         (0.7, 1.4) if counted else None))
+    return rows
+
+
 def _gain_rows(where: str, amplitudes: dict) -> list[tuple]:
     rows = []
     for k, a in amplitudes.items():
@@ -174,6 +193,7 @@ def figure_rows(ev: dict) -> list[tuple]:
               (0.85, None) if k == "mouth_open" else None) for k, v in ev["expression"].items()]
     rows += _gain_rows("(output / driver)", ev.get("amplitude", {}))
     rows += _gain_rows("on composite.mp4", ev.get("amplitude_composite", {}))
+    rows += _gaze_rows(ev.get("gaze", {}))
     rows += [(f"held expression: {k.replace('_', ' ')} (driver / face alone / composite, IOD)",
               " / ".join(f"{h[who]:+.3f}" for who in ("driver", "output", "composite")),
               "the mean over the clip less the resting face (A's mean photo, B's neutral texture): a smile or "

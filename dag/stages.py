@@ -384,7 +384,9 @@ STAGES = {stage.name: stage for stage in (
     Stage("texture", ("puppet",), ("texture",), "the expression-dependent texture's cache of aligned photos",
           "tasks over shards (warp, basis by products over them, cache), then one task (the neutral texture)"),
     Stage("retarget", ("drive",), ("motion",), "the driver's smoothed poses and B's target fiducials", "the client"),
-    Stage("frame textures", ("drive",), ("texture",), "B's face for each frame's expression"),
+    Stage("gaze", ("drive",), ("texture",), "where the driver's irises sit in their eyes in each frame, from the "
+          "clip's usual gaze", "the client"),
+    Stage("frame textures", ("drive",), ("texture",), "B's face for each frame's expression and gaze"),
     Stage("dynamics", ("drive",), ("flow", "motion"), "the driver's per-frame 3D flow", mesh=True, photo=(DYNAMICS,)),
     Stage("motion", ("drive",), ("motion", "denoise"), "A's meshes, then B's by deformation transfer", mesh=True),
     Stage("mouth", ("puppet",), ("render",), "the inside of B's mouth from its open photos", "the client",

@@ -279,14 +279,16 @@ def _read_shard(coll: Collection, key: str, start: int, stop: int, rows: np.ndar
     return _shards[(key, start)]
 
 
-def run_frame_textures(runner, drive: Collection, puppet: Collection, retargeted: Provenance) -> Provenance:
+def run_frame_textures(runner, drive: Collection, puppet: Collection, retargeted: Provenance,
+                       gaze: Provenance) -> Provenance:
     """B's texture for every driver frame: ``drive/texture/rgb`` (frame, H, W, 3) uint8, from the
-    video-mode cache and the frame's target fiducials, or B's static mean face when the texture
-    backend has no video mode."""
+    video-mode cache, the frame's target fiducials and the driver's gaze (``eyes/gaze``), or B's static
+    mean face when the texture backend has no video mode."""
     texture = puppet.provenance("texture/neutral")
     source = texture if texture is not None else puppet.provenance("aligned/mean")
     prov = Provenance.make(stage="frame_texture", backend=source.backend, backend_version=source.backend_version,
-                           params=source.params, inputs={"texture": source.key, "retarget": retargeted.key},
+                           params=source.params, inputs={"texture": source.key, "retarget": retargeted.key,
+                                                         "gaze": gaze.key},
                            persona_version=runner.version)
     if drive.made_by("texture/rgb", prov):
         return prov
@@ -307,17 +309,18 @@ def frame_textures(url: str, path: str, start: int, stop: int, puppet: str, name
     """One shard's task of :func:`run_frame_textures`: B's texture for frames [start, stop) with the
     texture backend ``name``, from the ``puppet``'s stored cache (:func:`stored_textures`)."""
     drive = Collection(open_store(url), path)
-    textures = stored_textures(url, puppet, name, params, drive.array("target"), start, stop)
+    textures = stored_textures(url, puppet, name, params, drive.array("target"), start, stop,
+                               gaze=drive.array("eyes/gaze")[start:stop])
     drive.array("texture/rgb")[start:stop] = textures.round().astype(np.uint8)
 
 
 def stored_textures(url: str, path: str, name: str, params: dict, targets, start: int = 0,
-                    stop: int | None = None) -> np.ndarray:
+                    stop: int | None = None, gaze: np.ndarray | None = None) -> np.ndarray:
     """B's textures (f, H, W, 3) float32 for the frames [start, stop) of consecutive frames' ``targets``
     (T, 49, 2; an array read only about those frames) from the stored video-mode cache of the collection
     ``path``: the sums of Eq. 3 taken over it a shard of photos at a time (a shard that no target weighs
     is not read, one kept from an earlier task of this process is not read again), then finished with
-    the totals."""
+    the totals; ``gaze`` (f, 2, 2), the driver's in those frames (``eyes/gaze``), moves B's irises."""
     source = Collection(open_store(url, mode="r"), path)
     key = _cache_id(source)
     backend = st.default_registry().get("texture", name)(params)
@@ -334,7 +337,7 @@ def stored_textures(url: str, path: str, name: str, params: dict, targets, start
         a, b = np.searchsorted(ok, [begin, end])
         if weights[:, a:b].any():
             sums.add(*_read_shard(source, key, begin, end, ok[a:b]), weights[:, a:b])
-    return backend.finish(sums, totals, fiducials, around[keep])
+    return backend.finish(sums, totals, fiducials, around[keep], gaze=gaze)
 
 
 def run_mouth(runner, coll: Collection) -> Provenance:

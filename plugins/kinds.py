@@ -322,6 +322,9 @@ class TextureBackend(Backend):
         :meth:`finish` uses."""
         raise NotImplementedError
 
-    def finish(self, sums, totals, fiducials: np.ndarray, targets: np.ndarray) -> np.ndarray:
-        """The textures (f, H, W, 3) float32 from the sums over every photo of its :meth:`weights`."""
+    def finish(self, sums, totals, fiducials: np.ndarray, targets: np.ndarray, *,
+               gaze: np.ndarray | None = None) -> np.ndarray:
+        """The textures (f, H, W, 3) float32 from the sums over every photo of its :meth:`weights`; ``gaze``
+        (f, 2, 2), where the driver looks in each frame (persona.plugins.face.gaze.gaze_shift), for a
+        backend that moves the irises."""
         raise NotImplementedError

@@ -19,6 +19,7 @@ from pydantic import Field, model_validator
 
 from ..base import Params
 from ..face import eyes, texture as align
+from ..face.gaze import look as looked
 from ..face.blend import BlendCache, BlendSums, BlendTotals, chosen, expression_weights
 from ..face.dynamics import smooth_in_time, time_radius
 from ..face.fiducials import mean_shape
@@ -115,7 +116,7 @@ class MultiscaleTexture(TextureBackend):
     version = "12"
     #: what :meth:`weights` and :meth:`finish` read and :meth:`cache` does not (``tau`` is read by both)
     frame_params = frozenset({"sigma", "eye_sigma", "min_share", "skip", "time_sigma", "detail_share",
-                              "finest_share", "detail_from", "close_eyes", "shut_from", "shut_at"})
+                              "finest_share", "detail_from", "close_eyes", "shut_from", "shut_at", "gaze"})
 
     class Params(_Alignment):
         levels: int = Field(5, ge=2, le=8, description="pyramid levels p (the paper does not say; 5 gives a "
@@ -173,6 +174,10 @@ class MultiscaleTexture(TextureBackend):
                                  "percentile on the self-reenactment: 0.87). 0.9 rather than 0.85 brings the "
                                  "self-reenactment's composite eye gain 0.92 -> 1.03 and Bush <- Obama's 0.69 -> "
                                  "0.71 (docs/expression.md, session 35)")
+        gaze: bool = Field(True, description="video mode: B's irises slide in their eyes' openings as far from "
+                           "where they usually are as the driver's are from where the driver's usually are in the "
+                           "clip, in eye widths (persona.plugins.face.gaze): the eyes look where the driver's look. "
+                           "Not in the paper (false: B's irises stay where B's photos have them; docs/expression.md)")
         shut_at: float = Field(0.45, ge=0, lt=1, description="close_eyes: the distance at which it is fully shut "
                                "(dlib's lid points of a shut eye stay 40-50 % of their open distance apart)")
         stretch_scale: float = Field(0.3, ge=0, description="s of the alignment confidence's flow term "
@@ -251,7 +256,7 @@ class MultiscaleTexture(TextureBackend):
         return BlendSums.zeros(rows, totals, bands)
 
     def finish(self, sums: BlendSums, totals: BlendTotals, fiducials: np.ndarray, targets: np.ndarray, *,
-               close_eyes: bool | None = None) -> np.ndarray:
+               close_eyes: bool | None = None, gaze: np.ndarray | None = None) -> np.ndarray:
         """Video mode: the textures (f, H, W, 3) float32 in 0-255 of the targets (f, 49, 2) from the
         sums over every photo (fiducials (n, 49, 2)) of their :meth:`weights` (B's neutral last). Each
         fine band of every texture is multiplied by one factor, the one that gives back ``detail_share``
@@ -270,6 +275,9 @@ class MultiscaleTexture(TextureBackend):
             own = np.clip(sums.finish(totals, gains=gains, rows=range(f, 2 * f)), 0, 255)
             where = eyes.region(neutral, textures.shape[1:3])[..., None]
             textures += where * (own - textures)
+        if p.gaze and gaze is not None:  # the irises slid before a closing lid comes down over them
+            for texture, shift in zip(textures, gaze):
+                texture[:] = looked(texture, neutral, shift)
         if p.close_eyes if close_eyes is None else close_eyes:
             for texture, target in zip(textures, targets):
                 visible = eyes.lowered(target, neutral, start=p.shut_from, end=p.shut_at)
@@ -277,17 +285,18 @@ class MultiscaleTexture(TextureBackend):
         return textures
 
     def blend(self, cache: BlendCache, fiducials: np.ndarray, targets: np.ndarray, *,
-              close_eyes: bool | None = None) -> np.ndarray:
+              close_eyes: bool | None = None, gaze: np.ndarray | None = None) -> np.ndarray:
         """Video mode with the whole cache in memory: the textures (f, H, W, 3) float32 of targets
         (f, 49, 2), or the texture (H, W, 3) of one target (49, 2), from a cache of photos aligned to
         their mean fiducials, whose own fiducials (n, 49, 2) give the expression weights
-        (:meth:`weights`, :meth:`finish`)."""
+        (:meth:`weights`, :meth:`finish`; ``gaze``, (f, 2, 2) or (2, 2), moves the irises)."""
         targets = np.asarray(targets, np.float64)
         every = targets.reshape(-1, *targets.shape[-2:])
         weights = self.weights(fiducials, every)
         sums = self.sums(fiducials, len(every), cache.totals)
         sums.add(cache.weighted, cache.detail, weights)
-        out = self.finish(sums, cache.totals, fiducials, every, close_eyes=close_eyes)
+        gaze = None if gaze is None else np.reshape(gaze, (len(every), 2, 2))
+        out = self.finish(sums, cache.totals, fiducials, every, close_eyes=close_eyes, gaze=gaze)
         return out.reshape(*targets.shape[:-2], *out.shape[1:])
 
     def synthesize(self, photos, target, flow=None, reference=None):

@@ -59,7 +59,7 @@ def test_the_plan_shows_every_stage_the_run_runs(drive_run, capsys):
             plan.setdefault(where, []).append(re.match(r"(frame textures|\S+)", line[4:]).group(1))
     for record in report["stages"]:
         assert record["stage"].replace("render3d", "render") in plan[record["collection"]], record
-    assert plan["drive"] == ["retarget", "frame textures", "dynamics", "motion", "teeth", "render", "light", "composite",
+    assert plan["drive"] == ["retarget", "gaze", "frame textures", "dynamics", "motion", "teeth", "render", "light", "composite",
                              "videos", "evaluate"]
     assert plan["puppet"][-4:] == ["align", "shape", "texture", "mouth"]
 
@@ -372,7 +372,7 @@ def test_the_texture_cache_made_a_shard_at_a_time_is_the_whole_collections(drive
     texture_module._shards.clear()
     name, params = load_workflow(path).stage("texture")
     again = texture_module.stored_textures(str(folder / "run.zarr"), "puppet", name, params,
-                                           drive.array("target"), 0, 8)
+                                           drive.array("target"), 0, 8, gaze=drive.array("eyes/gaze")[:8])
     np.testing.assert_array_equal(again.round().astype(np.uint8), drive.array("texture/rgb")[:8])
     assert len(texture_module._shards) == 1
 
@@ -467,7 +467,7 @@ def test_a_run_killed_during_the_frame_textures_resumes_to_complete_textures(tmp
     backend = texture_module.texture_backend(type("R", (), {"wf": load_workflow(path)})())[2]
     for t in (1, 5, 7):  # the stored bytes are the backend's blend rounded; the drive sums the photos a shard at
         # a time, so a value within float32 noise (1e-4) of a half level may round the other way
-        exact = backend.blend(cache, fiducials, drive.array("target")[t])
+        exact = backend.blend(cache, fiducials, drive.array("target")[t], gaze=drive.array("eyes/gaze")[t])
         assert np.abs(textures[t] - exact).max() <= 0.5 + 1e-3
 
 
@@ -562,7 +562,7 @@ def test_a_frame_param_keeps_the_texture_cache_a_cache_param_builds_it_again(tmp
     assert cache.levels == 4
     backend = texture_module.texture_backend(type("R", (), {"wf": load_workflow(path)})())[2]
     for t in (0, 3, 7):  # summed a shard of photos at a time, the detail restored: to 1 level of 255
-        expect = backend.blend(cache, fiducials, drive.array("target")[t])
+        expect = backend.blend(cache, fiducials, drive.array("target")[t], gaze=drive.array("eyes/gaze")[t])
         assert np.abs(drive.array("texture/rgb")[t] - expect).max() <= 1.0, t
 
 

@@ -12,6 +12,8 @@ def evaluation(to_b: float, to_a: float) -> dict:
             "expression": {k: 0.9 for k in signals},
             "amplitude": {"mouth_open": {"gain": 0.8, "r": 0.9, "driver_range": 0.2, "gain_interval": [0.7, 0.9]},
                           "eye_open": {"gain": 0.3, "r": 0.5, "driver_range": 0.02}},
+            "gaze": {"face_alone": {"along": {"gain": 0.5, "r": 0.9, "driver_range": 0.3},
+                                    "across": {"gain": 0.2, "r": 0.1, "driver_range": 0.04}}},
             "held": {"mouth_open": {"driver": 0.1, "output": 0.05, "composite": -0.02}},
             "stability": {"jitter_ratio": 0.9, "colour_change_ratio": 0.5, "texture_change_ratio": 0.2},
             "composite": {"blend": {"colour_step": 20.0, "gradient_ratio": 1.2}},
@@ -21,7 +23,7 @@ def evaluation(to_b: float, to_a: float) -> dict:
 
 def test_every_figure_says_what_is_good():
     rows = figure_rows(evaluation(0.3, 0.9))
-    assert len(rows) == 24  # 8 identity, 2 + 2 expression, 1 held, 3 stability, 2 composite, 6 self-reenactment
+    assert len(rows) == 26  # 8 identity, 2 + 2 expression, 2 gaze, 1 held, 3 stability, 2 composite, 6 self-reenactment
     for label, _, guide, _ in rows[1:]:  # all but the frame count
         assert "better" in guide or "target" in guide or "= " in guide, label
     guides = dict((r[0], r[2]) for r in rows)
@@ -45,7 +47,8 @@ def test_identity_caveat_when_dlib_sees_one_person():
 def test_each_target_is_marked_met_or_not():
     """Known answers: a gain of 0.8 meets 0.7-1.4, the face alone's PSNR of 24 dB misses 25, the composite's
     27.5 meets 27 and its SSIM of 0.86 misses 0.88, a jaw registered at 3.5 % misses 3 and all points at 1.5
-    meet 2, a seam's step of 20 grey levels misses 7.7; the eye gain of 0.3 has no target where the driver's eyes range over 0.02 IOD (< 0.05),
+    meet 2, a seam's step of 20 grey levels misses 7.7, a gaze gain of 0.5 along the eye misses 0.7-1.4 where the
+    driver's irises range over 0.3 eye widths, and has no target across it, where they range over 0.04; the eye gain of 0.3 has no target where the driver's eyes range over 0.02 IOD (< 0.05),
     nor has "B and not A" where dlib sees B and A as one person (0.3 and 0.4 from the output)."""
     assert met(0.8, (0.7, 1.4)) and not met(1.5, (0.7, 1.4)) and met(0, (None, 0)) and met(0.3, None) is None
     rows = {r[0]: r for r in figure_rows(evaluation(0.3, 0.4))}
@@ -55,8 +58,10 @@ def test_each_target_is_marked_met_or_not():
     assert not met(*rows["self-reenactment psnr_db"][1::2])
     assert met(*rows["self-reenactment psnr_db_composite"][1::2])
     assert met(*rows["self-reenactment landmark registration (composite.mp4): all"][1::2])
+    assert rows["gaze gain (face alone): across the eye"][3] is None
     summary = targets_summary(list(rows.values()))
-    assert summary.startswith("9 of 13 targets met; not met: ")
+    assert summary.startswith("9 of 14 targets met; not met: ")
+    assert "gaze gain (face alone): along the eye 0.50" in summary
     assert "colour step" in summary and "psnr_db 24.00" in summary and "ssim_composite 0.86" in summary
     assert "(composite.mp4): jaw 3.50" in summary
     near = targets_summary([("eye gain", 0.696, "", (0.7, 1.4)), ("brow gain", 0.6996, "", (0.7, 1.4))])

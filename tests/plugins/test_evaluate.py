@@ -332,6 +332,14 @@ def test_masked_psnr_and_ssim():
     assert np.isnan(masked_psnr(a, c, np.zeros_like(mask)))
 
 
+def test_gaze_signals_are_the_two_eyes_mean_and_one_eye_when_the_other_is_not_seen():
+    offsets = np.array([[[0.1, 0.02], [0.2, 0.04]], [[np.nan, np.nan], [-0.1, 0.0]], [[np.nan] * 2] * 2])
+    signals = ev.gaze_signals(offsets)
+    np.testing.assert_allclose(signals["along"][:2], [0.15, -0.1])
+    np.testing.assert_allclose(signals["across"][:2], [0.03, 0.0])
+    assert np.isnan(signals["along"][2]) and np.isnan(signals["across"][2])
+
+
 def test_registration_per_region_in_percent_of_the_eye_distance():
     """Known answers: the hand-made face has an eye distance of 40; its jaw moved 2 px down in every frame
     is 5 % of it there, 17/68 of that over all points, and 0 in every other region; a frame without a
