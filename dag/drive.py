@@ -99,10 +99,9 @@ def _steady_light(runner, drive: Collection, render: Provenance) -> Provenance:
 
 def _gaze(runner, drive: Collection, frames: Collection, found: np.ndarray) -> Provenance:
     """``eyes/gaze`` (frame, eye, along / across): how far the driver's irises sit from where they usually do
-    in the clip, in eye widths (gaze.iris_offsets on each frame and its landmarks, gaze.gaze_shift), made
-    steady over the frames around (the poses' ``pose_sigma``); frames without a face look where they usually do."""
-    sigma = runner.motion_params()["pose_sigma"]
-    prov = Provenance.make(stage="gaze", backend="-", backend_version="1", params={"sigma": sigma},
+    in the clip, in eye widths (gaze.iris_offsets on each frame and its landmarks, gaze.gaze_shift); frames
+    without a face look where they usually do."""
+    prov = Provenance.make(stage="gaze", backend="-", backend_version="1", params={},
                            inputs={"frames": frames.provenance("status/screen/state").key},
                            persona_version=runner.version)
     if not drive.made_by("eyes/gaze", prov):
@@ -112,8 +111,8 @@ def _gaze(runner, drive: Collection, frames: Collection, found: np.ndarray) -> P
             for i, (image, (h, w), lm) in enumerate(zip(rgb[start:stop], size[start:stop], points[start:stop])):
                 if found[start + i]:
                     offsets[start + i] = gaze.iris_offsets(image[:h, :w], lm)
-        shift = smooth_in_time(gaze.gaze_shift(offsets).reshape(drive.n, 4), sigma).reshape(drive.n, 2, 2)
-        drive.create("eyes/gaze", (2, 2), "float32", ("frame", "eye", "axis"), prov, pending=True)[:] = shift
+        drive.create("eyes/gaze", (2, 2), "float32", ("frame", "eye", "axis"), prov,
+                     pending=True)[:] = gaze.gaze_shift(offsets)
         drive.mark_done("eyes/gaze", prov)  # after the data: a run killed before this does it again
     return prov
 

@@ -170,14 +170,9 @@ class RaycastRender(RenderBackend):
                    "texture, at the driver's head pose (z-buffered, equal to ray casting pixel centres)")
     default = True
     uses_mesh = True
-    version = "9"  # 2: rgb is the face's own colour across its soft edge; no background param; 3: the mouth
-    # interior averaged to the gap's size and drawn by the share of each pixel it covers; 4: the opening's
-    # outline rounded (mouth.rounded); 5: the middle of an opening taller than the photos' turns to the cavity
-    # (mouth.depth); 6: the driver's own interior (mouth_choice frame, the default) and where it is (render/own);
-    # 7: the driver's own interior parted at its darkest row where B's lips part further (mouth._rows_fitted);
-    # 8: the driver's own gap taken in the frame's px (it was scaled by the head's distance over the lips',
-    # 0.54-0.58 on MEAD happy, so B's opening was drawn as though 1.7 times the driver's); 9: the lower lip's
-    # shadow along the driver's own interior (lip_shadow)
+    #: raised whenever the same inputs are drawn differently, so a stored render is drawn again (the history
+    #: is in docs/CHANGELOG.md)
+    version = "10"
 
     class Params(Params):
         min_coverage: float = Field(0.3, ge=0, le=1, description="canonical pixels seen in fewer "
@@ -202,8 +197,8 @@ class RaycastRender(RenderBackend):
         mouth_choice: Literal["frame", "widest", "darkest", "driver"] = Field(
             "frame", description="what the mouth's interior is made of. `frame` (the default): the driver's "
             "own mouth interior in each frame (A's teeth, tongue and cavity, between A's inner lips; "
-            "mouth.from_frame), drawn into B's gap, its rows nearest each lip at their own size; B's widest "
-            "photos where A's lips are closed. Or B's own open photos: those whose lips are furthest apart "
+            "mouth.from_frame), drawn into B's gap, its rows nearest each lip at their own size; the line where "
+            "A's lips meet where they are closed. Or B's own open photos: those whose lips are furthest apart "
             "(mostly laughs: teeth and tongue), those whose gap is darkest in its middle (the cavity of an open "
             "mouth, as an 'O' shows it), or both, each frame taking B's teeth or B's cavity as the driver's own "
             "mouth shows teeth or cavity there (`driver`, mouth.teeth_share). B's own is what the expression "

@@ -45,7 +45,7 @@ MIN_OPENING = 0.12
 
 #: the largest offset given to a texture (eye widths, along and across): beyond it the white in front of
 #: the iris is squeezed to nothing
-MAX_SHIFT = (0.2, 0.1)
+MAX_SHIFT = (0.3, 0.1)
 
 
 def _frame(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
@@ -112,7 +112,9 @@ def iris_offsets(image: np.ndarray, landmarks: np.ndarray) -> np.ndarray:
 def gaze_shift(offsets: np.ndarray) -> np.ndarray:
     """(T, 2, 2) a clip's iris offsets (:func:`iris_offsets` of every frame) from its own usual gaze (their
     median over the clip), both eyes moved together by the mean of the two (an eye that was not measured
-    takes the other's), clipped to MAX_SHIFT; 0 in a frame where neither eye was measured."""
+    takes the other's), clipped to MAX_SHIFT; 0 in a frame where neither eye was measured. Frame by frame,
+    not smoothed in time: the eyes glance for two or three frames, and a mean over time halved those
+    glances on the fringe clip (σ 0.75 frames: gain 0.72; a running median of three, 0.76; none, 0.995)."""
     offsets = np.asarray(offsets, np.float64)
     with np.errstate(all="ignore"), warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # an eye or a frame never measured: NaN, then 0

@@ -78,11 +78,11 @@ def test_a_texture_iris_moves_by_the_shift_and_the_corners_stay():
 
 def test_a_clips_gaze_is_taken_from_its_usual_one_and_clipped():
     """Offsets (T, 2 eyes, 2) of a clip that looks ahead, at 0.05 eye widths right, in most frames: the shift is the
-    mean of the two eyes less the clip's median (0.07 and 0.05: 0.01), clipped to MAX_SHIFT (0.3 and 0.3: 0.25 is
+    mean of the two eyes less the clip's median (0.07 and 0.05: 0.01), clipped to MAX_SHIFT (0.5 and 0.5: 0.45 is
     more); a frame without either eye measured moves nothing."""
     offsets = np.zeros((6, 2, 2))
-    offsets[:, 0, 0] = [0.05, 0.05, 0.05, 0.07, 0.3, np.nan]
-    offsets[:, 1, 0] = [0.05, 0.05, 0.05, 0.05, 0.3, np.nan]
+    offsets[:, 0, 0] = [0.05, 0.05, 0.05, 0.07, 0.5, np.nan]
+    offsets[:, 1, 0] = [0.05, 0.05, 0.05, 0.05, 0.5, np.nan]
     offsets[5] = np.nan
     shift = gaze.gaze_shift(offsets)
     assert shift.shape == (6, 2, 2)

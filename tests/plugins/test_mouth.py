@@ -271,8 +271,9 @@ def test_the_drivers_own_interior_is_taken_inside_its_lips():
     assert not red(interior[:, 16:48]).any()
     assert interior[2:-2, 16:48].max() < 40
     assert gap == 14.0
-    closed = open_photo(1.0)
-    assert mouth.from_frame(*closed) is None  # lips under 2 px apart: B's own interior is drawn
+    closed = open_photo(1.0)  # lips under 2 px apart: the (dark) line where they meet, a pixel tall
+    line, height = mouth.from_frame(*closed)
+    assert height == 1.0 and line[12:20, 16:48].max() < 40  # its middle rows: where they meet
     lm[66] = np.nan
     assert mouth.from_frame(rgb, lm) is None
 
