@@ -99,6 +99,14 @@ def _solve_rows(A: np.ndarray, B: np.ndarray, W: np.ndarray | None, reg: float |
     return np.linalg.solve(G, rhs[..., None])[..., 0].T
 
 
+def lighting_variety(lights: np.ndarray) -> float:
+    """How much the photos' lights (n, 4: first-order spherical harmonics) differ: the second singular value
+    of the matrix over the first (0 for one light in every photo; about 0.3 for a celebrity's photos from
+    many places and years)."""
+    s = np.linalg.svd(np.asarray(lights, np.float64), compute_uv=False)
+    return float(s[1] / s[0]) if len(s) > 1 and s[0] > 0 else 0.0
+
+
 class TemplatePhotometricStereo(ShapeBackend):
     name = "ps_template"
     description = ("rank-4 photometric stereo of the aligned collection, the 4x4 ambiguity fixed with the "
@@ -159,6 +167,14 @@ class TemplatePhotometricStereo(ShapeBackend):
                                    "(measured: docs/shape.md)")
         dark_threshold: float = Field(0.0, ge=0, lt=1, description="pixels darker than this are treated "
                                       "as missing (attached shadows break the linear model); 0 = keep all")
+        full_variety: float = Field(0.25, ge=0, description="the collection's lighting variety (lighting_variety: "
+                                    "the second singular value of the photos' lights over the first) from which "
+                                    "the recovered normals are kept as they are; below it they are drawn towards "
+                                    "the template's in proportion (at half of it, half way). Under one light "
+                                    "(one video under one lamp) photometric stereo cannot tell a dark albedo (brows, "
+                                    "lips) from a normal turned from the light, and the face bulges. Not in [14] "
+                                    "(0: the normals as recovered). LFW collections measure 0.3 and keep theirs; "
+                                    "single videos 0.05-0.1 (docs/shape.md)")
 
     def images_for(self, n: int) -> np.ndarray:
         """All n, or ``max_images`` of them evenly spaced."""
@@ -299,8 +315,12 @@ class TemplatePhotometricStereo(ShapeBackend):
         if not np.isfinite(c) or c == 0:
             raise Rejected("shape: degenerate lighting (the images carry no shading)")
         L, rho = L / abs(c), rho * abs(c)
+        facing = tn if np.mean(tn[:, 2]) < 0 else -tn  # the template, turned to the camera
+        trust = min(lighting_variety(L) / self.params.full_variety, 1.0) if self.params.full_variety > 0 else 1.0
+        if trust < 1:  # lighting too uniform to tell albedo from shape: towards the template
+            normals = facing + trust * (normals - facing)
+            normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
         if self.params.max_template_angle < 180:  # outliers (shadowed sides, hair, glasses)
-            facing = tn if np.mean(tn[:, 2]) < 0 else -tn  # the template, turned to the camera
             far = np.sum(normals * facing, axis=1) < np.cos(np.radians(self.params.max_template_angle))
             normals[far] = facing[far]
         h, w = use.shape

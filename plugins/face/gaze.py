@@ -94,10 +94,10 @@ def iris_offset(image: np.ndarray, points: np.ndarray) -> np.ndarray:
     y, x = np.unravel_index(int(np.argmax(score)), score.shape)
     if not np.isfinite(score[y, x]) or score[y, x] <= 0:
         return np.full(2, np.nan)
+    padded = np.pad(score, 1, constant_values=-np.inf)  # a neighbour off the crop never wins
     refined = []
-    for here, before, after in ((x, score[y, x - 1] if x > 0 else -np.inf, score[y, x + 1] if x + 1 < side else -np.inf),
-                                (y, score[y - 1, x] if y > 0 else -np.inf, score[y + 1, x] if y + 1 < side else -np.inf)):
-        curve = before - 2 * score[y, x] + after
+    for here, before, after in ((x, padded[y + 1, x], padded[y + 1, x + 2]), (y, padded[y, x + 1], padded[y + 2, x + 1])):
+        curve = before - 2 * score[y, x] + after  # a parabola through the best and its two neighbours
         refined.append(here + (0.5 * (before - after) / curve if np.isfinite(curve) and curve < 0 else 0.0))
     return (np.array(refined) - side / 2) / MEASURE_WIDTH
 
@@ -147,8 +147,8 @@ def look(texture: np.ndarray, neutral: np.ndarray, shift: np.ndarray, *, grow: i
     opening (the polygon of its six fiducials grown by ``grow`` texels) slid by ``shift`` (2, 2): per eye,
     along and across it, in its widths (:func:`gaze_shift`). Each row of the opening is slid along itself
     (:func:`_slid`: the iris about the eye's middle moves by the shift along as one, the row's two ends, at
-    the lids and corners, stay), then each column across, inside the opening less a texel at its edge (its lashes stay); a texel
-    only ever takes another of the opening's."""
+    the lids and corners, stay), then each column across, inside the opening less a texel at its edge (its
+    lashes stay); a texel only ever takes another of the opening's."""
     shift = np.asarray(shift, np.float64)
     if not np.any(shift):
         return texture
