@@ -10,10 +10,12 @@
 
 from __future__ import annotations
 
+import logging
 
 import numpy as np
 
 from persona.plugins.base import Rejected
+from persona.plugins.builtin.shape import lighting_variety
 from persona.plugins.face.subspace import streamed_svd
 from persona.plugins.face.template import CANONICAL_HEIGHT as H, CANONICAL_WIDTH as W
 from persona.stores import storage
@@ -21,6 +23,8 @@ from persona.stores.layout import OK, Collection, open_store
 from persona.stores.provenance import Provenance
 
 from . import stages as st
+
+log = logging.getLogger(__name__)
 
 
 def compute_subspace(runner, coll: Collection, *, source: str, state: str, rank: int, tps_lambda: float,
@@ -90,6 +94,12 @@ def run_shape(runner, coll: Collection, aligned: Provenance) -> dict[str, str]:
     (depth, mask), = runner.executor.run(photometric_stereo, [(runner.wf.store, coll.path, count >= 0.3 * ok.sum(),
                                                               prov, shape_name, shape_params, integrate_name,
                                                               integrate_params)])
+    full = shape_params.get("full_variety", 0)
+    variety = lighting_variety(coll.array("shape/lighting")[:][ok])
+    if variety < full:  # the user should know the shape is mostly the template's, and why
+        log.warning("%s shape: lighting variety %.2f, under %.2f: the normals %.0f %% the photos', the rest the "
+                 "template's (photos under more kinds of light give a shape of its own; docs/shape.md)",
+                 coll.path, variety, full, 100 * variety / full)
     # the mesh files here: pymeshlab, which cleans them, corrupts the heap of a worker (its task thread)
     export(coll, runner.wf.output, depth, mask, texture)
     coll.create_single("shape/texture", texture, ("y", "x", "channel"), prov)
