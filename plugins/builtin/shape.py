@@ -100,11 +100,12 @@ def _solve_rows(A: np.ndarray, B: np.ndarray, W: np.ndarray | None, reg: float |
 
 
 def lighting_variety(lights: np.ndarray) -> float:
-    """How much the photos' lights (n, 4: first-order spherical harmonics) differ: the second singular value
-    of the matrix over the first (0 for one light in every photo; about 0.3 for a celebrity's photos from
-    many places and years)."""
+    """How much the photos' lights (n, 4: first-order spherical harmonics) differ: the third singular value
+    of the matrix over the first. A normal has two directions and the albedo a third to be told apart, so the
+    lights must span three: 0 for one light in every photo, and for one that only swings one way (a head
+    that turns under one lamp); 0.37 for Powell's photos from many places and years."""
     s = np.linalg.svd(np.asarray(lights, np.float64), compute_uv=False)
-    return float(s[1] / s[0]) if len(s) > 1 and s[0] > 0 else 0.0
+    return float(s[2] / s[0]) if len(s) > 2 and s[0] > 0 else 0.0
 
 
 class TemplatePhotometricStereo(ShapeBackend):
@@ -168,13 +169,13 @@ class TemplatePhotometricStereo(ShapeBackend):
         dark_threshold: float = Field(0.0, ge=0, lt=1, description="pixels darker than this are treated "
                                       "as missing (attached shadows break the linear model); 0 = keep all")
         full_variety: float = Field(0.25, ge=0, description="the collection's lighting variety (lighting_variety: "
-                                    "the second singular value of the photos' lights over the first) from which "
+                                    "the third singular value of the photos' lights over the first) from which "
                                     "the recovered normals are kept as they are; below it they are drawn towards "
                                     "the template's in proportion (at half of it, half way). Under one light "
                                     "(one video under one lamp) photometric stereo cannot tell a dark albedo (brows, "
                                     "lips) from a normal turned from the light, and the face bulges. Not in [14] "
-                                    "(0: the normals as recovered). LFW collections measure 0.3 and keep theirs; "
-                                    "single videos 0.05-0.1 (docs/shape.md)")
+                                    "(0: the normals as recovered). Powell's LFW photos measure 0.37 and keep theirs; "
+                                    "single videos 0.00-0.02 (docs/shape.md)")
 
     def images_for(self, n: int) -> np.ndarray:
         """All n, or ``max_images`` of them evenly spaced."""

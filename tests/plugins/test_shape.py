@@ -247,7 +247,7 @@ def test_ps_albedo_and_lighting(ps_set, reconstruction):
 def test_under_one_light_the_normals_are_the_templates_and_under_many_their_own(ps_set):
     """Photometric stereo cannot tell albedo from shape when every image has the same light: the lighting
     variety is then 0 (up to the noise) and the normals are the template's (within 0.05°; as recovered, 2.51° from the
-    truth against the template's 2.39°). Under the fixture's 80 random lights it is 0.41, over
+    truth against the template's 2.39°). Under the fixture's 80 random lights it is 0.40, over
     ``full_variety``, and the normals are exactly those recovered without the pull (0)."""
     from persona.plugins.builtin.shape import lighting_variety
 
