@@ -95,7 +95,7 @@ def run_shape(runner, coll: Collection, aligned: Provenance) -> dict[str, str]:
                                                               prov, shape_name, shape_params, integrate_name,
                                                               integrate_params)])
     full = shape_params.get("full_variety", 0)
-    variety = lighting_variety(coll.array("shape/lighting")[:][ok])
+    variety = lighting_variety(coll.array("shape/lighting")[:])  # NaN for the photos it did not take
     if variety < full:  # the user should know the shape is mostly the template's, and why
         log.warning("%s shape: lighting variety %.2f, under %.2f: the normals %.0f %% the photos', the rest the "
                  "template's (photos under more kinds of light give a shape of its own; docs/shape.md)",

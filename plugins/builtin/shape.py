@@ -103,8 +103,13 @@ def lighting_variety(lights: np.ndarray) -> float:
     """How much the photos' lights (n, 4: first-order spherical harmonics) differ: the third singular value
     of the matrix over the first. A normal has two directions and the albedo a third to be told apart, so the
     lights must span three: 0 for one light in every photo, and for one that only swings one way (a head
-    that turns under one lamp); 0.37 for Powell's photos from many places and years."""
-    s = np.linalg.svd(np.asarray(lights, np.float64), compute_uv=False)
+    that turns under one lamp); 0.37 for Powell's photos from many places and years. Rows that are not finite
+    (photos the fit did not take: ``max_images``) are left out."""
+    lights = np.asarray(lights, np.float64)
+    lights = lights[np.isfinite(lights).all(axis=1)]
+    if len(lights) < 3:
+        return 0.0
+    s = np.linalg.svd(lights, compute_uv=False)
     return float(s[2] / s[0]) if len(s) > 2 and s[0] > 0 else 0.0
 
 

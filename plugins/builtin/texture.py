@@ -19,7 +19,7 @@ from pydantic import Field, model_validator
 
 from ..base import Params
 from ..face import eyes, texture as align
-from ..face.gaze import look as looked
+from ..face.gaze import look
 from ..face.blend import BlendCache, BlendSums, BlendTotals, chosen, expression_weights
 from ..face.dynamics import smooth_in_time, time_radius
 from ..face.fiducials import mean_shape
@@ -177,7 +177,7 @@ class MultiscaleTexture(TextureBackend):
         gaze: bool = Field(True, description="video mode: B's irises slide in their eyes' openings as far from "
                            "where they usually are as the driver's are from where the driver's usually are in the "
                            "clip, in eye widths (persona.plugins.face.gaze): the eyes look where the driver's look. "
-                           "Not in the paper (false: B's irises stay where B's photos have them; docs/expression.md)")
+                           "Not in the paper (false: B's irises stay where B's photos have them; docs/gaze.md)")
         shut_at: float = Field(0.45, ge=0, lt=1, description="close_eyes: the distance at which it is fully shut "
                                "(dlib's lid points of a shut eye stay 40-50 % of their open distance apart)")
         stretch_scale: float = Field(0.3, ge=0, description="s of the alignment confidence's flow term "
@@ -277,7 +277,7 @@ class MultiscaleTexture(TextureBackend):
             textures += where * (own - textures)
         if p.gaze and gaze is not None:  # the irises slid before a closing lid comes down over them
             for texture, shift in zip(textures, gaze):
-                texture[:] = looked(texture, neutral, shift)
+                texture[:] = look(texture, neutral, shift)
         if p.close_eyes if close_eyes is None else close_eyes:
             for texture, target in zip(textures, targets):
                 visible = eyes.lowered(target, neutral, start=p.shut_from, end=p.shut_at)

@@ -262,6 +262,8 @@ def test_under_one_light_the_normals_are_the_templates_and_under_many_their_own(
                                                                       d["tdepth"])
     assert lighting_variety(ours.lighting) > 0.25
     np.testing.assert_array_equal(ours.normals, plain.normals)
+    untaken = np.vstack([ours.lighting, np.full((5, 4), np.nan)])  # photos the fit did not take: left out
+    assert lighting_variety(untaken) == pytest.approx(lighting_variety(ours.lighting))
 
 
 def test_ps_with_the_truth_as_template_is_exact():
