@@ -183,18 +183,23 @@ def from_frame(rgb: np.ndarray, landmarks68: np.ndarray, *, inset: float = 0.15,
                min_gap: float = 2.0) -> tuple[np.ndarray, float] | None:
     """The driver's own mouth interior in one frame (``mouth_choice: frame``): its :func:`sample`
     between A's inner lips, ``inset`` inside them, and the height it spans, (1 - 2 ``inset``) of how far
-    apart A's lips are (frame px: the size at which :func:`draw` keeps its rows). Where A's lips are under
-    ``min_gap`` px apart, the line where they meet (sampled with no inset, a pixel tall): a closed mouth
-    shows that dark line, and B's lips that the mesh leaves a little apart show it too, not B's teeth
-    averaged into a light line. None where a point is missing (the renderer then draws B's own interior,
-    as the other choices do)."""
+    apart A's lips are (frame px: the size at which :func:`draw` keeps its rows); None where A's lips
+    are under ``min_gap`` px apart or a point is missing (the renderer then draws :func:`closed`)."""
     lm = np.asarray(landmarks68, np.float64)
     if not np.isfinite(lm).all():
         return None
     gap = lip_gap(lm[None], per_iod=False)[0]
     if not gap >= min_gap:
-        return sample(rgb, lm, 0.0), 1.0
+        return None
     return sample(rgb, lm, inset), float(gap) * (1 - 2 * inset)
+
+
+def closed(interior: np.ndarray) -> np.ndarray:
+    """What lips that meet show between them, for B's lips that the mesh leaves a little apart where the
+    driver's are closed: an interior of B's :func:`cavity` colour alone, the shape of ``interior``, so the
+    gap is a closed mouth's dark line (B's open interior averaged into a gap a pixel or two tall made a
+    light line of teeth; the driver's lips sampled where they meet, a line of the driver's lipstick)."""
+    return np.broadcast_to(cavity(interior), interior.shape).astype(np.float32)
 
 
 def interior(samples) -> np.ndarray | None:
