@@ -256,8 +256,8 @@ def _render(backend, params, inputs, context):
         drivers = mouth.from_frame(frame, inputs["@frames/landmarks/points"])  # A's own interior, where A's lips part
         if drivers is not None:  # its gap in this frame's px, where the renderer draws it
             interior, gap = drivers
-        else:  # A's lips closed: a closed mouth's dark line wherever B's are a little apart
-            interior = mouth.closed(interior)
+        else:  # A's lips closed: none, B's own lips close over the gap the mesh leaves
+            interior = None
     insets = None
     if context["insets"] is not None and "@frames/landmarks/points" in inputs:
         insets = mouth.frame_insets(*context["insets"], inputs["@frames/landmarks/points"])

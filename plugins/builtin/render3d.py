@@ -172,7 +172,7 @@ class RaycastRender(RenderBackend):
     uses_mesh = True
     #: raised whenever the same inputs are drawn differently, so a stored render is drawn again (the history
     #: is in docs/CHANGELOG.md)
-    version = "11"
+    version = "12"
 
     class Params(Params):
         min_coverage: float = Field(0.3, ge=0, le=1, description="canonical pixels seen in fewer "
@@ -197,8 +197,8 @@ class RaycastRender(RenderBackend):
         mouth_choice: Literal["frame", "widest", "darkest", "driver"] = Field(
             "frame", description="what the mouth's interior is made of. `frame` (the default): the driver's "
             "own mouth interior in each frame (A's teeth, tongue and cavity, between A's inner lips; "
-            "mouth.from_frame), drawn into B's gap, its rows nearest each lip at their own size; a closed mouth's "
-            "dark line (B's cavity colour, mouth.closed) where A's lips are closed. Or B's own open photos: those whose lips are furthest apart "
+            "mouth.from_frame), drawn into B's gap, its rows nearest each lip at their own size; none where A's "
+            "lips are closed (B's own lips close over the gap). Or B's own open photos: those whose lips are furthest apart "
             "(mostly laughs: teeth and tongue), those whose gap is darkest in its middle (the cavity of an open "
             "mouth, as an 'O' shows it), or both, each frame taking B's teeth or B's cavity as the driver's own "
             "mouth shows teeth or cavity there (`driver`, mouth.teeth_share). B's own is what the expression "

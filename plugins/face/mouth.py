@@ -184,7 +184,8 @@ def from_frame(rgb: np.ndarray, landmarks68: np.ndarray, *, inset: float = 0.15,
     """The driver's own mouth interior in one frame (``mouth_choice: frame``): its :func:`sample`
     between A's inner lips, ``inset`` inside them, and the height it spans, (1 - 2 ``inset``) of how far
     apart A's lips are (frame px: the size at which :func:`draw` keeps its rows); None where A's lips
-    are under ``min_gap`` px apart or a point is missing (the renderer then draws :func:`closed`)."""
+    are under ``min_gap`` px apart or a point is missing (the renderer then draws no interior: B's own lips
+    close over the gap)."""
     lm = np.asarray(landmarks68, np.float64)
     if not np.isfinite(lm).all():
         return None
@@ -192,14 +193,6 @@ def from_frame(rgb: np.ndarray, landmarks68: np.ndarray, *, inset: float = 0.15,
     if not gap >= min_gap:
         return None
     return sample(rgb, lm, inset), float(gap) * (1 - 2 * inset)
-
-
-def closed(interior: np.ndarray) -> np.ndarray:
-    """What lips that meet show between them, for B's lips that the mesh leaves a little apart where the
-    driver's are closed: an interior of B's :func:`cavity` colour alone, the shape of ``interior``, so the
-    gap is a closed mouth's dark line (B's open interior averaged into a gap a pixel or two tall made a
-    light line of teeth; the driver's lips sampled where they meet, a line of the driver's lipstick)."""
-    return np.broadcast_to(cavity(interior), interior.shape).astype(np.float32)
 
 
 def interior(samples) -> np.ndarray | None:
