@@ -173,7 +173,7 @@ class MultiscaleTexture(TextureBackend):
                                  "below which the upper lid starts to come down (the open-eye frames' 10th "
                                  "percentile on the self-reenactment: 0.87). 0.9 rather than 0.85 brings the "
                                  "self-reenactment's composite eye gain 0.92 -> 1.03 and Bush <- Obama's 0.69 -> "
-                                 "0.71 (docs/expression.md, session 35)")
+                                 "0.71 (docs/expression.md)")
         gaze: bool = Field(True, description="video mode: B's irises slide in their eyes' openings as far from "
                            "where they usually are as the driver's are from where the driver's usually are in the "
                            "clip, in eye widths (persona.plugins.face.gaze): the eyes look where the driver's look. "

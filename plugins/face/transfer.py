@@ -105,8 +105,8 @@ class TransferParams(Params):
         "sideways at least a share of the corner's way, fading to none at that distance; skin the transfer "
         "already moves further is left (0: off, the paper; :class:`FiducialFollow`). 30 raised Bush <- "
         "Obama's face-alone mouth-width gain 0.70 -> 0.77 and the self-reenactment's 0.70 -> 0.74, and left the "
-        "woman's drives within 0.01, which the two-sided hold of sessions 24-42 lowered (Powell 0.72 -> 0.62): "
-        "docs/expression.md, session 43")
+        "woman's drives within 0.01, which the two-sided hold of an earlier run lowered (Powell 0.72 -> 0.62): "
+        "docs/expression.md, an earlier run")
     unfold: bool = Field(
         True, description="below the mouth's middle, a column of B's mesh that folds (the lower lip dropped over "
         "the skin under it, which the renderer drew as a ragged edge) is made to run down again: the lip's body "
