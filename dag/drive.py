@@ -41,7 +41,7 @@ def run_drive(runner, cast: Cast, output: str) -> Collection:
               "puppet": puppet.provenance("aligned/mean").key}
     motion = runner.motion_params()
     sigma, lips, steady, widen = motion["pose_sigma"], motion["lips"], motion["steady"], motion["widen"]
-    neutral = motion["neutral"]
+    neutral = driver_neutral(motion["neutral"], cast)
     if neutral == "collection":
         inputs["driver"] = Collection(runner.root, cast.driver).provenance("aligned/mean").key
     # lips at the paper's 'mean', steady off, widen at 'opening' and the clip's neutral are left out of the
@@ -138,6 +138,14 @@ def _teeth(runner, drive: Collection, frames: Collection, puppet: Collection, mo
         drive.create("mouth/teeth", (), "float32", ("frame",), prov, pending=True)[:] = share
         drive.mark_done("mouth/teeth", prov)  # after the data: a run killed before this does it again
     return prov
+
+
+def driver_neutral(choice: str, cast: Cast) -> str:
+    """``stages.motion.params.neutral`` for this drive: 'auto' is 'collection' where the driver is the puppet
+    (its collection's mean is then the puppet's neutral itself) and the paper's 'clip' otherwise."""
+    if choice != "auto":
+        return choice
+    return "collection" if cast.driver == cast.puppet else "clip"
 
 
 def _retarget(runner, cast, drive, frames, puppet, found, prov, sigma: float, lips: str, steady: int,

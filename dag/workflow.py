@@ -398,12 +398,14 @@ class MotionParams(Strict):
         "(retargeting): 'opening', by the ratio of the two faces' eye openings, as they close; 'face' (not in the "
         "paper), by the faces' proportions: the lids still meet when the driver's do, but how far a lid lifts is "
         "the eyeball's, which goes with the face's size (persona.plugins.face.warp.retarget; docs/expression.md)")
-    neutral: Literal["clip", "collection"] = Field(
-        "clip", description="what the driver's expression is measured from (retargeting: the puppet's target "
+    neutral: Literal["auto", "clip", "collection"] = Field(
+        "auto", description="what the driver's expression is measured from (retargeting: the puppet's target "
         "fiducials are its mean ones plus the driver's offsets from this): 'clip', the paper's, the mean of the "
         "driver's frames, which takes out whatever the driver holds through the clip (a smile, a surprise); "
         "'collection' (not in the paper), the mean of the driver's photo collection, as the puppet's neutral is "
-        "its own collection's mean (docs/expression.md)")
+        "its own collection's mean; 'auto', 'collection' where the driver is the puppet (a self-reenactment: the "
+        "two means are one, so the targets are the driver's own fiducials) and 'clip' otherwise "
+        "(docs/expression.md)")
     dynamics: DynamicsParams = Field(default_factory=DynamicsParams, description="the driver's per-frame "
                                      "3D flow (ALGORITHMS §9), used by 3D renderers")
     flow: FlowChoice = Field(default_factory=FlowChoice, description="the 2D flow of the per-frame 3D flow "

@@ -320,6 +320,19 @@ def test_the_drivers_neutral_from_its_collection_retargets_again(drive_run, tmp_
     assert Collection(root, "drive").provenance("target").params["neutral"] == "collection"
 
 
+def test_auto_neutral_is_the_collection_only_where_the_driver_is_the_puppet():
+    """``neutral: auto`` (the default) measures a self-reenactment's driver from its collection, the
+    puppet's own, and every other drive from its clip, as the paper does; a named choice is kept."""
+    from persona.dag.drive import driver_neutral
+    from persona.stores.layout import Cast
+
+    itself = Cast("people/bea", "people/bea", "videos/bea_rest", "drives/bea_bea_rest")
+    other = Cast("people/bea", "people/al", "videos/al", "drives/bea_al")
+    assert driver_neutral("auto", itself) == "collection" and driver_neutral("auto", other) == "clip"
+    assert driver_neutral("auto", Cast()) == "clip"  # a format-1 store: puppet and driver apart
+    assert driver_neutral("clip", itself) == "clip" and driver_neutral("collection", other) == "collection"
+
+
 def test_3d_run_after_a_2d_run_renders_again(drive_run):
     """The 2D and 3D renderers write the same render/* arrays: after a 2D run into the store, the
     3D run's own finished render stage is stale and runs again (it once kept the 2D frames)."""

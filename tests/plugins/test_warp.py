@@ -153,6 +153,26 @@ def test_pin_sends_the_points_home():
     assert np.all(np.isfinite(pinned))
 
 
+def test_retarget_from_the_puppets_own_neutral_gives_the_drivers_fiducials_back():
+    """A self-reenactment measured from the driver's collection (``neutral: collection``, what 'auto' picks
+    when the driver is the puppet): the driver's neutral is the puppet's, so every rule of the retarget
+    (lids, lips, proportions) leaves a frame where it is, a surprise held through the clip included (brows
+    up 4 px, eyes 3 px wider, mouth 6 px open), to 0.1 px; from the clip's mean it would be taken out."""
+    neutral = generic_template().landmarks3d[list(IDX49), :2]
+    surprise = neutral.copy()
+    surprise[:10, 1] -= 4.0  # the brows
+    for upper, lower in FACING[:4]:
+        surprise[upper, 1] -= 1.5
+        surprise[lower, 1] += 1.5
+    surprise[list(LOWER_LIP), 1] += 6.0
+    frames = np.stack([neutral, surprise, surprise, (neutral + surprise) / 2])
+    for lips in ("mean", "parted", "closed"):
+        for widen in ("opening", "face"):
+            np.testing.assert_allclose(retarget(frames, neutral, neutral, lips=lips, widen=widen), frames, atol=0.1)
+    from_clip = retarget(frames, frames.mean(axis=0), neutral)
+    assert np.abs(from_clip[1, :10, 1] - surprise[:10, 1]).min() > 1.0  # the held brows are taken out
+
+
 def test_retarget_closes_the_puppets_own_eyes_and_never_crosses_the_lids():
     """A blink that closes the driver's eyes closes the puppet's, which are 30 % smaller: the lids'
     offsets are scaled by the eye openings (not by the face's height); a larger offset stops at
