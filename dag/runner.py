@@ -471,7 +471,7 @@ class Runner:
         group.attrs.update({"n_photos": n, "photos_per_shard": self.wf.photos_per_shard,
                             "canvas": canvas, "stages": list(st.COLLECTION_STAGES)})
         coll.create("photos/ids", (), str, ("photo",), prov)[:] = np.array([s.id for s in sources])
-        coll.create("photos/source", (), str, ("photo",), prov)[:] = np.array([s.path for s in sources])
+        coll.create("photos/source", (), str, ("photo",), prov)[:] = np.array([media.stored_path(s.path) for s in sources])
         coll.create("photos/frame", (), "int64", ("photo",), prov, fill_value=-1)[:] = np.array(
             [-1 if s.frame is None else s.frame for s in sources], dtype=np.int64)
         self._create_outputs(coll, st.INGEST, prov)

@@ -78,7 +78,7 @@ def _photo(inputs: dict) -> np.ndarray:
 
 def _ingest(backend, params, inputs, context):
     canvas = context["canvas"]
-    source, frame = str(inputs["photos/source"]), int(inputs["photos/frame"])
+    source, frame = media.opened_path(str(inputs["photos/source"])), int(inputs["photos/frame"])
     hint, sha256 = None, ""
     if frame >= 0:  # a frame of a video listed among the photos
         image = media.read_video_frame(source, frame, max_side=params["max_side"])

@@ -93,7 +93,7 @@ class Source:
     """One input picture: a photo file, or one frame of a video.
 
     ``id`` is stable and unique within one :func:`resolve_sources` result: the file
-    stem (a later file with the same stem gets ``_2``, ``_3``, ...) or
+    stem (:func:`printable`; a later file with the same stem gets ``_2``, ``_3``, ...) or
     ``frame000123`` for frame 123 of a video.
     """
 
@@ -112,6 +112,31 @@ class ImageInfo:
 
 
 # --------------------------------------------------------------------------- sources
+
+#: the prefix of a stored path that is not UTF-8 (:func:`stored_path`); no absolute path or URL begins so
+_FS_BYTES = "fsbytes:"
+
+
+def stored_path(path: str) -> str:
+    """``path`` as the store keeps it: itself, or where the file system's name is not valid UTF-8 (a file
+    named by other bytes, which Python holds as lone surrogates and a store's UTF-8 strings cannot) its bytes
+    in hex after ``fsbytes:``; :func:`opened_path` gives the path back."""
+    try:
+        path.encode("utf-8")
+        return path
+    except UnicodeEncodeError:
+        return _FS_BYTES + os.fsencode(path).hex()
+
+
+def opened_path(stored: str) -> str:
+    """The path :func:`stored_path` stored, to open the file with."""
+    return os.fsdecode(bytes.fromhex(stored[len(_FS_BYTES):])) if stored.startswith(_FS_BYTES) else stored
+
+
+def printable(name: str) -> str:
+    """``name`` with the bytes of a file name that are not UTF-8 written as ``\\xff``: a photo's id, shown in
+    reports and kept in the store."""
+    return name.encode("utf-8", "surrogateescape").decode("utf-8", "backslashreplace")
 
 
 def is_video(path) -> bool:
@@ -280,7 +305,7 @@ def resolve_sources(spec, base_dir) -> list[Source]:
         if (path, frame) in seen:
             continue
         seen.add((path, frame))
-        stem = f"frame{frame:06d}" if frame is not None else Path(path).stem
+        stem = f"frame{frame:06d}" if frame is not None else printable(Path(path).stem)
         ident, k = stem, 1
         while ident in taken:
             k += 1

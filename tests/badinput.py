@@ -13,6 +13,7 @@ to make and must be rejected from its header alone.
 from __future__ import annotations
 
 import io
+import os
 import struct
 import zlib
 from collections.abc import Sequence
@@ -36,6 +37,8 @@ EXPECTED = {
     "rgba.png": "ok",
     "rotated.jpg": "ok",
     "palette.png": "ok",
+    # a name whose bytes are not UTF-8 (Python holds them as lone surrogates): a photo like any other
+    os.fsdecode(b"bad\xff\xfename.jpg"): "ok",
 }
 
 
@@ -131,5 +134,8 @@ def make_bad_collection(folder: Path, faces: Sequence[np.ndarray]) -> dict[str, 
     pal = Image.fromarray(faces[1]).quantize(colors=255)
     trns = bytes([255] * 255 + [0])  # index 255 (unused) is transparent
     pal.save(folder / "palette.png", transparency=trns)
+
+    # a good JPEG whose file name is not UTF-8
+    (folder / os.fsdecode(b"bad\xff\xfename.jpg")).write_bytes(jpeg_bytes(faces[2]))
 
     return dict(EXPECTED)
