@@ -15,6 +15,7 @@ from persona.plugins.base import Rejected
 from persona.plugins.manager import PluginError
 from persona.stores.errors import InputError, PersonaError, StorageError
 from persona.stores.layout import item
+from persona.stores.lock import StoreLocked
 
 
 def _cmd_run(args) -> int:
@@ -30,7 +31,7 @@ def _cmd_run(args) -> int:
     except KeyboardInterrupt:
         _resume_hint(args)
         return 130
-    except (InputError, Rejected):  # the input must change: running again as it is cannot help
+    except (InputError, Rejected, StoreLocked):  # the input must change, or the other run end: no resume hint
         raise
     except OSError as exc:
         _resume_hint(args)

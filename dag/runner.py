@@ -25,7 +25,7 @@ from persona.plugins.base import Rejected
 from persona.plugins.face.fiducials import mean_shape
 from persona.plugins.hookspecs import hookimpl
 from persona.plugins.manager import get_plugin_manager
-from persona.stores import media, storage, verify
+from persona.stores import lock, media, storage, verify
 from persona.stores.chunks import ChunkError
 from persona.stores.errors import InputError, PersonaError
 from persona.stores.layout import OK, PENDING, REJECTED, Cast, Collection, item, open_store
@@ -924,5 +924,5 @@ def run_workflow(wf: Workflow, *, scheduler: str | None = None, workers: int | N
     inputs are resolved first (:func:`resolve_inputs`): a bad one stops the run before anything is
     created."""
     inputs = resolve_inputs(wf, keep_going=wf.version == 2)  # a batch: a bad input fails its drives only
-    with executor_for(wf, scheduler, workers) as ex:
+    with lock.writer(wf.store), executor_for(wf, scheduler, workers) as ex:  # one run writes a store at a time
         return Runner(wf, ex, progress=progress).run(inputs)

@@ -195,6 +195,17 @@ def read_text(path) -> str:
     return read_bytes(path).decode("utf-8")
 
 
+def remove(path) -> None:
+    """Delete the file ``path``, local or a URL; none there is no error."""
+    if not is_url(path):
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(path)
+        return
+    fs, p = filesystem(path)
+    with contextlib.suppress(FileNotFoundError):
+        fs.rm_file(p)
+
+
 @contextlib.contextmanager
 def local_file(url, suffix: str = "") -> Iterator[str]:
     """A local temporary file to write, uploaded to ``url`` when the block succeeds (and removed
