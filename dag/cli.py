@@ -16,6 +16,7 @@ from persona.plugins.manager import PluginError
 from persona.stores.errors import InputError, PersonaError, StorageError
 from persona.stores.layout import item
 from persona.stores.lock import StoreLocked
+from persona.stores.output import OutputTaken
 
 
 def _cmd_run(args) -> int:
@@ -27,11 +28,12 @@ def _cmd_run(args) -> int:
         print(_plan(wf))
         return 0
     try:
-        report = run_workflow(wf, scheduler=args.scheduler, workers=args.workers, progress=not args.quiet)
+        report = run_workflow(wf, scheduler=args.scheduler, workers=args.workers, progress=not args.quiet,
+                              force=args.force)
     except KeyboardInterrupt:
         _resume_hint(args)
         return 130
-    except (InputError, Rejected, StoreLocked):  # the input must change, or the other run end: no resume hint
+    except (InputError, Rejected, StoreLocked, OutputTaken):  # a run as it is cannot help: no resume hint
         raise
     except OSError as exc:
         _resume_hint(args)
@@ -436,6 +438,8 @@ def build_parser() -> argparse.ArgumentParser:
     workflow(p)
     overrides(p)
     p.add_argument("--dry-run", action="store_true", help="validate and print the plan, compute nothing")
+    p.add_argument("--force", action="store_true", help="write into an output folder that holds files Persona "
+                   "did not write (a run replaces metrics.json, report.html and the videos it makes)")
     common_run(p)
     p.set_defaults(func=_cmd_run)
 

@@ -25,7 +25,7 @@ from persona.plugins.base import Rejected
 from persona.plugins.face.fiducials import mean_shape
 from persona.plugins.hookspecs import hookimpl
 from persona.plugins.manager import get_plugin_manager
-from persona.stores import lock, media, storage, verify
+from persona.stores import lock, media, output, storage, verify
 from persona.stores.chunks import ChunkError
 from persona.stores.errors import InputError, PersonaError
 from persona.stores.layout import OK, PENDING, REJECTED, Cast, Collection, item, open_store
@@ -919,10 +919,13 @@ def executor_for(wf: Workflow, scheduler: str | None = None, workers: int | None
 
 
 def run_workflow(wf: Workflow, *, scheduler: str | None = None, workers: int | None = None,
-                 progress: bool = True) -> dict:
+                 progress: bool = True, force: bool = False) -> dict:
     """Run every stage of a workflow; returns the run report (also in OUTPUT/metrics.json). The
     inputs are resolved first (:func:`resolve_inputs`): a bad one stops the run before anything is
-    created."""
+    created; so does an output folder that holds files Persona did not write, unless ``force``
+    (persona.stores.output)."""
     inputs = resolve_inputs(wf, keep_going=wf.version == 2)  # a batch: a bad input fails its drives only
-    with lock.writer(wf.store), executor_for(wf, scheduler, workers) as ex:  # one run writes a store at a time
-        return Runner(wf, ex, progress=progress).run(inputs)
+    with lock.writer(wf.store):  # one run writes a store at a time
+        output.claim(wf.output, wf.store, force=force)
+        with executor_for(wf, scheduler, workers) as ex:
+            return Runner(wf, ex, progress=progress).run(inputs)
