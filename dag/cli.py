@@ -14,7 +14,7 @@ from pathlib import Path
 from persona.plugins.base import Rejected
 from persona.plugins.manager import PluginError
 from persona.stores.errors import InputError, PersonaError, StorageError
-from persona.stores.layout import item
+from persona.stores.layout import StoreUnreadable, item
 from persona.stores.lock import StoreLocked
 from persona.stores.output import OutputTaken
 
@@ -33,7 +33,7 @@ def _cmd_run(args) -> int:
     except KeyboardInterrupt:
         _resume_hint(args)
         return 130
-    except (InputError, Rejected, StoreLocked, OutputTaken):  # a run as it is cannot help: no resume hint
+    except (InputError, Rejected, StoreLocked, OutputTaken, StoreUnreadable):  # running again cannot help: no hint
         raise
     except OSError as exc:
         _resume_hint(args)

@@ -52,6 +52,11 @@ class StoreError(PersonaError, ValueError):
     """The store is missing, not a Persona store, or inconsistent."""
 
 
+class StoreUnreadable(StoreError):
+    """The store cannot be opened at all (its root is damaged, or it is not a Persona store): running again
+    as it is cannot help."""
+
+
 def open_store(url: str, mode: str = "a") -> zarr.Group:
     """Open (or create, with mode "a") a Persona store at a local path or fsspec URL (an ``s3://``
     URL with the storage options of :mod:`persona.stores.storage`)."""
@@ -62,11 +67,14 @@ def open_store(url: str, mode: str = "a") -> zarr.Group:
         storage.check(url, "store")  # a missing bucket, an unreachable endpoint, refused credentials
         if isinstance(exc, FileNotFoundError):
             raise StoreError(f"no Persona store at {url}: run `persona run WORKFLOW` first") from None
-        raise StoreError(f"cannot open {url} as a Zarr v3 store: {exc}") from exc
+        raise StoreUnreadable(f"cannot open {url} as a Zarr v3 store ({type(exc).__name__}: {exc}): its root "
+                              "metadata (zarr.json) is damaged or not Zarr's; restore it, or move the store aside "
+                              "and run again to make it anew") from exc
     if mode != "r" and "persona" not in root.attrs:
         root.attrs["persona"] = {"layout": LAYOUT_VERSION}
     if "persona" not in root.attrs:
-        raise StoreError(f"{url} is a Zarr store but not a Persona store (no 'persona' attribute)")
+        raise StoreUnreadable(f"{url} is a Zarr store but not a Persona store (no 'persona' attribute): set "
+                              "store: to another path")
     return root
 
 

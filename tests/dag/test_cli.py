@@ -160,3 +160,16 @@ def test_validate_json_gives_the_resolved_workflow_and_the_counts(tmp_path, caps
     out = json.loads(capsys.readouterr().out)
     assert out["valid"] and out["counts"] == {"puppet": 3}
     assert out["resolved"]["stages"]["landmarks"]["backend"] == "dlib"  # defaults filled in
+
+
+def test_a_store_whose_root_is_damaged_stops_with_what_to_do_and_no_resume_advice(tmp_path, capsys):
+    """A run cannot mend a store whose root zarr.json is not JSON: the message says what will (restore it, or
+    move the store aside), and the "resume with" advice, which would fail the same way, is not given."""
+    (tmp_path / "photos").mkdir()
+    (tmp_path / "photos" / "a.png").write_bytes(b"")
+    (tmp_path / "run.zarr").mkdir()
+    (tmp_path / "run.zarr" / "zarr.json").write_text("{ not json")
+    (tmp_path / "wf.yaml").write_text("version: 1\nname: broken\nstore: run.zarr\noutput: out\npuppet: {photos: photos}\n")
+    assert cli(["run", str(tmp_path / "wf.yaml"), "--scheduler", "sync", "--quiet"]) == 2
+    captured = capsys.readouterr()
+    assert "move the store aside" in captured.err and "resume with" not in captured.out + captured.err
