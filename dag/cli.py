@@ -131,6 +131,18 @@ def _resume_hint(args) -> None:
           + shlex.join(command), file=sys.stderr)
 
 
+def _identity_line(ev: dict, key: str, of: str) -> str:
+    """"B and not A" for the console, or why it is not judged (dlib sees B and A as one person: a
+    self-reenactment), with the self-reenactment's PSNR where there is one."""
+    from .report import identity_caveat
+
+    if not identity_caveat(ev):
+        return f"B and not A {ev['identity'][key]:.0%} {of}"
+    own = ev.get("self_reenactment", {})
+    psnr = f"; self-reenactment {own['psnr_db_composite']:.1f} dB on the composite" if "psnr_db_composite" in own else ""
+    return f"B and not A: not judged (dlib sees B and A as one person){psnr}"
+
+
 def _print_report(report: dict) -> None:
     for path, c in report["collections"].items():
         print(f"{path}: {c['accepted']} of {c['n_photos']} {item(path)}s aligned")
@@ -139,13 +151,16 @@ def _print_report(report: dict) -> None:
     for name, file in report.get("videos", {}).items():
         print(f"{name} video: {file}")
     for name, d in report.get("drives", {}).items():  # a version-2 batch: a line per drive
-        amplitude = d["evaluation"]["amplitude"]
-        print(f"{name}: B and not A {d['evaluation']['identity']['fraction_b_not_a_composite']:.0%} of composite "
-              "frames; gains " + ", ".join(f"{k.replace('_', ' ')} {a['gain']:.2f}" for k, a in amplitude.items())
+        if "evaluation" not in d:
+            print(f"{name}: failed: {d.get('error')}")
+            continue
+        ev = d["evaluation"]
+        print(f"{name}: {_identity_line(ev, 'fraction_b_not_a_composite', 'of composite frames')}; gains "
+              + ", ".join(f"{k.replace('_', ' ')} {a['gain']:.2f}" for k, a in ev["amplitude"].items())
               + f" — {d['report']}")
     if "evaluation" in report:
         ev = report["evaluation"]
-        print(f"frames that are B and not A: {ev['identity']['fraction_b_not_a']:.1%}; "
+        print(f"{_identity_line(ev, 'fraction_b_not_a', 'of frames')}; "
               f"mouth opening: correlation {ev['expression']['mouth_open']:.2f}, "
               f"gain {ev['amplitude']['mouth_open']['gain']:.2f} (1 = the driver's amplitude)")
     print(f"report: {report['report']}")

@@ -397,11 +397,20 @@ def write_report(path, *, metrics: dict, pictures: dict[str, np.ndarray], strip:
     timing += [(f"{c}: subspace, alignment, shape and texture (wall s)", v["shape_seconds"])
                for c, v in metrics.get("collections", {}).items() if v.get("shape_seconds") is not None]
     extra = [(k, v) for k, v in metrics.get("speed", {}).items()]
-    parts += ["<h2>Counts and timing</h2>", _table(counts + extra + timing),
+    parts += ["<h2>Counts and timing</h2>", _table(counts + extra + timing), *rejected_section(metrics),
               "<details><summary>metrics.json</summary><pre>"
               + html.escape(json.dumps(metrics, indent=2, default=str)) + "</pre></details>"]
     media.write_bytes(path, _page("Persona report", parts).encode())
     return path
+
+
+def rejected_section(metrics: dict, shown: int = 12) -> list[str]:
+    """The report's list of rejected photos: per collection, each reason with how many photos it rejected
+    and their names (the first ``shown``); nothing when every photo was taken."""
+    rows = [(f"{c}: {reason}", f"{len(ids)}: " + ", ".join(ids[:shown]) + (f" and {len(ids) - shown} more"
+                                                                          if len(ids) > shown else ""))
+            for c, v in metrics.get("collections", {}).items() for reason, ids in v.get("rejections", {}).items()]
+    return ["<h2>Rejected photos</h2>", _table(rows)] if rows else []
 
 
 def _page(title: str, parts: list[str]) -> str:
@@ -452,13 +461,15 @@ def write_batch_page(wf, metrics: dict) -> Path | str:
         poster = frames_strip(drive, Collection(root, c.frames), side=160, at=[drive.n // 2])[:320]
         cells = [(f.format(v) if (v := _figure_at(d["evaluation"], path)) is not None else "–")
                  for _, path, f in _BATCH_FIGURES]
+        if identity_caveat(d["evaluation"]):  # dlib sees B and A as one person: no identity figure to give
+            cells[0] = "not judged (B is A to dlib)"
         rows.append(f"<tr><td>{title}</td><td>{_img(_png(poster), plan.name)}</td>"
                     + "".join(f"<td>{html.escape(v)}</td>" for v in cells) + "</tr>")
     parts = [f"<h1>Persona — {html.escape(wf.name)}: {len(rows)} drives</h1>",
              "<p>Each drive's headline figures: B and not A and the jitter (over the driver's, target ≤ 1) "
              "on composite.mp4's frames, the expression gains on the face alone (puppet.mp4; 1 = the "
              "driver's amplitude, target 0.7-1.4). A drive's name opens its report.</p>",
-             f"<table><tr>{head}</tr>{''.join(rows)}</table>"]
+             f"<table><tr>{head}</tr>{''.join(rows)}</table>", *rejected_section(metrics)]
     for title, image in collection_images(metrics).items():
         parts += [f"<h2>{html.escape(title)}</h2>", _img(_png(image), title, 480)]
     path = storage.join(wf.output, "index.html")

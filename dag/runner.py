@@ -28,7 +28,7 @@ from persona.plugins.manager import get_plugin_manager
 from persona.stores import lock, media, output, storage, verify
 from persona.stores.chunks import ChunkError
 from persona.stores.errors import InputError, PersonaError
-from persona.stores.layout import OK, PENDING, REJECTED, Cast, Collection, item, open_store
+from persona.stores.layout import OK, PENDING, REJECTED, Cast, Collection, item, open_store, rejections
 from persona.stores.provenance import Provenance, cache_key
 
 from . import stages as st
@@ -780,7 +780,7 @@ class Runner:
             shape_seconds = round(time.perf_counter() - t0, 3)
         accepted = int(st.accepted(coll).sum())
         return {"n_photos": coll.n, "accepted": accepted, "rejected": coll.n - accepted,
-                "pictures": pictures, "shape_seconds": shape_seconds}
+                "rejections": rejections(coll), "pictures": pictures, "shape_seconds": shape_seconds}
 
     def drive(self, plan) -> dict:
         """One drive: its stages, its videos and its evaluation (``videos``, ``speed``, ``evaluation``

@@ -292,6 +292,18 @@ def first_rejection(collection: Collection, stages: list[str]) -> tuple[np.ndarr
     return final, why
 
 
+def rejections(collection: Collection) -> dict[str, list[str]]:
+    """The ids of the rejected photos by the reason they were rejected for (the first stage that did),
+    the most common reason first: what ``metrics.json`` and the report list."""
+    stages = list(collection.attrs.get("stages", collection.stages()))
+    final, why = first_rejection(collection, stages)
+    ids = collection.array("photos/ids")[:]
+    out: dict[str, list[str]] = {}
+    for i in np.flatnonzero(final == REJECTED):
+        out.setdefault(why[i], []).append(str(ids[i]))
+    return dict(sorted(out.items(), key=lambda kv: -len(kv[1])))
+
+
 def summarize(url: str) -> dict:
     """What ``persona inspect`` shows: each collection's photo counts by outcome, the stages that
     built its arrays (and arrays left unfinished), its arrays, and for a person the drives that use it."""

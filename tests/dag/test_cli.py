@@ -173,3 +173,15 @@ def test_a_store_whose_root_is_damaged_stops_with_what_to_do_and_no_resume_advic
     assert cli(["run", str(tmp_path / "wf.yaml"), "--scheduler", "sync", "--quiet"]) == 2
     captured = capsys.readouterr()
     assert "move the store aside" in captured.err and "resume with" not in captured.out + captured.err
+
+
+def test_the_console_does_not_judge_identity_where_dlib_sees_one_person():
+    """A self-reenactment's summary line gives its PSNR, not "B and not A 0%", which would read as a failure."""
+    from persona.dag.cli import _identity_line
+
+    same = {"identity": {"mean_distance_to_a": 0.39, "mean_distance_to_b": 0.39, "fraction_b_not_a": 0.0},
+            "self_reenactment": {"psnr_db_composite": 26.78}}
+    line = _identity_line(same, "fraction_b_not_a", "of frames")
+    assert "not judged" in line and "26.8 dB" in line and "0%" not in line
+    apart = {"identity": {"mean_distance_to_a": 0.8, "mean_distance_to_b": 0.4, "fraction_b_not_a": 1.0}}
+    assert _identity_line(apart, "fraction_b_not_a", "of frames") == "B and not A 100% of frames"

@@ -86,10 +86,16 @@ def test_bad_input_collection_runs_to_completion(tmp_path, synthetic_photos):
     three = np.concatenate([synthetic_photos[i].image for i in (3, 4, 5)], axis=1)
     media.write_png(folder / "three_faces.png", three)
     wf = load_workflow(write_workflow(tmp_path, "photos"))
-    run_workflow(wf, scheduler="sync", progress=False)
+    report = run_workflow(wf, scheduler="sync", progress=False)
 
     summary = summarize(wf.store)["collections"]["puppet"]
     rejections = summary["rejections"]
+    # metrics.json and the report list the same rejections, by reason, with the photos' names
+    by_reason = report["collections"]["puppet"]["rejections"]
+    assert {photo: reason for reason, photos in by_reason.items() for photo in photos} == rejections
+    assert json.loads((Path(wf.output) / "metrics.json").read_text())["collections"]["puppet"]["rejections"] == by_reason
+    page = (Path(wf.output) / "report.html").read_text()
+    assert "Rejected photos" in page and "no_face" in page and "empty file" in page
     ids = {media.printable(Path(name).stem): name for name in expected}
     assert "bad\\xff\\xfename" in ids  # a name that is not UTF-8: its photo keeps a readable id
     for name, outcome in expected.items():
