@@ -27,6 +27,7 @@ import numpy as np
 from persona.plugins.face import mouth
 from persona.plugins.face.blend import (BlendCache, BlendTotals, gaussian_pyramid, level_bias, seen_mean,
                                         seen_sums)
+from persona.plugins.face.gaze import LOOK_VERSION
 from persona.plugins.face.template import CANONICAL_HEIGHT as H, CANONICAL_WIDTH as W
 from persona.plugins.face.texture import Aligned, to_grey, warped_basis
 from persona.plugins.kinds import Pose, TextureBackend, TexturePhotos
@@ -287,8 +288,8 @@ def run_frame_textures(runner, drive: Collection, puppet: Collection, retargeted
     texture = puppet.provenance("texture/neutral")
     source = texture if texture is not None else puppet.provenance("aligned/mean")
     prov = Provenance.make(stage="frame_texture", backend=source.backend, backend_version=source.backend_version,
-                           params=source.params, inputs={"texture": source.key, "retarget": retargeted.key,
-                                                         "gaze": gaze.key},
+                           params={**source.params, "look": LOOK_VERSION},
+                           inputs={"texture": source.key, "retarget": retargeted.key, "gaze": gaze.key},
                            persona_version=runner.version)
     if drive.made_by("texture/rgb", prov):
         return prov

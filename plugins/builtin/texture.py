@@ -174,7 +174,7 @@ class MultiscaleTexture(TextureBackend):
                                  "percentile on the self-reenactment: 0.87). 0.9 rather than 0.85 brings the "
                                  "self-reenactment's composite eye gain 0.92 -> 1.03 and Bush <- Obama's 0.69 -> "
                                  "0.71 (docs/expression.md)")
-        gaze: bool = Field(True, description="video mode: B's irises slide in their eyes' openings as far from "
+        gaze: bool = Field(True, description="video mode: B's eyes turn under their lids, the irises as far from "
                            "where they usually are as the driver's are from where the driver's usually are in the "
                            "clip, in eye widths (persona.plugins.face.gaze): the eyes look where the driver's look. "
                            "Not in the paper (false: B's irises stay where B's photos have them; docs/gaze.md)")
@@ -275,7 +275,7 @@ class MultiscaleTexture(TextureBackend):
             own = np.clip(sums.finish(totals, gains=gains, rows=range(f, 2 * f)), 0, 255)
             where = eyes.region(neutral, textures.shape[1:3])[..., None]
             textures += where * (own - textures)
-        if p.gaze and gaze is not None:  # the irises slid before a closing lid comes down over them
+        if p.gaze and gaze is not None:  # the eyes turned before a closing lid comes down over them
             for texture, shift in zip(textures, gaze):
                 texture[:] = look(texture, neutral, shift)
         if p.close_eyes if close_eyes is None else close_eyes:

@@ -12,10 +12,10 @@ through its neighbours). Its offset is taken from the middle of the eye's two co
 from corner to corner (u, positive towards the image's right) and across it (v, positive down), in
 eye widths: a measure that does not depend on the size of the face or its roll.
 
-Given (:func:`look`): B's texture's eye openings (at B's neutral fiducials, grown by a pixel) have
-their insides slid by the driver's offset from the driver's own usual gaze (the clip's median), times
-B's eye width: the iris slides in the opening, the white in front of it squeezed and behind it
-stretched, the corners and lids where they were.
+Given (:func:`look`): in B's texture (at B's neutral fiducials) each eye turns under its lids by the
+driver's offset from the driver's own usual gaze (the clip's median), times B's eye width: the iris, found
+there as above, moves as one disc, the white it leaves is filled in from the white around it, and it is
+drawn only inside the eye's opening, so that the lids cut an iris gone to a corner as they cut a real one.
 """
 
 from __future__ import annotations
@@ -123,56 +123,124 @@ def gaze_shift(offsets: np.ndarray) -> np.ndarray:
     return np.repeat(moved[:, None], 2, axis=1)
 
 
-def _slid(length: int, middle: float, move: float, rigid: float) -> np.ndarray:
-    """(length,) where each texel of a run of ``length`` texels takes its value from when the ``rigid``
-    texels either side of the run's ``middle`` (a position in it) move by ``move`` as one, the iris, and
-    the run's two ends stay: linear in between, never outside the run (the move and the rigid part are
-    made smaller where the run is too short for them)."""
-    x = np.arange(length, dtype=np.float64)
-    a, b = -0.5, length - 0.5
-    c = float(np.clip(middle, a + 1, b - 1))
-    m = float(np.clip(move, a + 1 - c, b - 1 - c))  # the middle stays in the run
-    r = max(min(rigid, c + m - a - 1, b - c - m - 1, c - a - 1, b - c - 1), 0.0)
-    return np.interp(x, [a, c - r + m, c + r + m, b], [a, c - r, c + r, b])
+#: what :func:`look` draws, as a version: a drive's frame textures record it and are made again when it changes
+LOOK_VERSION = "2"
+
+#: the disc moved as the iris (:func:`look`), over the iris the measure looks for: it takes the iris' dark rim
+#: and the blur around it along, so that none of it is left behind in the white
+DISC = 1.2
 
 
-def _runs(row: np.ndarray) -> list[tuple[int, int]]:
-    """[(start, stop)] of the runs of True in a 1-D bool array."""
-    edges = np.flatnonzero(np.diff(np.r_[0, row.astype(np.int8), 0]))
-    return list(zip(edges[::2], edges[1::2]))
+def _almond(points: np.ndarray, steps: int = 12, lower: float = 1.0) -> np.ndarray:
+    """(2 steps, 2) the outline of an eye's opening through its six points (6, 2): each lid the cubic, along
+    the eye's axis, through its two points and the corners, rather than the hexagon's straight sides, which
+    cut off the lids' curve at the corners; the lower lid ``lower`` px further out, where dlib's points lie a
+    little inside the white (the upper lid's are on its lashes)."""
+    origin, axis, width = _frame(points)
+    local = (np.asarray(points, np.float64) - origin) @ np.stack([axis, [-axis[1], axis[0]]]).T  # along, across
+    u = np.linspace(local[0, 0], local[3, 0], steps)
+    lids = [np.polyval(np.polyfit(local[idx, 0], local[idx, 1], 3), u) for idx in ([0, 1, 2, 3], [0, 5, 4, 3])]
+    lids[1] = lids[1] + lower * np.sin(np.pi * (u - u[0]) / max(u[-1] - u[0], 1e-9))  # none at the corners
+    outline = np.vstack([np.c_[u, lids[0]], np.c_[u[::-1], lids[1][::-1]]])
+    return origin + outline @ np.stack([axis, [-axis[1], axis[0]]])
 
 
-def look(texture: np.ndarray, neutral: np.ndarray, shift: np.ndarray, *, grow: int = 1) -> np.ndarray:
-    """``texture`` (H, W, 3) at the geometry of the fiducials ``neutral`` (49, 2), the inside of each eye's
-    opening (the polygon of its six fiducials grown by ``grow`` texels) slid by ``shift`` (2, 2): per eye,
-    along and across it, in its widths (:func:`gaze_shift`). Each row of the opening is slid along itself
-    (:func:`_slid`: the iris about the eye's middle moves by the shift along as one, the row's two ends, at
-    the lids and corners, stay), then each column across, inside the opening less a texel at its edge (its
-    lashes stay); a texel only ever takes another of the opening's."""
+def _coverage(shape: tuple[int, int], points: np.ndarray) -> np.ndarray:
+    """(h, w) float32 in [0, 1]: the share of each texel inside the polygon ``points`` (x, y), antialiased
+    (drawn 4 times finer and averaged down)."""
+    fine = np.zeros((shape[0] * 4, shape[1] * 4), np.uint8)
+    cv2.fillPoly(fine, [np.round((np.asarray(points) + 0.5) * 4 - 0.5).astype(np.int32)], 255)
+    return cv2.resize(fine, shape[::-1], interpolation=cv2.INTER_AREA).astype(np.float32) / 255
+
+
+def _disc(shape: tuple[int, int], centre: np.ndarray, radius: float) -> np.ndarray:
+    """(h, w) float32 in [0, 1]: a disc of ``radius`` texels about ``centre`` (x, y), its edge a texel wide."""
+    ys, xs = np.mgrid[0:shape[0], 0:shape[1]].astype(np.float32)
+    return np.clip(radius + 0.5 - np.hypot(xs - centre[0], ys - centre[1]), 0, 1)
+
+
+#: how many times :func:`look` turns an eye, each time by what the measure of the last one still missed
+PASSES = 3
+
+#: the smallest shift (eye widths, along or across) :func:`look` measures and turns again: below it the
+#: measure's own noise would move the iris from frame to frame
+MEASURED_FROM = 0.05
+
+
+def _turned(texture: np.ndarray, opening: np.ndarray, bare: np.ndarray, iris: np.ndarray,
+            move: np.ndarray) -> np.ndarray:
+    """``texture`` with the ``iris`` disc's texels (its weights, (h, w)) moved by ``move`` (x, y) over the eye
+    without it (``bare``), inside the ``opening`` (its coverage of each texel, (h, w)) alone."""
+    h, w = opening.shape
+    to = np.float32([[1, 0, move[0]], [0, 1, move[1]]])
+    moved = cv2.warpAffine(texture, to, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    alpha = cv2.warpAffine(iris * opening, to, (w, h), flags=cv2.INTER_LINEAR)[..., None]
+    inside = opening[..., None]  # the eye changes only inside its opening, its edge in proportion
+    return texture + inside * (bare * (1 - alpha) + moved * alpha - texture)
+
+
+def _white_behind(texture: np.ndarray, hole: np.ndarray, opening: np.ndarray) -> np.ndarray:
+    """``texture`` with the texels of ``hole`` (h, w) bool filled, row by row, from the eye's white either side
+    of it in the same row (the ``opening``'s texels outside the hole; linear between the nearest on each side,
+    the nearest one beyond the last): the white the iris leaves behind, without the lids' or lashes' colour
+    that filling from all around would bring into it. A row with no such texel (along a lid) takes the
+    nearest row's that had."""
+    out = np.array(texture, np.float32)
+    rows = np.flatnonzero(hole.any(axis=1))
+    filled = []
+    for y in rows:
+        white = np.flatnonzero(opening[y] & ~hole[y])
+        if len(white):
+            gap = np.flatnonzero(hole[y])
+            for c in range(out.shape[2]):
+                out[y, gap, c] = np.interp(gap, white, out[y, white, c])
+            filled.append(y)
+    for y in np.setdiff1d(rows, filled) if filled else ():
+        gap = np.flatnonzero(hole[y])
+        out[y, gap] = out[filled[int(np.argmin(np.abs(np.asarray(filled) - y)))], gap]
+    return out
+
+
+def look(texture: np.ndarray, neutral: np.ndarray, shift: np.ndarray) -> np.ndarray:
+    """``texture`` (H, W, 3) at the geometry of the fiducials ``neutral`` (49, 2) with each eye looking
+    ``shift`` (2, 2) away from where it does: per eye, along and across it, in its widths (:func:`gaze_shift`).
+    The eye turns under its lids: the iris, found in the texture (:func:`iris_offset`; the eye's middle where it
+    cannot be) as a disc ``DISC`` times the measured iris across, moves as one, the white it leaves is filled
+    in from the white either side of it (:func:`_white_behind`), and it is drawn again only inside the eye's opening (through
+    its six fiducials, :func:`_almond`, antialiased): the lids cut an iris gone towards a corner or a lid as they cut
+    a real one. What the measure then finds has moved less than the iris (the lids hide part of it, as they hid
+    part of the driver's), so an eye asked to look ``MEASURED_FROM`` or more away is measured and turned again by what
+    is missing, up to ``PASSES`` times, the best kept (no further than 1.5 times what was asked; never where
+    the measure does not follow the iris, as on a light one: there the eye is turned as asked). The lids, the corners and the skin stay."""
     shift = np.asarray(shift, np.float64)
     if not np.any(shift):
         return texture
     out = np.array(texture, np.float32)
     h, w = out.shape[:2]
-    for eye, (du, dv) in zip(EYES49, shift):
+    for eye, wanted in zip(EYES49, shift):
         points = np.asarray(neutral, np.float64)[list(eye)]
-        if (du == 0 and dv == 0) or not np.isfinite(points).all():
+        if not np.any(wanted) or not np.isfinite(points).all():
             continue
-        origin, _, width = _frame(points)
-        opening = np.zeros((h, w), np.uint8)
-        cv2.fillPoly(opening, [np.round(points * 4).astype(np.int32)], 1, shift=2)
-        if grow:
-            opening = cv2.dilate(opening, np.ones((2 * grow + 1, 2 * grow + 1), np.uint8))
-        inside = opening > 0
-        for move, middle, along_rows in ((du * width, origin[0], True), (dv * width, origin[1], False)):
-            if move == 0:
-                continue
-            mx, my = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
-            # across, the opening less its edge: the lashes along the lids are not stretched down into it
-            lines = inside if along_rows else (cv2.erode(opening, np.ones((3, 3), np.uint8)) > 0).T
-            target = mx if along_rows else my.T
-            for k in np.flatnonzero(lines.any(axis=1)):
-                for a, b in _runs(lines[k]):
-                    target[k, a:b] = a + _slid(b - a, middle - a, move, IRIS * width / 2)
-            out = cv2.remap(out, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        origin, axis, width = _frame(points)
+        frame = np.stack([axis, [-axis[1], axis[0]]]) * width  # rows: one eye width along it, and across (down)
+        found = iris_offset(np.clip(out, 0, 255).round().astype(np.uint8), points)
+        start = np.nan_to_num(found)
+        opening = _coverage((h, w), _almond(points))
+        iris = _disc((h, w), origin + start @ frame, DISC * IRIS * width / 2)
+        bare = _white_behind(out, cv2.dilate((iris * opening > 0).astype(np.uint8), np.ones((3, 3), np.uint8)) > 0,
+                             opening > 0.5)
+        wanted = np.asarray(wanted, np.float64)
+        move, best, least = wanted, None, np.inf
+        for _ in range(PASSES if np.abs(wanted).max() >= MEASURED_FROM and np.isfinite(found).all() else 1):
+            turned = _turned(out, opening, bare, iris, move @ frame)
+            best = turned if best is None else best  # the first pass, as asked, unless a later one does better
+            seen = iris_offset(np.clip(turned, 0, 255).round().astype(np.uint8), points) - start
+            if np.isnan(seen).any() or seen @ wanted < 0.5 * (wanted @ wanted):
+                break  # a measure that does not follow the iris (a light iris, dark lashes): keep what was asked
+            miss = wanted - seen
+            if np.abs(miss).max() >= least:
+                break
+            best, least = turned, np.abs(miss).max()
+            move = np.clip(move + miss, -1.5 * np.abs(wanted) - 0.02, 1.5 * np.abs(wanted) + 0.02)
+        out = best
     return out
