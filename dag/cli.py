@@ -163,6 +163,8 @@ def _print_report(report: dict) -> None:
         print(f"{_identity_line(ev, 'fraction_b_not_a', 'of frames')}; "
               f"mouth opening: correlation {ev['expression']['mouth_open']:.2f}, "
               f"gain {ev['amplitude']['mouth_open']['gain']:.2f} (1 = the driver's amplitude)")
+    for warning in report.get("warnings", []):
+        print(f"warning: {warning}")
     print(f"report: {report['report']}")
 
 

@@ -233,9 +233,38 @@ class WorkerSetup(WorkerPlugin):
         malloc_for_arrays()
         storage.configure(self.options)
         no_profile(worker)
+        quiet_handled_failures()
 
     def __repr__(self) -> str:  # no secrets in logs
         return "WorkerSetup(...)"
+
+
+def _handled(cls=PersonaError) -> set[str]:
+    """The names of the errors a run handles itself, with one line of its own: Persona's and a rejection."""
+    return {cls.__name__, *(name for sub in cls.__subclasses__() for name in _handled(sub))}
+
+
+class _HandledFailures(logging.Filter):
+    """Drops a worker's "Compute Failed" log record (the task, its exception and its traceback) when the
+    exception is one the run handles itself (:func:`_handled`): the run says it in one line, and the dump
+    before it reads as a crash. A task's unexpected error is still logged in full."""
+
+    def __init__(self):
+        super().__init__()
+        self.names = _handled() | {Rejected.__name__}
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if not str(record.msg).startswith("Compute Failed") or not isinstance(record.args, tuple):
+            return True
+        text = str(record.args[3]) if len(record.args) > 3 else ""
+        return not any(text.startswith(f"{name}(") for name in self.names)
+
+
+def quiet_handled_failures() -> None:
+    """Install :class:`_HandledFailures` on this process's Dask worker log (once)."""
+    worker_log = logging.getLogger("distributed.worker")
+    if not any(isinstance(f, _HandledFailures) for f in worker_log.filters):
+        worker_log.addFilter(_HandledFailures())
 
 
 def no_profile(worker) -> None:

@@ -693,3 +693,15 @@ def test_a_1080p_clip_keeps_its_size(tmp_path):
         runner.run_photo_stages(coll, video)
         assert coll.attrs["canvas"] == expected
         assert [list(s) for s in coll.array("photos/size")[:]] == [expected, expected]
+
+
+def test_a_failure_the_run_handles_is_one_line_not_a_workers_traceback(tmp_path, synthetic_photos, capfd):
+    """Five photos, too few for a shape, on two local Dask workers: the run says so in one line, and the
+    worker's "Compute Failed" dump of the task, its exception and its traceback is not printed before it."""
+    write_photos(tmp_path / "photos", synthetic_photos[:5])
+    path = write_workflow(tmp_path, "photos", stages={"landmarks": {"backend": "sidecar"}},
+                          cluster={"scheduler": "local", "workers": 2})
+    assert cli(["run", str(path), "--quiet"]) == 0
+    captured = capfd.readouterr()
+    assert "warning: puppet: no 3D shape: shape: 5 images, need at least 8" in captured.out
+    assert "Compute Failed" not in captured.out + captured.err and "Traceback" not in captured.err
