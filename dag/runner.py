@@ -661,10 +661,12 @@ class Runner:
     def run(self, inputs: dict[str, list[media.Source]]) -> dict:
         """Every stage of the workflow on its resolved ``inputs`` (:func:`resolve_inputs`).
 
-        Chunks of finished arrays that are lost (checked before the stages start, by listing the
-        store) or found damaged on the way (a :class:`ChunkError`) are recomputed, with everything
-        made from them: :mod:`persona.stores.verify`, one logged line per problem."""
-        self.recover(verify.check(self.root))
+        Chunks of finished arrays that are lost or damaged (checked before the stages start: every
+        chunk listed and read back against its checksum, as ``persona inspect --verify`` does) or found
+        damaged on the way (a :class:`ChunkError`) are recomputed, with everything made from them:
+        :mod:`persona.stores.verify`, one logged line per problem. A run that ends well leaves a store
+        that verifies, the arrays no stage reads again (a drive's composite) included."""
+        self.recover(verify.check(self.root, read=True))
         met = set()
         while True:
             try:

@@ -102,3 +102,21 @@ def test_a_damaged_chunk_read_outside_a_run_is_an_error_that_says_what_to_do(fin
     message = str(caught.value)
     assert message.startswith("puppet/pose: shard 0 (photos 0–3) cannot be read")
     assert "persona inspect --verify" in message and "run the workflow again" in message.lower()
+
+
+def test_a_damaged_chunk_of_an_array_no_stage_reads_again_is_recomputed_by_a_rerun(finished, copy, caplog, capsys):
+    """B's neutral texture is the texture stage's last output: nothing in a run reads it back. Damaged, the
+    re-run finds it before its stages start (it reads every chunk back, as ``inspect --verify`` does), makes it
+    again, and leaves a store that verifies, equal to the undamaged run's."""
+    chunk = next((copy / "run.zarr/puppet/texture/neutral/c").rglob("*"))
+    while chunk.is_dir():
+        chunk = next(chunk.rglob("*"))
+    data = bytearray(chunk.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    chunk.write_bytes(data)
+    capsys.readouterr()
+    assert cli(["inspect", "--verify", str(copy / "run.zarr")]) == 1
+    log = _rerun(copy, caplog)
+    assert "puppet/texture/neutral" in log and "damaged" in log
+    assert cli(["inspect", "--verify", str(copy / "run.zarr")]) == 0
+    assert_same_store(copy / "run.zarr", finished / "run.zarr")
