@@ -139,7 +139,8 @@ def _identity_line(ev: dict, key: str, of: str) -> str:
     if not identity_caveat(ev):
         return f"B and not A {ev['identity'][key]:.0%} {of}"
     own = ev.get("self_reenactment", {})
-    psnr = f"; self-reenactment {own['psnr_db_composite']:.1f} dB on the composite" if "psnr_db_composite" in own else ""
+    psnr = (f"; self-reenactment {own['psnr_db_composite']:.1f} dB on the composite"
+            if "psnr_db_composite" in own else "")
     return f"B and not A: not judged (dlib sees B and A as one person){psnr}"
 
 

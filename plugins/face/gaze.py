@@ -14,7 +14,7 @@ eye widths: a measure that does not depend on the size of the face or its roll.
 
 Given (:func:`look`): in B's texture (at B's neutral fiducials) each eye turns under its lids by the
 driver's offset from the driver's own usual gaze (the clip's median), times B's eye width: the iris, found
-there as above, moves as one disc, the white it leaves is filled in from the white around it, and it is
+there as above, moves as one disc, the white it leaves is filled in from the white beside it, and it is
 drawn only inside the eye's opening, so that the lids cut an iris gone to a corner as they cut a real one.
 """
 
@@ -204,14 +204,17 @@ def _white_behind(texture: np.ndarray, hole: np.ndarray, opening: np.ndarray) ->
 def look(texture: np.ndarray, neutral: np.ndarray, shift: np.ndarray) -> np.ndarray:
     """``texture`` (H, W, 3) at the geometry of the fiducials ``neutral`` (49, 2) with each eye looking
     ``shift`` (2, 2) away from where it does: per eye, along and across it, in its widths (:func:`gaze_shift`).
-    The eye turns under its lids: the iris, found in the texture (:func:`iris_offset`; the eye's middle where it
-    cannot be) as a disc ``DISC`` times the measured iris across, moves as one, the white it leaves is filled
-    in from the white either side of it (:func:`_white_behind`), and it is drawn again only inside the eye's opening (through
-    its six fiducials, :func:`_almond`, antialiased): the lids cut an iris gone towards a corner or a lid as they cut
-    a real one. What the measure then finds has moved less than the iris (the lids hide part of it, as they hid
-    part of the driver's), so an eye asked to look ``MEASURED_FROM`` or more away is measured and turned again by what
-    is missing, up to ``PASSES`` times, the best kept (no further than 1.5 times what was asked; never where
-    the measure does not follow the iris, as on a light one: there the eye is turned as asked). The lids, the corners and the skin stay."""
+
+    The eye turns under its lids: the iris, found in the texture (:func:`iris_offset`; the eye's middle where
+    it cannot be) as a disc ``DISC`` times the measured iris across, moves as one; the white it leaves is
+    filled from the white either side of it (:func:`_white_behind`); and it is drawn again only inside the
+    eye's opening (through its six fiducials, :func:`_almond`, antialiased), so that the lids cut an iris
+    gone towards a corner or a lid as they cut a real one. What the measure then finds has moved less than
+    the iris (the lids hide part of it, as they hid part of the driver's), so an eye asked to look
+    ``MEASURED_FROM`` or more away is measured and turned again by what is missing, up to ``PASSES`` times,
+    the best kept, never further than 1.5 times what was asked; where the measure does not follow the iris
+    (a light one, whose darkest disc is the lashes) it is turned once, as asked. The lids, the corners and
+    the skin stay."""
     shift = np.asarray(shift, np.float64)
     if not np.any(shift):
         return texture
