@@ -131,18 +131,23 @@ LOOK_VERSION = "2"
 DISC = 1.2
 
 
+def _axes(axis: np.ndarray) -> np.ndarray:
+    """(2, 2): an eye's unit axis from corner to corner and the unit across it (down the face), as rows."""
+    return np.stack([axis, [-axis[1], axis[0]]])
+
+
 def _almond(points: np.ndarray, steps: int = 12, lower: float = 1.0) -> np.ndarray:
     """(2 steps, 2) the outline of an eye's opening through its six points (6, 2): each lid the cubic, along
     the eye's axis, through its two points and the corners, rather than the hexagon's straight sides, which
     cut off the lids' curve at the corners; the lower lid ``lower`` px further out, where dlib's points lie a
     little inside the white (the upper lid's are on its lashes)."""
     origin, axis, width = _frame(points)
-    local = (np.asarray(points, np.float64) - origin) @ np.stack([axis, [-axis[1], axis[0]]]).T  # along, across
+    local = (np.asarray(points, np.float64) - origin) @ _axes(axis).T  # along, across
     u = np.linspace(local[0, 0], local[3, 0], steps)
     lids = [np.polyval(np.polyfit(local[idx, 0], local[idx, 1], 3), u) for idx in ([0, 1, 2, 3], [0, 5, 4, 3])]
     lids[1] = lids[1] + lower * np.sin(np.pi * (u - u[0]) / max(u[-1] - u[0], 1e-9))  # none at the corners
     outline = np.vstack([np.c_[u, lids[0]], np.c_[u[::-1], lids[1][::-1]]])
-    return origin + outline @ np.stack([axis, [-axis[1], axis[0]]])
+    return origin + outline @ _axes(axis)
 
 
 def _coverage(shape: tuple[int, int], points: np.ndarray) -> np.ndarray:
@@ -225,7 +230,7 @@ def look(texture: np.ndarray, neutral: np.ndarray, shift: np.ndarray) -> np.ndar
         if not np.any(wanted) or not np.isfinite(points).all():
             continue
         origin, axis, width = _frame(points)
-        frame = np.stack([axis, [-axis[1], axis[0]]]) * width  # rows: one eye width along it, and across (down)
+        frame = _axes(axis) * width  # rows: one eye width along it, and across (down)
         found = iris_offset(np.clip(out, 0, 255).round().astype(np.uint8), points)
         start = np.nan_to_num(found)
         opening = _coverage((h, w), _almond(points))

@@ -12,6 +12,8 @@ import pytest
 from persona.dag.cli import main as cli
 from persona.dag.runner import persona_version
 
+from pipeline import write_workflow
+
 ROOT = Path(__file__).resolve().parents[2]
 
 
@@ -169,8 +171,7 @@ def test_a_store_whose_root_is_damaged_stops_with_what_to_do_and_no_resume_advic
     (tmp_path / "photos" / "a.png").write_bytes(b"")
     (tmp_path / "run.zarr").mkdir()
     (tmp_path / "run.zarr" / "zarr.json").write_text("{ not json")
-    (tmp_path / "wf.yaml").write_text("version: 1\nname: broken\nstore: run.zarr\noutput: out\npuppet: {photos: photos}\n")
-    assert cli(["run", str(tmp_path / "wf.yaml"), "--scheduler", "sync", "--quiet"]) == 2
+    assert cli(["run", str(write_workflow(tmp_path, "photos")), "--scheduler", "sync", "--quiet"]) == 2
     captured = capsys.readouterr()
     assert "move the store aside" in captured.err and "resume with" not in captured.out + captured.err
 

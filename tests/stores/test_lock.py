@@ -12,6 +12,8 @@ import pytest
 
 from persona.stores import lock, storage
 
+from pipeline import write_workflow
+
 
 def _leave(url, **fields) -> None:
     """A lock file as a run leaves it, with ``fields`` over a live one of this process."""
@@ -65,12 +67,11 @@ def test_persona_run_on_a_locked_store_stops_before_any_work(tmp_path, capsys):
     from persona.dag.cli import main
 
     tmp_path.joinpath("photos").mkdir()
-    tmp_path.joinpath("wf.yaml").write_text(
-        "version: 1\nname: locked\nstore: run.zarr\noutput: out\npuppet: {photos: photos}\n")
     (tmp_path / "photos" / "a.png").write_bytes(b"")
+    path = write_workflow(tmp_path, "photos")
     url = str(tmp_path / "run.zarr")
     with lock.writer(url):
-        assert main(["run", str(tmp_path / "wf.yaml"), "--scheduler", "sync", "--quiet"]) == 2
+        assert main(["run", str(path), "--scheduler", "sync", "--quiet"]) == 2
     err = capsys.readouterr().err
     assert "is being written by another run" in err and "resume with" not in err
     assert sorted(p.name for p in (tmp_path / "run.zarr").iterdir()) == []  # nothing created in it

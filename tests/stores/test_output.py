@@ -7,6 +7,8 @@ import pytest
 
 from persona.stores import output
 
+from pipeline import write_workflow
+
 
 def test_a_folder_of_someone_elses_files_is_not_written(tmp_path):
     folder = tmp_path / "out"
@@ -45,8 +47,7 @@ def test_persona_run_into_someone_elses_folder_stops_before_any_work(tmp_path, c
     (tmp_path / "photos" / "a.png").write_bytes(b"")
     (tmp_path / "out").mkdir()
     (tmp_path / "out" / "report.html").write_text("<p>my own report</p>")
-    (tmp_path / "wf.yaml").write_text("version: 1\nname: taken\nstore: run.zarr\noutput: out\npuppet: {photos: photos}\n")
-    assert main(["run", str(tmp_path / "wf.yaml"), "--scheduler", "sync", "--quiet"]) == 2
+    assert main(["run", str(write_workflow(tmp_path, "photos")), "--scheduler", "sync", "--quiet"]) == 2
     err = capsys.readouterr().err
     assert "--force" in err and "resume with" not in err
     assert not (tmp_path / "run.zarr" / "zarr.json").exists()  # no work started
