@@ -59,7 +59,7 @@ from .stages import RENDER_3D, accepted, render_alpha
 
 #: the figures' version: a run keeps its last evaluation only when this is the same (raise it whenever a
 #: figure is added or computed differently)
-VERSION = 3
+VERSION = 4
 
 
 def _identity(spec: tuple[str, dict]):
@@ -104,6 +104,7 @@ def analyse_frames(url: str, start: int, stop: int, identity: tuple[str, dict], 
     psnr, ssim = np.full((n, 2), np.nan), np.full((n, 2), np.nan)  # the render's, the composite's
     irises = np.full((n, 3, 2, 2), np.nan)  # where the eyes look: the driver's, the face alone's, the composite's
     seams = {"blend": [], "paste": []}
+    sharp = []  # every 4th frame: the face alone's and the composite's fine detail over the driver's face
     for j in range(n):
         alpha = render_alpha(alphas[j])
         face = composite.alone(rendered[j], alpha)  # as puppet.mp4 shows it
@@ -127,6 +128,8 @@ def analyse_frames(url: str, start: int, stop: int, identity: tuple[str, dict], 
             for name, found in composite.seams(rendered[j], original[j], alpha, blended).items():
                 if found is not None:
                     seams[name].append([found["colour_step"], found["gradient_ratio"]])
+            if masks[j].any():
+                sharp.append([ev.sharpness(image, original[j], masks[j]) for image in (face, blended)])
     face = generic_template().mask  # B's synthesized textures and A's frontalized frames, canonical
     texture_change = ev.frame_changes(drive.array("texture/rgb")[start:stop], face)
     driver_change = ev.frame_changes(frames.array("aligned/rgb")[start:stop], face)
@@ -134,6 +137,7 @@ def analyse_frames(url: str, start: int, stop: int, identity: tuple[str, dict], 
             "descriptors": descriptors, "psnr": psnr, "ssim": ssim, "irises": irises,
             "texture_change": texture_change, "driver_change": driver_change,
             **{f"seam_{k}": np.array(v).reshape(-1, 2) for k, v in seams.items()},
+            "sharpness": np.array(sharp).reshape(-1, 2),
             "colour_output": ev.masked_mean_colours(rendered, skin),
             "colour_composite": ev.masked_mean_colours(composites, skin),
             "colour_driver": ev.masked_mean_colours(original, skin)}
@@ -212,6 +216,8 @@ def evaluate(store: str, executor, *, identity: tuple[str, dict], threshold: flo
         "gaze": gaze_figures(joined["irises"]),
         "held": held_figures(root, cast, driver_landmarks, joined["landmarks"], joined["composite_landmarks"]),
         "stability": stability,
+        "sharpness": {"face_alone": _median(joined["sharpness"][:, 0]),
+                      "composite": _median(joined["sharpness"][:, 1])},
         "composite": {k: {"colour_step": _median(joined[f"seam_{k}"][:, 0]),
                           "gradient_ratio": _median(joined[f"seam_{k}"][:, 1])} for k in ("blend", "paste")},
         "frames": drive.n,

@@ -208,6 +208,9 @@ def figure_rows(ev: dict) -> list[tuple]:
         rows += [(f"composite seam ({how}): {label}", f[key],
                   f"{good}; target ≤ {aim}" if ours else f"{good} (a plain paste, for comparison)",
                   (None, hi) if ours else None) for label, key, good, aim, hi in _SEAM]
+    rows += [(f"sharpness: {k.replace('_', ' ')}", v, "fine detail over the driver's own face in its frame, at the "
+              "video's size (σ 1-2 px); 1 = as sharp" + ("; target ≥ 0.8" if k == "face_alone" else ""),
+              (0.8, None) if k == "face_alone" else None) for k, v in ev.get("sharpness", {}).items()]
     texture = ev.get("texture", {})
     rows += [(f"texture tears: {k.replace('_', ' ')}", v, "lower is better; the ratio (frames over B's photos) "
               "target ≤ 1" if k == "ratio" else "lower is better", (None, 1.0) if k == "ratio" else None)

@@ -590,6 +590,32 @@ def detail_energy(image, mask, iod: float | None = None) -> float:
     return float(1000 * np.mean(band[inside] ** 2)) if inside.any() else float("nan")
 
 
+#: how far inside the rendered face's edge (px) :func:`sharpness` looks: the mask's feather and the
+#: composite's seam are not the face's detail
+SHARPNESS_INSET = 4
+
+
+def sharpness(image, reference, mask) -> float:
+    """How sharp ``image`` is beside ``reference`` (both (h, w, 3), 0-255) inside ``mask`` (h, w) less its
+    outer SHARPNESS_INSET px: the ratio of their :func:`detail_energy` at the images' own scale (σ 1 and
+    2 px, whatever the face's size), the fine detail a viewer sees at the video's resolution, each over its
+    mean grey squared there, so that a face lit darker (B's skin under A's light) is as sharp as before.
+    1 = as sharp as the reference (the driver's own face in its frame); a blur or a texture finer than the
+    frame shows lowers it, ringing and noise raise it. NaN where nothing is left of the mask or the
+    reference is flat."""
+    inset = 2 * SHARPNESS_INSET + 1
+    inside = cv2.erode(np.asarray(mask, np.uint8), np.ones((inset, inset), np.uint8)) > 0
+    if not inside.any():
+        return float("nan")
+
+    def contrast(picture) -> float:
+        grey = float((np.asarray(picture, np.float32)[inside] @ np.float32([0.299, 0.587, 0.114])).mean()) / 255
+        return detail_energy(picture, inside, iod=DETAIL_IOD) / max(grey, 1e-3) ** 2
+
+    theirs = contrast(reference)
+    return contrast(image) / theirs if theirs > 0 else float("nan")
+
+
 # --------------------------------------------------------------------------- identity figures
 
 

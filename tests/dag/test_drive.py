@@ -171,6 +171,9 @@ def test_evaluate_command_prints_json(drive_run, capsys):
     assert result["expression"]["mouth_open"] == pytest.approx(report["evaluation"]["expression"]["mouth_open"], nan_ok=True)
     assert set(result["held"]) == set(result["amplitude"])  # each signal held: driver, face alone, composite
     assert all(set(h) == {"driver", "output", "composite"} for h in result["held"].values())
+    # the synthetic puppet, its texture about the size the frame shows it, lighter than the driver: a little
+    # softer than the driver's face (0.58-0.75 on its frames), not twice as sharp for being lighter
+    assert all(0.4 < v < 1.2 for v in result["sharpness"].values()), result["sharpness"]
 
 
 def test_identity_judged_on_a_few_frames_gives_every_frames_own_distances(drive_run):

@@ -508,6 +508,26 @@ def test_detail_energy_falls_with_blur(canonical_photos):
     assert 0 < blurred < 0.7 * sharp  # measured 0.12
 
 
+def test_sharpness_is_the_outputs_fine_detail_over_the_real_faces():
+    """The driver's own face is 1 exactly, and so is it lit half as bright; blurred by σ 1 px (a texture upsampled about twice) it falls
+    under the issue's 0.8, by σ 2 px under 0.3; what lies outside the face or on its outer 4 px (the mask's
+    feather, the composite's seam) does not count; a face with nothing inside its inset mask has none."""
+    rng = np.random.default_rng(2)
+    real = np.clip(128 + sum(cv2.GaussianBlur(rng.normal(0, 40, (160, 160, 3)), (0, 0), s) * s
+                             for s in (0.7, 1.5, 4.0)), 0, 255).astype(np.uint8)
+    face = np.zeros((160, 160), bool)
+    face[30:130, 40:120] = True
+    assert ev.sharpness(real, real, face) == pytest.approx(1.0)
+    assert ev.sharpness((real * 0.5).astype(np.uint8), real, face) == pytest.approx(1.0, abs=0.02)  # lit darker
+    soft, softer = (ev.sharpness(cv2.GaussianBlur(real, (0, 0), s), real, face) for s in (1.0, 2.0))
+    assert 0.3 < soft < 0.8 and softer < 0.3, (soft, softer)
+    elsewhere = real.copy()
+    elsewhere[~face] = 0
+    elsewhere[30:34] = 255  # the face's top 4 rows: its edge
+    assert ev.sharpness(elsewhere, real, face) == pytest.approx(1.0)
+    assert np.isnan(ev.sharpness(real, real, np.pad(np.ones((8, 8), bool), 76)))
+
+
 def test_the_edge_of_a_face_cut_out_on_black_is_neither_detail_nor_a_tear(canonical_photos):
     """A frontalized photo is 0 beyond its view. The same photo cut out on black and laid on mid-grey
     has the same detail and tears inside its view (to 1 %): the filters see the masked pixels alone.
