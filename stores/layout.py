@@ -235,8 +235,11 @@ class Collection:
 
     # -- status ------------------------------------------------------------------
     def create_status(self, stage: str, provenance: Provenance) -> None:
-        self.create(f"status/{stage}/state", (), np.int8, ("photo",), provenance, fill_value=PENDING)
+        """A stage's status, every photo pending. The reasons first: the state is what a run tests (made by
+        this stage's provenance?), so a run killed between the two leaves no state, and the next run makes
+        both again rather than meet a state without its reasons."""
         self.create(f"status/{stage}/reason", (), str, ("photo",), provenance, fill_value="")
+        self.create(f"status/{stage}/state", (), np.int8, ("photo",), provenance, fill_value=PENDING)
 
     def state(self, stage: str) -> np.ndarray:
         if not self.has(f"status/{stage}/state"):

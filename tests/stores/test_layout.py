@@ -80,3 +80,24 @@ def test_a_pending_array_counts_as_done_only_once_marked(tmp_path):
     arr[4:10] = 9
     coll.mark_done("texture/rgb", prov(a=1))
     assert coll.provenance("texture/rgb").key == prov(a=1).key
+
+
+def test_a_run_killed_while_it_makes_a_stages_status_leaves_no_state_without_its_reasons(tmp_path, monkeypatch):
+    """A run SIGKILLed between the two arrays of a stage's status (the chaos test's kill, as render3d
+    started): the state is what the next run tests, so it must not be there without the reasons. It was,
+    and every run after stopped at "status/render3d/reason is not in the store"."""
+    _, coll = make(tmp_path)
+    create, made = Collection.create, []
+
+    def killed_after_one(self, name, *args, **kwargs):
+        if made:
+            raise KeyboardInterrupt  # the kill
+        made.append(name)
+        return create(self, name, *args, **kwargs)
+
+    monkeypatch.setattr(Collection, "create", killed_after_one)
+    with pytest.raises(KeyboardInterrupt):
+        coll.create_status("render3d", prov("render3d"))
+    monkeypatch.undo()
+    again = Collection(open_store(str(tmp_path / "s.zarr"), mode="r"), "puppet")
+    assert made and not again.has("status/render3d/state")  # the next run makes the stage's status again
