@@ -8,6 +8,7 @@ cache key (backend, version, params, inputs) changed starts over.
 
 from __future__ import annotations
 
+import errno
 import json
 import logging
 import os
@@ -244,10 +245,26 @@ def _handled(cls=PersonaError) -> set[str]:
     return {cls.__name__, *(name for sub in cls.__subclasses__() for name in _handled(sub))}
 
 
+#: how a worker's log gives a task's error when the disk is full (the run says it in one line: ``persona run``)
+DISK_FULL = tuple(f"OSError({code}," for code in (errno.ENOSPC, errno.EDQUOT))
+
+
+def disk_full(exc: BaseException) -> bool:
+    """The disk (or the user's quota) is full."""
+    return isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT)
+
+
+def _stops_the_run(exc: BaseException) -> bool:
+    """An error that stops a whole version-2 run rather than failing the drives that need the person or
+    video it met: a damaged chunk (:meth:`Runner.run` recovers it and starts again) or a full disk, on which
+    no other person, video or drive can be written either (``persona run`` says so, once)."""
+    return isinstance(exc, ChunkError) or disk_full(exc)
+
+
 class _HandledFailures(logging.Filter):
     """Drops a worker's "Compute Failed" log record (the task, its exception and its traceback) when the
-    exception is one the run handles itself (:func:`_handled`): the run says it in one line, and the dump
-    before it reads as a crash. A task's unexpected error is still logged in full."""
+    exception is one the run handles itself (:func:`_handled`), or a full disk: the run says it in one line,
+    and the dump before it reads as a crash. A task's unexpected error is still logged in full."""
 
     def __init__(self):
         super().__init__()
@@ -257,7 +274,7 @@ class _HandledFailures(logging.Filter):
         if not str(record.msg).startswith("Compute Failed") or not isinstance(record.args, tuple):
             return True
         text = str(record.args[3]) if len(record.args) > 3 else ""
-        return not any(text.startswith(f"{name}(") for name in self.names)
+        return not any(text.startswith(f"{name}(") for name in self.names) and not text.startswith(DISK_FULL)
 
 
 def quiet_handled_failures() -> None:
@@ -745,10 +762,9 @@ class Runner:
             if isinstance(sources, InputError):
                 raise sources
             report["collections"][plan.path] = self.build_collection(plan, sources, report)
-        except ChunkError:
-            raise
         except Exception as exc:
-            log.error("%s: %s", plan.path, _why(exc))
+            if not _stops_the_run(exc):  # that one is said where the run stops
+                log.error("%s: %s", plan.path, _why(exc))
             raise
 
     def _run_drives(self, report: dict, builds: dict[str, Future]) -> dict[str, str]:
@@ -764,9 +780,9 @@ class Runner:
                 if cause:
                     raise RunError("; ".join(cause))
                 part = self.drive(plan)
-            except ChunkError:
-                raise
             except Exception as exc:  # one drive that fails does not take the others down
+                if _stops_the_run(exc):
+                    raise
                 failed[plan.name] = _why(exc)
                 log.error("drive %s failed: %s", plan.name, failed[plan.name])
                 report["drives"][plan.name] = {"output": str(plan.output), "error": failed[plan.name]}
@@ -883,9 +899,9 @@ class _OneByOne:
         future = Future()
         try:
             future.set_result(fn(*args))
-        except ChunkError:  # at once, as a thread's would stop the run (Runner.run recovers it)
-            raise
         except Exception as exc:  # raised where the drives wait for it (_built)
+            if _stops_the_run(exc):  # at once, as a thread's would stop the run
+                raise
             future.set_exception(exc)
         return future
 
@@ -895,9 +911,9 @@ class _OneByOne:
 
 def _built(build: Future) -> str | None:
     """Waits for a collection's build (:meth:`Runner._build`): None when it is built, else why not. A
-    damaged chunk met there is raised, for :meth:`Runner.run` to recover."""
+    damaged chunk met there is raised, for :meth:`Runner.run` to recover, and so is a full disk."""
     exc = build.exception()
-    if isinstance(exc, ChunkError) or (exc is not None and not isinstance(exc, Exception)):
+    if exc is not None and (not isinstance(exc, Exception) or _stops_the_run(exc)):
         raise exc
     return None if exc is None else _why(exc)
 
