@@ -105,7 +105,8 @@ class Executor:
         logging.getLogger("distributed.client").setLevel(logging.CRITICAL)
         logging.getLogger("distributed.batched").setLevel(logging.WARNING)
         # every worker, on any machine: object storage reached as this process does, one thread (one_thread)
-        self.client.register_plugin(WorkerSetup(storage_options), name="persona-worker")
+        self.client.register_plugin(WorkerSetup(storage_options, local=isinstance(self._cluster, LocalCluster)),
+                                    name="persona-worker")
 
     #: an array argument at least this large (bytes) goes to the cluster once, whatever the number of tasks
     shared_bytes = 1 << 16
@@ -224,10 +225,11 @@ class WorkerSetup(WorkerPlugin):
     (:func:`persona.stores.storage.configure`; sent to the workers, never written anywhere),
     OpenCV on one thread (Dask runs a task per worker thread already; OpenCV's own pool of a thread
     per core on top oversubscribes the cores, as Dask's nanny says of OpenMP and BLAS),
-    :func:`malloc_for_arrays` and :func:`no_profile`."""
+    :func:`malloc_for_arrays` and :func:`no_profile`; in the workers of the run's own local cluster, whose
+    scheduler is in the run's process, :class:`_LostConnections`."""
 
-    def __init__(self, options: dict | None):
-        self.options = options
+    def __init__(self, options: dict | None, local: bool = False):
+        self.options, self.local = options, local
 
     def setup(self, worker) -> None:
         one_thread()  # for the worker's life
@@ -235,6 +237,10 @@ class WorkerSetup(WorkerPlugin):
         storage.configure(self.options)
         no_profile(worker)
         quiet_handled_failures()
+        if self.local:
+            worker_log = logging.getLogger("distributed.worker")
+            if not any(isinstance(f, _LostConnections) for f in worker_log.filters):
+                worker_log.addFilter(_LostConnections())
 
     def __repr__(self) -> str:  # no secrets in logs
         return "WorkerSetup(...)"
@@ -275,6 +281,23 @@ class _HandledFailures(logging.Filter):
             return True
         text = str(record.args[3]) if len(record.args) > 3 else ""
         return not any(text.startswith(f"{name}(") for name in self.names) and not text.startswith(DISK_FULL)
+
+
+class _LostConnections(logging.Filter):
+    """A worker of the run's own local cluster (its log is the run's console) logs no traceback for a
+    connection lost in a way the run handles. Its scheduler is in the run's process, so it loses it only
+    when the run closes the cluster: a heartbeat on its way then printed a traceback just before the run's
+    own message (a full disk had stopped a batch while tasks still ran; about 1 run in 10); dropped. Another
+    worker that died (killed, out of memory) while this one fetched a task's result from it: Dask computes
+    the result again and the run goes on; the line stays, its traceback goes."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        message = str(record.msg)
+        if message.startswith("Failed to communicate with scheduler during heartbeat"):
+            return False
+        if message.startswith("Worker stream died during communication"):
+            record.exc_info = record.exc_text = None
+        return True
 
 
 def quiet_handled_failures() -> None:
