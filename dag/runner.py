@@ -288,14 +288,14 @@ class _LostConnections(logging.Filter):
     connection lost in a way the run handles. Its scheduler is in the run's process, so it loses it only
     when the run closes the cluster: a heartbeat on its way then printed a traceback just before the run's
     own message (a full disk had stopped a batch while tasks still ran; about 1 run in 10); dropped. Another
-    worker that died (killed, out of memory) while this one fetched a task's result from it: Dask computes
-    the result again and the run goes on; the line stays, its traceback goes."""
+    worker that died (killed, out of memory) while this one fetched a task's result from it, or sent it one:
+    Dask computes the result again and the run goes on; the line stays, its traceback goes."""
 
     def filter(self, record: logging.LogRecord) -> bool:
         message = str(record.msg)
         if message.startswith("Failed to communicate with scheduler during heartbeat"):
             return False
-        if message.startswith("Worker stream died during communication"):
+        if message.startswith(("Worker stream died during communication", "failed during get data with")):
             record.exc_info = record.exc_text = None
         return True
 
@@ -666,6 +666,11 @@ class Runner:
                         counts[name]["n_done"] += summary["n"]
                         counts[name]["seconds"] += summary["seconds"]
                         bars[name].update(summary["n"])
+            for name in names:  # shards a task finished before its worker died: its next attempt found them done
+                lost = int((coll.state(name) != PENDING).sum()) - done[name] - counts[name]["n_done"]
+                if lost > 0:
+                    counts[name]["n_done"] += lost
+                    bars[name].update(lost)
         except BaseException as exc:
             for name in names:
                 self.pm.hook.persona_stage_error(stage=name, collection=coll.path, error=exc)
