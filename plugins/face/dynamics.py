@@ -53,7 +53,7 @@ from scipy.ndimage import distance_transform_edt
 from ..base import Params, Rejected
 from ..builtin.frontalize import canonical_landmarks, frontalizing_map
 from ..kinds import FlowBackend, Pose
-from .mesh import cast, grid_triangles, jaw_motion, raycasting_scene, rim_points
+from .mesh import cast, grid_triangles, jaw_motion, lip_split, raycasting_scene, rim_points
 from .subspace import project
 from .template import IDX49
 from .tracks import bridge
@@ -87,6 +87,11 @@ class DynamicsParams(Params):
                              "moves with the lower lip on the example drivers; 0 = the whole rim held still, "
                              "which squeezed the chin between the lip and the rim (docs/expression.md, \"A jaw "
                              "that drops with the lips\")")
+    guide_split: bool = Field(True, description="the guide parts the lips rather than bending between them "
+                              "(mesh.lip_split; not in the paper): how much further the lower lip moves than the "
+                              "upper one is a step at the line where the lips meet, and the spline draws the rest. "
+                              "Off = one spline through both lips, which overshoots below an open mouth: the "
+                              "rows under the lower lip ran 8 px past it and folded back (docs/expression.md)")
     shading_refinement: bool = Field(True, description="refine the depth along the camera ray by shading "
                                      "(step 6); off = points slide on the average surface only")
     smoothness: float = Field(0.003, ge=0, description="λ_s: weight of ||Δδ||², the squared 5-point "
@@ -524,7 +529,8 @@ def landmark_guide(model: DriverModel, landmarks: np.ndarray | None, pose: Pose,
     without them the spline's affine part stretches the whole face when the mouth opens and the
     brows rise (on a synthetic frame at λ = 10: 4.9 px RMS from the truth instead of 2.1; no motion 3.1).
     Those below the mouth move with the lower lip (``guide_jaw`` of :func:`mesh.jaw_motion`): the chin
-    drops with the jaw."""
+    drops with the jaw. With ``guide_split``, the lips' parting is a step at the line where they meet
+    (:func:`mesh.lip_split`), not a spline's steepest stretch."""
     if not params.landmark_guide or model.fiducials is None or landmarks is None:
         return None
     points = np.asarray(landmarks, np.float64)
@@ -532,11 +538,18 @@ def landmark_guide(model: DriverModel, landmarks: np.ndarray | None, pose: Pose,
     if points.shape != (49, 2) or not np.isfinite(points).all():
         return None
     canonical, _ = canonical_landmarks(points, model.depth, pose, model.fiducials)
-    rim = model.rim_points(params.guide_rim_spacing)
-    if params.guide_jaw:
-        rim = rim + params.guide_jaw * jaw_motion(model.fiducials, canonical - model.fiducials, rim)
-    return model.guide_warp(params.guide_lambda, params.guide_rim_spacing, params.guide_step).map(
-        np.concatenate([canonical, rim]))
+    offsets = canonical - model.fiducials
+    still = model.rim_points(params.guide_rim_spacing)
+    rim = still + params.guide_jaw * jaw_motion(model.fiducials, offsets, still) if params.guide_jaw else still
+    warp = model.guide_warp(params.guide_lambda, params.guide_rim_spacing, params.guide_step)
+    if not params.guide_split:
+        return warp.map(np.concatenate([canonical, rim]))
+    # the lips' parting as a step, the spline through what is left of the motion (mesh.lip_split)
+    nodes = np.concatenate([model.fiducials, still])
+    xs, ys = model.grid
+    step = lip_split(model.fiducials, offsets, np.stack([xs.ravel(), ys.ravel()], axis=1))
+    return warp.map(np.concatenate([canonical, rim]) - lip_split(model.fiducials, offsets, nodes)) + \
+        step.reshape(*xs.shape, 2).astype(np.float32)
 
 
 def fill_outside(images: np.ndarray, mask: np.ndarray, sigma: float = 4.0) -> np.ndarray:

@@ -39,6 +39,44 @@ def jaw_motion(fiducials49: np.ndarray, offsets49: np.ndarray, points: np.ndarra
     return share[:, None] * np.asarray(offsets49, np.float64)[lower].mean(axis=0)
 
 
+#: (upper, lower) indices among the 49 fiducials of the inner lips that face each other (iBUG 61/67,
+#: 62/66, 63/65), from the face's right to its left
+INNER_LIPS = tuple((IDX49.index(a), IDX49.index(b)) for a, b in ((61, 67), (62, 66), (63, 65)))
+
+
+def lip_split(fiducials49: np.ndarray, offsets49: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """(k, 2): how far the ``points`` (k, 2; x, y on the grid of the 49 ``fiducials49``) move with the
+    lower lip as it parts from the upper one, when the fiducials move by ``offsets49`` (49, 2): the part
+    of a mouth's opening a smooth spline cannot draw.
+
+    The lips' two inner curves lie a texel or two apart on a closed mouth, and part by tens of texels when
+    it opens: a spline through both, moved so far apart so close together, overshoots, and the rows just
+    below the lower lip run down past the lip and fold back under it (the lip stretched into a pale band
+    with a jagged edge below). Here the lower lip's opening, how much further down each inner lower point
+    moves than the upper one facing it (the vertical part; none where the lips close), is taken out of the
+    spline's work: every point below the line where the lips meet moves down by it, at its full value
+    just below the line, fading (a Gaussian of σ half the mouth's width) further down, the chin's motion
+    being left to the spline; a texel the line crosses moves by the share of it below the line, so a
+    line that slopes across the grid parts the lips along it, not in steps of a texel. Along the mouth it is interpolated between the three pairs and falls to
+    0 at the outer corners, where the lips stay joined; points above the line, and beside the mouth,
+    do not move."""
+    f, d = np.asarray(fiducials49, np.float64), np.asarray(offsets49, np.float64)
+    points = np.asarray(points, np.float64)
+    corners = outer_corners(f)
+    xs = np.concatenate([[corners[0, 0]], [(f[u, 0] + f[l, 0]) / 2 for u, l in INNER_LIPS], [corners[1, 0]]])
+    meet = np.concatenate([[corners[0, 1]], [(f[u, 1] + f[l, 1]) / 2 for u, l in INNER_LIPS], [corners[1, 1]]])
+    opening = np.concatenate([[0.0], [max(d[l, 1] - d[u, 1], 0.0) for u, l in INNER_LIPS], [0.0]])
+    out = np.zeros((len(points), 2))
+    if not (np.all(np.isfinite(xs)) and np.all(np.isfinite(opening)) and np.all(np.diff(xs) > 0)):
+        return out
+    x, y = points[:, 0], points[:, 1]
+    line = np.interp(x, xs, meet)
+    below = np.clip(y - line + 0.5, 0.0, 1.0) * ((x > xs[0]) & (x < xs[-1]))  # a texel's share below the line
+    sigma = max((xs[-1] - xs[0]) / 2, 1e-6)
+    out[:, 1] = below * np.interp(x, xs, opening) * np.exp(-0.5 * (np.maximum(y - line, 0.0) / sigma) ** 2)
+    return out
+
+
 def grid_triangles(mask: np.ndarray) -> np.ndarray:
     """Triangles (m, 3) of vertex indices (row * W + col): two per grid quad whose four corners are in ``mask``."""
     h, w = mask.shape
