@@ -710,7 +710,11 @@ class Runner:
         chunk listed and read back against its checksum, as ``persona inspect --verify`` does) or found
         damaged on the way (a :class:`ChunkError`) are recomputed, with everything made from them:
         :mod:`persona.stores.verify`, one logged line per problem. A run that ends well leaves a store
-        that verifies, the arrays no stage reads again (a drive's composite) included."""
+        that verifies, the arrays no stage reads again (a drive's composite) included. The temporary
+        files of writes a killed run left unfinished are deleted first."""
+        if left := verify.clear_unfinished_writes(self.root):
+            log.warning("%d unfinished write(s) a stopped run left in the store deleted (%s)", len(left),
+                        ", ".join(left[:3]) + (", ..." if len(left) > 3 else ""))
         self.recover(verify.check(self.root, read=True))
         met = set()
         while True:

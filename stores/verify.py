@@ -66,13 +66,18 @@ class _Scan:
         return self.arrays[path].attrs.get("provenance")
 
 
-def _scan(root: zarr.Group) -> _Scan:
+def _keys(root: zarr.Group) -> set[str]:
+    """Every key of the store under ``root``, relative to it."""
     base = root.store_path.path  # "" when the store is the root group, as open_store makes it
 
     async def listing():
         return {key[len(base):].lstrip("/") async for key in root.store.list_prefix(base)}
 
-    scan = _Scan(root, sync(listing()))
+    return sync(listing())
+
+
+def _scan(root: zarr.Group) -> _Scan:
+    scan = _Scan(root, _keys(root))
     nodes = sorted({key.rpartition("/")[0] for key in scan.keys if key.endswith("/zarr.json")})
     for path in nodes:
         try:
@@ -183,6 +188,19 @@ def affected(root: zarr.Group, problems: list[Problem]) -> tuple[list[str], list
                     key=lambda path: (level(provs[path]["key"]), provs[path]["created"]))
     stages = list(dict.fromkeys(provs[path]["stage"] for path in arrays))
     return arrays, stages
+
+
+def clear_unfinished_writes(root: zarr.Group) -> list[str]:
+    """Delete what a writer killed mid-write left (returns their keys). Zarr's local store writes each
+    file to a temporary ``<name>.<uuid>.partial`` beside it, then renames it into place: one left by a
+    SIGKILL is never data, and where it was a ``zarr.json``'s, zarr warns that it is "not recognized as a
+    component of a Zarr hierarchy" whenever the group's members are listed, in any tool that opens the
+    store with zarr. Only for a run that holds the store's lock: no other writer is at work."""
+    leftovers = sorted(key for key in _keys(root) if key.endswith(".partial"))
+    base = root.store_path.path
+    for key in leftovers:
+        sync(root.store.delete(f"{base}/{key}".lstrip("/")))
+    return leftovers
 
 
 def recover(root: zarr.Group, problems: list[Problem]) -> list[str]:

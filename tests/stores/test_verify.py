@@ -125,3 +125,21 @@ def test_unreadable_metadata_is_a_problem_and_recovery_deletes_the_array(tmp_pat
     assert "deleted it" in line and not (url / "puppet/mean").exists()
     # its key is unknown: the collection's arrays are all recomputed
     assert Collection(open_store(url, mode="r"), "puppet").provenance("photos/ids") is None
+
+
+def test_the_unfinished_writes_of_a_killed_run_are_cleared(tmp_path):
+    """Zarr's local store writes each file to a temporary ``*.partial`` and renames it into place; a run
+    SIGKILLed mid-write leaves it (the chaos test's kill as a drive made its ``eyes`` group), and a group's
+    leftover ``zarr.<uuid>.partial`` made zarr warn each time the group's members were listed. A run clears
+    them before its stages start; the finished data stay."""
+    from persona.stores.verify import clear_unfinished_writes
+
+    root, path = _store(tmp_path)
+    (path / "puppet" / "zarr.0123456789abcdef0123456789abcdef.partial").write_bytes(b'{"zarr_fo')
+    (path / "puppet" / "warp" / "rgb" / "c" / "0" / "0" / "0" / "0.0123456789abcdef.partial").write_bytes(b"\0")
+    with pytest.warns(UserWarning, match="not recognized as a component of a Zarr hierarchy"):
+        dict(root["puppet"].members(max_depth=None))
+    assert clear_unfinished_writes(root) == ["puppet/warp/rgb/c/0/0/0/0.0123456789abcdef.partial",
+                                             "puppet/zarr.0123456789abcdef0123456789abcdef.partial"]
+    assert not list(path.rglob("*.partial")) and "warp/rgb" in dict(root["puppet"].members(max_depth=None))
+    assert check(root, read=True) == []
