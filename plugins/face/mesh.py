@@ -7,6 +7,7 @@ import numpy as np
 
 from .mouth import outer_corners
 from .template import IDX49
+from .warp import FACING
 
 
 def rim_points(mask: np.ndarray, spacing: int) -> np.ndarray:
@@ -39,11 +40,6 @@ def jaw_motion(fiducials49: np.ndarray, offsets49: np.ndarray, points: np.ndarra
     return share[:, None] * np.asarray(offsets49, np.float64)[lower].mean(axis=0)
 
 
-#: (upper, lower) indices among the 49 fiducials of the inner lips that face each other (iBUG 61/67,
-#: 62/66, 63/65), from the face's right to its left
-INNER_LIPS = tuple((IDX49.index(a), IDX49.index(b)) for a, b in ((61, 67), (62, 66), (63, 65)))
-
-
 def lip_split(fiducials49: np.ndarray, offsets49: np.ndarray, points: np.ndarray) -> np.ndarray:
     """(k, 2): how far the ``points`` (k, 2; x, y on the grid of the 49 ``fiducials49``) move with the
     lower lip as it parts from the upper one, when the fiducials move by ``offsets49`` (49, 2): the part
@@ -63,9 +59,9 @@ def lip_split(fiducials49: np.ndarray, offsets49: np.ndarray, points: np.ndarray
     f, d = np.asarray(fiducials49, np.float64), np.asarray(offsets49, np.float64)
     points = np.asarray(points, np.float64)
     corners = outer_corners(f)
-    xs = np.concatenate([[corners[0, 0]], [(f[u, 0] + f[l, 0]) / 2 for u, l in INNER_LIPS], [corners[1, 0]]])
-    meet = np.concatenate([[corners[0, 1]], [(f[u, 1] + f[l, 1]) / 2 for u, l in INNER_LIPS], [corners[1, 1]]])
-    opening = np.concatenate([[0.0], [max(d[l, 1] - d[u, 1], 0.0) for u, l in INNER_LIPS], [0.0]])
+    xs = np.concatenate([[corners[0, 0]], [(f[u, 0] + f[l, 0]) / 2 for u, l in FACING[4:]], [corners[1, 0]]])
+    meet = np.concatenate([[corners[0, 1]], [(f[u, 1] + f[l, 1]) / 2 for u, l in FACING[4:]], [corners[1, 1]]])
+    opening = np.concatenate([[0.0], [max(d[l, 1] - d[u, 1], 0.0) for u, l in FACING[4:]], [0.0]])
     out = np.zeros((len(points), 2))
     if not (np.all(np.isfinite(xs)) and np.all(np.isfinite(opening)) and np.all(np.diff(xs) > 0)):
         return out
