@@ -59,7 +59,7 @@ from .stages import RENDER_3D, accepted, render_alpha
 
 #: the figures' version: a run keeps its last evaluation only when this is the same (raise it whenever a
 #: figure is added or computed differently)
-VERSION = 4
+VERSION = 5
 
 
 def _identity(spec: tuple[str, dict]):

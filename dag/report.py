@@ -15,7 +15,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from persona.plugins.builtin.evaluate import GAIN_BLOCK
+from persona.plugins.builtin.evaluate import GAIN_BLOCK, expression_peaks
 from persona.plugins.face import composite
 from persona.stores import media, storage
 from persona.stores.layout import Cast, Collection, item
@@ -63,8 +63,8 @@ def plots(series: dict, threshold: float, fps: float) -> dict[str, str]:
     ax.legend(loc="upper right", fontsize=8)
     out["identity"] = _figure(fig)
     plt.close(fig)
-    names = ("mouth_open", "mouth_width", "eye_open", "brow_height")
-    fig, axes = plt.subplots(len(names), 1, figsize=(9, 8), sharex=True)
+    names = ("mouth_open", "mouth_width", "mouth_corners", "eye_open", "brow_height")
+    fig, axes = plt.subplots(len(names), 1, figsize=(9, 10), sharex=True)
     for ax, name in zip(axes, names):
         ax.plot(t, series[f"driver_{name}"], label="driver (A)", lw=1)
         ax.plot(t, series[f"output_{name}"], label="output (B)", lw=1)
@@ -134,9 +134,10 @@ _SEAM = (("colour step beyond the driver's own (grey levels)", "colour_step",
           "lower is better; 0 = no step beyond the frame's", "7.7 (3 % of 255)", 7.7),
          ("gradient energy over the driver's", "gradient_ratio", "lower is better; 1 = as smooth as the frame",
           "1.2", 1.2))
-#: the driver's eye openness must range over more than this (IOD, 5th-95th percentile) for its gain to
-#: have a target: below it the signal is dlib's noise (issue 12)
-EYE_RANGE = 0.05
+#: an expression signal of the driver's must range over more than this (IOD, 5th-95th percentile) for its
+#: gain to have a target: below it the signal is dlib's noise (eyes that barely move, corners that
+#: barely lift)
+SIGNAL_RANGE = 0.05
 
 
 #: the driver's gaze must range over more than this (eye widths, 5th-95th percentile) for its gain to have a
@@ -161,10 +162,10 @@ def _gaze_rows(figures: dict) -> list[tuple]:
 def _gain_rows(where: str, amplitudes: dict) -> list[tuple]:
     rows = []
     for k, a in amplitudes.items():
-        counted = k != "eye_open" or a.get("driver_range", 1.0) > EYE_RANGE
-        guide = ("1 = the driver's amplitude; target 0.7-1.4" if counted else
-                 f"1 = the driver's amplitude; no target: the driver's eyes range over "
-                 f"{a['driver_range']:.3f} IOD, under {EYE_RANGE}")
+        counted = a.get("driver_range", 1.0) > SIGNAL_RANGE
+        guide = (f"1 = the driver's amplitude; r {a['r']:.2f}; target 0.7-1.4" if counted else
+                 f"1 = the driver's amplitude; no target: the driver's {k.replace('_', ' ')} ranges over "
+                 f"{a['driver_range']:.3f} IOD, under {SIGNAL_RANGE}")
         low, high = a.get("gain_interval", (float("nan"),) * 2)
         if np.isfinite(low) and np.isfinite(high):
             guide += (f"; 95 % interval {low:.2f}-{high:.2f} (the frames drawn again in runs of {GAIN_BLOCK}: "
@@ -346,10 +347,15 @@ def write_run_report(wf, root, metrics: dict, series: dict | None, *, cast: Cast
     plots); with every texture evaluation found in the folder."""
     out = wf.output if output is None else output
     pictures = collection_images(metrics)
-    strip = None
+    strip = peaks = None
     if cast is not None and root.get(cast.drive) is not None:
-        strip = frames_strip(Collection(root, cast.drive), Collection(root, cast.frames))
+        drive, frames = Collection(root, cast.drive), Collection(root, cast.frames)
+        strip = frames_strip(drive, frames)
         media.write_png(storage.join(out, "frames.png"), strip)
+        if series:  # the driver's expression peaks, driver above output
+            found = expression_peaks({k.removeprefix("driver_"): v for k, v in series.items()
+                                         if k.startswith("driver_")})
+            peaks = (found, frames_strip(drive, frames, side=200, at=[t for _, t in found]))
     fps = float(root[cast.frames].attrs["fps"]) if strip is not None else 25.0
     texture = []
     for file in storage.glob(storage.join(out, "*_texture_evaluation*.json")):
@@ -357,17 +363,18 @@ def write_run_report(wf, root, metrics: dict, series: dict | None, *, cast: Cast
         grid = result.get("grid")
         texture.append((result, media.decode_image(grid, max_side=4000) if grid and storage.isfile(grid) else None))
     return write_report(storage.join(out, "report.html"), metrics=metrics, pictures=pictures, strip=strip,
-                        series=series, threshold=wf.evaluate.threshold, fps=fps,
+                        peaks=peaks, series=series, threshold=wf.evaluate.threshold, fps=fps,
                         videos=[storage.join(out, f"{name}.mp4") for name in ("composite", "puppet", "side_by_side")],
                         texture=texture)
 
 
 def write_report(path, *, metrics: dict, pictures: dict[str, np.ndarray], strip: np.ndarray | None,
-                 series: dict | None, threshold: float, fps: float, videos: list = (),
+                 series: dict | None, peaks: tuple[list, np.ndarray] | None = None, threshold: float, fps: float, videos: list = (),
                  texture: list[tuple[dict, np.ndarray | None]] = ()) -> Path | str:
     """Write the page atomically; ``pictures`` are titled images (means, contact sheets); ``videos``
     are embedded in their order (the composite first), each up to ``MAX_EMBEDDED_VIDEO`` bytes;
-    ``texture``: the results of ``persona evaluate --texture`` (its JSON, and its picture grid)."""
+    ``texture``: the results of ``persona evaluate --texture`` (its JSON, and its picture grid); ``peaks``:
+    the driver's expression peaks (evaluate.expression_peaks) and their :func:`frames_strip`."""
     parts = [f"<h1>Persona — {html.escape(str(metrics.get('workflow', '')))}</h1>"]
     if metrics.get("warnings"):
         items = [f"<li>{html.escape(str(w))}</li>" for w in metrics["warnings"]]
@@ -389,6 +396,11 @@ def write_report(path, *, metrics: dict, pictures: dict[str, np.ndarray], strip:
         parts += texture_section(result, grid)
     if strip is not None:
         parts += ["<h2>Driver frames (top), the composite (middle), the puppet alone (bottom)</h2>", _img(_png(strip), "frames", min(960, strip.shape[1]))]
+    if peaks is not None:
+        found, image = peaks
+        columns = ", ".join(f"{label} (frame {t})" for label, t in found)
+        parts += ["<h2>The driver's expression peaks: driver (top), composite (middle), puppet alone (bottom)</h2>",
+                  f"<p>Left to right: {html.escape(columns)}.</p>", _img(_png(image), "peaks", min(1200, image.shape[1]))]
     if series:
         for name, src in plots(series, threshold, fps).items():
             parts.append(_img(src, name))
@@ -431,6 +443,7 @@ _BATCH_FIGURES = (("B and not A", ("identity", "fraction_b_not_a_composite"), "{
                   ("mouth open gain", ("amplitude", "mouth_open", "gain"), "{:.2f}"),
                   ("mouth width gain", ("amplitude", "mouth_width", "gain"), "{:.2f}"),
                   ("eye open gain", ("amplitude", "eye_open", "gain"), "{:.2f}"),
+                  ("mouth corners gain", ("amplitude", "mouth_corners", "gain"), "{:.2f}"),
                   ("brow gain", ("amplitude", "brow_height", "gain"), "{:.2f}"),
                   ("jitter", ("stability", "jitter_ratio_composite"), "{:.2f}"))
 

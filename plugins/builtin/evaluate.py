@@ -39,6 +39,9 @@ BROWS = slice(17, 27)
 INNER_LIP_PAIRS = ((62, 66), (61, 67), (63, 65))
 EYE_LID_PAIRS = (((37, 41), (38, 40)), ((43, 47), (44, 46)))
 MOUTH_CORNERS = (48, 54)
+#: the middle of the upper lip, outer and inner edge: the lips' middle that moves least when the jaw opens,
+#: so the corners' height over it tells a smile (up) from a frown (down) and not an open mouth
+UPPER_LIP_MIDDLE = (51, 62)
 
 
 # --------------------------------------------------------------------------- identity
@@ -192,7 +195,10 @@ def expression_signals(landmarks) -> dict[str, np.ndarray]:
         ``43-47``, ``44-46``), over IOD;
         ``brow_height``: mean distance of the brow points 17-26 to the line through the
         two eye centres, over IOD;
-        ``mouth_width``: distance of the mouth corners 48-54, over IOD.
+        ``mouth_width``: distance of the mouth corners 48-54, over IOD;
+        ``mouth_corners``: height of the corners' mean (48, 54) over the middle of the upper lip
+        (mean of 51, 62), along the face's upward axis (perpendicular to the line through the eye
+        centres), over IOD: up in a smile, down in a frown or a pout.
         NaN where the landmarks are NaN (or the IOD is 0).
     """
     x = _track(landmarks)
@@ -204,12 +210,34 @@ def expression_signals(landmarks) -> dict[str, np.ndarray]:
     rel = x[:, BROWS] - right[:, None]  # (n, 10, 2)
     cross = np.abs(axis[:, None, 0] * rel[..., 1] - axis[:, None, 1] * rel[..., 0])  # = dist * IOD
     brow = _divide(cross.mean(axis=1), iod)
+    up = np.stack([axis[:, 1], -axis[:, 0]], axis=-1)  # the eye axis turned a quarter towards the brows
+    corners = x[:, list(MOUTH_CORNERS)].mean(axis=1) - x[:, list(UPPER_LIP_MIDDLE)].mean(axis=1)
+    lift = np.sum(corners * up, axis=-1)  # = height * IOD
     return {
         "mouth_open": _divide(mouth, iod),
         "eye_open": _divide(eye, iod),
         "brow_height": _divide(brow, iod),
         "mouth_width": _divide(_dist(x, *MOUTH_CORNERS), iod),
+        "mouth_corners": _divide(_divide(lift, iod), iod),
     }
+
+
+#: the moments a viewer looks at to judge an expression: (what it shows, signal, +1 its highest / -1 its lowest)
+PEAKS = (("widest mouth", "mouth_open", 1), ("widest lips", "mouth_width", 1),
+         ("corners highest", "mouth_corners", 1), ("corners lowest", "mouth_corners", -1),
+         ("eyes widest", "eye_open", 1), ("eyes most closed", "eye_open", -1),
+         ("brows highest", "brow_height", 1), ("brows lowest", "brow_height", -1))
+
+
+def expression_peaks(signals: dict) -> list[tuple[str, int]]:
+    """The frame of each of :data:`PEAKS` in a face's :func:`expression_signals`: (what it shows, frame),
+    leaving out a signal that is missing or NaN in every frame."""
+    peaks = []
+    for label, name, sign in PEAKS:
+        x = sign * np.asarray(signals.get(name, np.nan), np.float64)
+        if np.isfinite(x).any():
+            peaks.append((label, int(np.nanargmax(x))))
+    return peaks
 
 
 def pearson(a, b) -> float:
@@ -794,7 +822,7 @@ def compare_videos(driver_landmarks, output_landmarks, *, driver_frames=None, dr
     Returns
     -------
     dict
-        ``expression``: ``{"mouth_open", "eye_open", "brow_height", "mouth_width"}``, the
+        ``expression``: ``{"mouth_open", "eye_open", "brow_height", "mouth_width", "mouth_corners"}``, the
         Pearson correlation between the driver's and the output's signal (see
         :func:`expression_signals`); ``amplitude``: the same signals' :func:`amplitude`;
         ``stability``: ``jitter_driver``, ``jitter_output``, ``jitter_ratio``

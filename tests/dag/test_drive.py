@@ -94,7 +94,8 @@ def test_metrics_json_has_counts_times_and_figures(drive_run):
                                                        "texture", "frame textures", "motion", "mouth", "videos",
                                                        "render3d"}
     ev = metrics["evaluation"]
-    assert set(ev["expression"]) == set(ev["amplitude"]) == {"mouth_open", "eye_open", "brow_height", "mouth_width"}
+    assert set(ev["expression"]) == set(ev["amplitude"]) == {"mouth_open", "eye_open", "brow_height", "mouth_width",
+                                                           "mouth_corners"}
     assert 0 <= ev["identity"]["fraction_b_not_a"] <= 1
     assert ev["stability"]["jitter_ratio"] > 0 and ev["stability"]["jitter_ratio_composite"] > 0
 
@@ -160,6 +161,11 @@ def test_report_is_one_self_contained_page(drive_run):
     assert strip.shape[0] == 3 * 240 and strip.shape[1] % 240 == 0
     driver, puppet = strip[:240].astype(float), strip[480:].astype(float)
     assert np.abs(puppet - 128).max(axis=2).mean() < np.abs(driver - 128).max(axis=2).mean()  # grey around
+    # the driver's expression peaks, each column at the frame where the driver's signal is at its extreme
+    series = json.loads((folder / "output" / "series.json").read_text())
+    assert f"widest mouth (frame {int(np.nanargmax(series['driver_mouth_open']))})" in page
+    assert f"brows lowest (frame {int(np.nanargmin(series['driver_brow_height']))})" in page
+    assert page.count("data:image/png;base64,") >= 6
 
 
 def test_evaluate_command_prints_json(drive_run, capsys):

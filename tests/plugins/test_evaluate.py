@@ -57,11 +57,25 @@ def test_expression_signals_of_a_hand_made_face():
     for face, scale in ((hand_face(), 1.0), (hand_face(angle_deg=30, scale=2.5, shift=(100, -40)), 2.5)):
         np.testing.assert_allclose(interocular(face[None]), [40 * scale], rtol=1e-12)
         s = expression_signals(face[None])
-        assert set(s) == {"mouth_open", "eye_open", "brow_height", "mouth_width"}
+        assert set(s) == {"mouth_open", "eye_open", "brow_height", "mouth_width", "mouth_corners"}
         np.testing.assert_allclose(s["mouth_open"], [6 / 40], rtol=1e-12)
+        # the corners (y 83) 1.5 under the upper lip's middle (51 at 83, 62 at 80): a slight frown
+        np.testing.assert_allclose(s["mouth_corners"], [-1.5 / 40], rtol=1e-12)
         np.testing.assert_allclose(s["mouth_width"], [(np.linspace(35, 65, 12)[6] - 35) / 40], rtol=1e-12)
         np.testing.assert_allclose(s["eye_open"], [(4 + 2) / 2 / 40], rtol=1e-12)
         np.testing.assert_allclose(s["brow_height"], [20 / 40], rtol=1e-12)
+
+
+def test_mouth_corners_rise_in_a_smile_and_not_as_the_jaw_opens():
+    smile, opened = hand_face(), hand_face()
+    smile[[48, 54], 1] -= 4  # the corners 4 px up
+    opened[[56, 57, 58, 65, 66, 67], 1] += 8  # the lower lip 8 px down
+    for angle in (0.0, 30.0):
+        a = np.radians(angle)
+        turn = np.array([[np.cos(a), np.sin(a)], [-np.sin(a), np.cos(a)]])  # the whole face turned in the image
+        s = expression_signals(np.stack([hand_face(), smile, opened]) @ turn)
+        np.testing.assert_allclose(s["mouth_corners"], [-1.5 / 40, 2.5 / 40, -1.5 / 40], atol=1e-12)
+        assert s["mouth_open"][2] > s["mouth_open"][0] + 0.15
 
 
 def test_expression_signals_are_nan_without_a_face():
@@ -87,7 +101,8 @@ def test_pearson_ignores_nan_frames_and_needs_three_frames_with_variance():
 def test_a_track_against_itself_correlates_exactly_and_has_jitter_ratio_one():
     track = talking_track()
     figures = compare_videos(track, track.copy())
-    assert figures["expression"] == {"mouth_open": 1.0, "eye_open": 1.0, "brow_height": 1.0, "mouth_width": 1.0}
+    assert figures["expression"] == {"mouth_open": 1.0, "eye_open": 1.0, "brow_height": 1.0, "mouth_width": 1.0,
+                                    "mouth_corners": 1.0}
     assert all(a["gain"] == pytest.approx(1.0) for a in figures["amplitude"].values())
     stability = figures["stability"]
     assert stability["jitter_ratio"] == 1.0
