@@ -17,7 +17,7 @@ import numpy as np
 from persona.plugins.face import gaze, mouth
 from persona.plugins.face.composite import alone, steady_light
 from persona.plugins.face.dynamics import smooth_in_time
-from persona.plugins.face.fiducials import mean_shape
+from persona.plugins.face.fiducials import rest_shape
 from persona.plugins.face.tracks import bridge, steadied
 from persona.plugins.face.warp import retarget
 from persona.stores import media, storage
@@ -41,7 +41,7 @@ def run_drive(runner, cast: Cast, output: str) -> Collection:
               "puppet": puppet.provenance("aligned/mean").key}
     motion = runner.motion_params()
     sigma, lips, steady, widen = motion["pose_sigma"], motion["lips"], motion["steady"], motion["widen"]
-    neutral = driver_neutral(motion["neutral"], cast)
+    neutral, share = driver_neutral(motion["neutral"], cast), motion["neutral_share"]
     if neutral == "collection":
         inputs["driver"] = Collection(runner.root, cast.driver).provenance("aligned/mean").key
     # lips at the paper's 'mean', steady off, widen at 'opening' and the clip's neutral are left out of the
@@ -50,12 +50,13 @@ def run_drive(runner, cast: Cast, output: str) -> Collection:
                            params={"pose_sigma": sigma, **({"lips": lips} if lips != "mean" else {}),
                                    **({"steady": steady} if steady else {}),
                                    **({"widen": widen} if widen != "opening" else {}),
-                                   **({"neutral": neutral} if neutral != "clip" else {})},
+                                   **({"neutral": neutral} if neutral != "clip" else {}),
+                                   **({"neutral_share": share} if share != 1 else {})},
                            inputs=inputs, persona_version=runner.version)
     drive = Collection(runner.root, cast.drive)
     # the status is created before the targets and written after them: done only when no frame is pending
     if not (drive.exists() and drive.made_by("status/retarget/state", prov)) or (drive.state("retarget") == PENDING).any():
-        _retarget(runner, cast, drive, frames, puppet, found, prov, sigma, lips, steady, widen, neutral)
+        _retarget(runner, cast, drive, frames, puppet, found, prov, sigma, lips, steady, widen, neutral, share)
     with runner.step("gaze", cast.drive):
         looks = _gaze(runner, drive, frames, found)
     with runner.step("frame textures", cast.drive):
@@ -149,7 +150,7 @@ def driver_neutral(choice: str, cast: Cast) -> str:
 
 
 def _retarget(runner, cast, drive, frames, puppet, found, prov, sigma: float, lips: str, steady: int,
-              widen: str, neutral: str) -> None:
+              widen: str, neutral: str, share: float) -> None:
     n = frames.n
     group = runner.root.require_group(cast.drive)
     cast.record(group)
@@ -159,10 +160,10 @@ def _retarget(runner, cast, drive, frames, puppet, found, prov, sigma: float, li
     pose = bridge(frames.array("pose")[:], found)
     pose[:, :6] = smooth_in_time(pose[:, :6], sigma)  # rvec, tvec
     driver_fiducials = bridge(steadied(fiducials, frames.array("aligned/rgb"), found, steady), found)
-    driver_neutral = (mean_shape(fiducials[found]) if neutral == "clip"
-                      else Collection(runner.root, cast.driver).array("aligned/mean_fiducials")[...].astype(np.float64))
-    target = retarget(driver_fiducials, driver_neutral,
-                      puppet.array("aligned/mean_fiducials")[...].astype(np.float64), lips=lips, widen=widen)
+    collection = Collection(runner.root, cast.driver)
+    driver_neutral = rest_shape(fiducials[found] if neutral == "clip" else _photo_fiducials(collection), share)
+    target = retarget(driver_fiducials, driver_neutral, rest_shape(_photo_fiducials(puppet), share),
+                      lips=lips, widen=widen)
     for name, value, tail, dims in (
             ("target", target, (49, 2), ("frame", "fiducial", "xy")),
             ("pose", pose, (10,), ("frame", "field")),
@@ -171,6 +172,11 @@ def _retarget(runner, cast, drive, frames, puppet, found, prov, sigma: float, li
     drive.create("photos/ids", (), str, ("frame",), prov)[:] = frames.array("photos/ids")[:]
     drive.create_status("retarget", prov)
     drive.write_status("retarget", 0, np.full(n, OK, np.int8), [""] * n)
+
+
+def _photo_fiducials(coll: Collection) -> np.ndarray:
+    """(n, 49, 2) the fiducials of a collection's accepted photos, those its mean fiducials are made of."""
+    return coll.array("aligned/fiducials")[:][st.accepted(coll)].astype(np.float64)
 
 
 def driver_sound(frames: Collection, fps: float) -> media.Audio | None:

@@ -406,6 +406,13 @@ class MotionParams(Strict):
         "its own collection's mean; 'auto', 'collection' where the driver is the puppet (a self-reenactment: the "
         "two means are one, so the targets are the driver's own fiducials) and 'clip' otherwise "
         "(docs/expression.md)")
+    neutral_share: float = Field(
+        1.0, gt=0, le=1, description="how each face's neutral is taken from its fiducials (retargeting: the "
+        "puppet's collection, and the driver's clip or collection as `neutral` says): the mean of this share of "
+        "them, those whose shape lies nearest the generic face's after a similarity fit (persona.plugins.face."
+        "fiducials.rest_shape). 1, the paper's, is the mean of all; less (not in the paper) leaves out the "
+        "expressions furthest from a resting face, so that a puppet built from one clip in which it frowns or "
+        "gapes most of the time rests when the driver rests (docs/expression.md)")
     dynamics: DynamicsParams = Field(default_factory=DynamicsParams, description="the driver's per-frame "
                                      "3D flow (ALGORITHMS §9), used by 3D renderers")
     flow: FlowChoice = Field(default_factory=FlowChoice, description="the 2D flow of the per-frame 3D flow "

@@ -64,3 +64,38 @@ def mean_shape(fiducials: np.ndarray, fallback: np.ndarray | None = None) -> np.
     count = seen.sum(axis=0)
     total = np.where(seen[..., None], f, 0.0).sum(axis=0)
     return np.where(count[:, None] > 0, total / np.maximum(count, 1)[:, None], fallback)
+
+
+def similarity_residual(fiducials: np.ndarray, reference: np.ndarray) -> float:
+    """RMS distance (px, at the reference's scale) of one photo's fiducials (k, 2) from a reference shape
+    (k, 2) after the similarity (scale, rotation, shift) that fits them to it best, over the points both
+    have: how far the photo's shape differs from the reference in everything a similarity cannot take
+    out, the face's proportions and its expression. NaN with fewer than 3 such points."""
+    f, r = np.asarray(fiducials, np.float64), np.asarray(reference, np.float64)
+    seen = np.isfinite(f).all(axis=-1) & np.isfinite(r).all(axis=-1)
+    if seen.sum() < 3:
+        return float("nan")
+    a, b = f[seen] - f[seen].mean(axis=0), r[seen] - r[seen].mean(axis=0)
+    u, s, vt = np.linalg.svd(a.T @ b)
+    d = np.sign(np.linalg.det(u @ vt))  # a rotation, never a mirror
+    rotation = u @ np.diag([1.0, d]) @ vt
+    scale = (s[0] + d * s[1]) / (a ** 2).sum()
+    return float(np.sqrt(np.mean(np.sum((scale * a @ rotation - b) ** 2, axis=-1))))
+
+
+def rest_shape(fiducials: np.ndarray, share: float = 1.0, fallback: np.ndarray | None = None) -> np.ndarray:
+    """(k, 2) a face's neutral from its photos' fiducials (n, k, 2): the :func:`mean_shape` of the ``share``
+    of them whose shape lies nearest the generic template's (:func:`similarity_residual`), whose mouth is
+    closed and eyes and brows at rest. ``share`` 1 is the paper's neutral, the mean of every photo; a smaller
+    share leaves out the photos furthest from a resting face, so that a collection (or a driver's clip)
+    that holds an expression most of the time, a one-video puppet that frowns and gapes, still has its
+    resting face as neutral; averaged over many photos, where the eyes look and how the head turns even out.
+    Photos with fewer than 3 points are never among the nearest."""
+    f = np.asarray(fiducials, np.float64)
+    if share >= 1 or len(f) == 0:
+        return mean_shape(f, fallback)
+    template = generic_template().fiducials3d[:, :2]
+    distance = np.array([similarity_residual(x, template) for x in f])
+    ranked = np.argsort(np.where(np.isfinite(distance), distance, np.inf), kind="stable")
+    keep = np.sort(ranked[:max(1, int(round(share * np.isfinite(distance).sum())))])
+    return mean_shape(f[keep], fallback)
