@@ -425,10 +425,22 @@ class _HelpFormatter(argparse.RawDescriptionHelpFormatter):
         return f"{text} (default: {action.default})"
 
 
+def _docs() -> str:
+    """The epilog's line on the documentation: README.md and docs/README.md (the index of every page)
+    beside the source of an editable install, else their place in Persona's source (a wheel ships the
+    code only)."""
+    root = Path(__file__).resolve().parents[1]
+    if (root / "docs" / "README.md").is_file():
+        return f"Documentation: {root / 'README.md'}; every page, and who it is for: {root / 'docs' / 'README.md'}"
+    return "Documentation: README.md and docs/README.md (every page, and who it is for) in Persona's source"
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="persona", description=(
         "Build a controllable 3D face puppet from a photo collection and drive it with a video."),
-        epilog="Start with: persona demo demo   (synthetic faces, every stage, a few minutes)")
+        epilog="Start with: persona demo demo   (synthetic faces, every stage, a few minutes)\n"
+               + _docs(),
+        formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--version", action="version", version=f"%(prog)s {_version()}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
