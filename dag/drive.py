@@ -162,8 +162,8 @@ def _retarget(runner, cast, drive, frames, puppet, found, prov, sigma: float, li
     driver_fiducials = bridge(steadied(fiducials, frames.array("aligned/rgb"), found, steady), found)
     collection = Collection(runner.root, cast.driver)
     driver_neutral = rest_shape(fiducials[found] if neutral == "clip" else _photo_fiducials(collection), share)
-    target = retarget(driver_fiducials, driver_neutral, rest_shape(_photo_fiducials(puppet), share),
-                      lips=lips, widen=widen)
+    puppet_neutral = rest_shape(_photo_fiducials(puppet), share)
+    target = retarget(driver_fiducials, driver_neutral, puppet_neutral, lips=lips, widen=widen)
     for name, value, tail, dims in (
             ("target", target, (49, 2), ("frame", "fiducial", "xy")),
             ("pose", pose, (10,), ("frame", "field")),

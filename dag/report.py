@@ -369,8 +369,9 @@ def write_run_report(wf, root, metrics: dict, series: dict | None, *, cast: Cast
 
 
 def write_report(path, *, metrics: dict, pictures: dict[str, np.ndarray], strip: np.ndarray | None,
-                 series: dict | None, peaks: tuple[list, np.ndarray] | None = None, threshold: float, fps: float, videos: list = (),
-                 texture: list[tuple[dict, np.ndarray | None]] = ()) -> Path | str:
+                 series: dict | None, threshold: float, fps: float, videos: list = (),
+                 texture: list[tuple[dict, np.ndarray | None]] = (),
+                 peaks: tuple[list, np.ndarray] | None = None) -> Path | str:
     """Write the page atomically; ``pictures`` are titled images (means, contact sheets); ``videos``
     are embedded in their order (the composite first), each up to ``MAX_EMBEDDED_VIDEO`` bytes;
     ``texture``: the results of ``persona evaluate --texture`` (its JSON, and its picture grid); ``peaks``:

@@ -27,6 +27,7 @@ import numpy as np
 from persona.plugins.face import mouth
 from persona.plugins.face.blend import (BlendCache, BlendTotals, gaussian_pyramid, level_bias, seen_mean,
                                         seen_sums)
+from persona.plugins.face.fiducials import rest_shape
 from persona.plugins.face.gaze import LOOK_VERSION
 from persona.plugins.face.template import CANONICAL_HEIGHT as H, CANONICAL_WIDTH as W
 from persona.plugins.face.texture import Aligned, to_grey, warped_basis
@@ -287,8 +288,10 @@ def run_frame_textures(runner, drive: Collection, puppet: Collection, retargeted
     mean face when the texture backend has no video mode."""
     texture = puppet.provenance("texture/neutral")
     source = texture if texture is not None else puppet.provenance("aligned/mean")
+    share = runner.motion_params()["neutral_share"]  # B at rest as the retargeting takes it
     prov = Provenance.make(stage="frame_texture", backend=source.backend, backend_version=source.backend_version,
-                           params={**source.params, "look": LOOK_VERSION},
+                           params={**source.params, "look": LOOK_VERSION,
+                                   **({"neutral_share": share} if share != 1 else {})},
                            inputs={"texture": source.key, "retarget": retargeted.key, "gaze": gaze.key},
                            persona_version=runner.version)
     if drive.made_by("texture/rgb", prov):
@@ -301,27 +304,29 @@ def run_frame_textures(runner, drive: Collection, puppet: Collection, retargeted
             array[start:stop] = np.broadcast_to(mean, (stop - start, *mean.shape))
         drive.mark_done("texture/rgb", prov)
         return prov
-    runner.map_shards(drive, "texture", frame_textures, puppet.path, *runner.wf.stage("texture"))
+    runner.map_shards(drive, "texture", frame_textures, puppet.path, share, *runner.wf.stage("texture"))
     drive.mark_done("texture/rgb", prov)  # after the last frame: a killed run leaves no key to trust
     return prov
 
 
-def frame_textures(url: str, path: str, start: int, stop: int, puppet: str, name: str, params: dict) -> None:
+def frame_textures(url: str, path: str, start: int, stop: int, puppet: str, neutral_share: float, name: str,
+                   params: dict) -> None:
     """One shard's task of :func:`run_frame_textures`: B's texture for frames [start, stop) with the
     texture backend ``name``, from the ``puppet``'s stored cache (:func:`stored_textures`)."""
     drive = Collection(open_store(url), path)
     textures = stored_textures(url, puppet, name, params, drive.array("target"), start, stop,
-                               gaze=drive.array("eyes/gaze")[start:stop])
+                               gaze=drive.array("eyes/gaze")[start:stop], neutral_share=neutral_share)
     drive.array("texture/rgb")[start:stop] = textures.round().astype(np.uint8)
 
 
 def stored_textures(url: str, path: str, name: str, params: dict, targets, start: int = 0,
-                    stop: int | None = None, gaze: np.ndarray | None = None) -> np.ndarray:
+                    stop: int | None = None, gaze: np.ndarray | None = None, neutral_share: float = 1.0) -> np.ndarray:
     """B's textures (f, H, W, 3) float32 for the frames [start, stop) of consecutive frames' ``targets``
     (T, 49, 2; an array read only about those frames) from the stored video-mode cache of the collection
     ``path``: the sums of Eq. 3 taken over it a shard of photos at a time (a shard that no target weighs
     is not read, one kept from an earlier task of this process is not read again), then finished with
-    the totals; ``gaze`` (f, 2, 2), the driver's in those frames (``eyes/gaze``), moves B's irises."""
+    the totals; ``gaze`` (f, 2, 2), the driver's in those frames (``eyes/gaze``), moves B's irises;
+    B's neutral is the :func:`rest_shape` of ``neutral_share`` of the photos' fiducials, as retargeting's."""
     source = Collection(open_store(url, mode="r"), path)
     key = _cache_id(source)
     backend = st.default_registry().get("texture", name)(params)
@@ -332,7 +337,8 @@ def stored_textures(url: str, path: str, name: str, params: dict, targets, start
     totals, fiducials = st.per_process(key, lambda: (_totals(source, backend.params),
                                                      source.array("aligned/fiducials")[:][ok].astype(np.float64)))
     keep = slice(start - first, stop - first)
-    weights = backend.weights(fiducials, around, keep)  # (targets and the backend's own rows, accepted photos)
+    rest = rest_shape(fiducials, neutral_share)
+    weights = backend.weights(fiducials, around, keep, rest)  # (targets and the backend's own rows, accepted photos)
     sums = backend.sums(fiducials, stop - start, totals)
     for begin, end in source.shard_ranges():
         a, b = np.searchsorted(ok, [begin, end])

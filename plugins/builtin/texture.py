@@ -232,14 +232,16 @@ class MultiscaleTexture(TextureBackend):
         e = np.stack([p.weights_of(fiducials, t, relative=p.tau == 0, eyes=eyes) for t in targets])
         return chosen(smooth_in_time(e, p.time_sigma)[keep], p.skip)
 
-    def weights(self, fiducials: np.ndarray, targets: np.ndarray, keep: slice = slice(None)) -> np.ndarray:
+    def weights(self, fiducials: np.ndarray, targets: np.ndarray, keep: slice = slice(None),
+                neutral: np.ndarray | None = None) -> np.ndarray:
         """Video mode: the weights (f + 1, n), or (2f + 1, n) with ``eye_sigma``, a drive sums the photos
         with: the :meth:`expression` weights of the targets ``keep``, then the eyes' own of the same
-        targets, then those of B's neutral (the photos' mean fiducials), whose blend sets how much fine
-        detail :meth:`finish` gives back, in every frame alike."""
+        targets, then those of B's ``neutral`` (by default the photos' mean fiducials), whose blend sets
+        how much fine detail :meth:`finish` gives back, and with ``detail_from`` neutral which, in every
+        frame alike."""
         eyes = [self.expression(fiducials, targets, keep, eyes=True)] if self.params.eye_sigma > 0 else []
-        return np.vstack([self.expression(fiducials, targets, keep), *eyes,
-                          self.expression(fiducials, mean_shape(fiducials)[None])])
+        rest = mean_shape(fiducials) if neutral is None else np.asarray(neutral, np.float64)
+        return np.vstack([self.expression(fiducials, targets, keep), *eyes, self.expression(fiducials, rest[None])])
 
     def sums(self, fiducials: np.ndarray, targets: int, totals: BlendTotals) -> BlendSums:
         """Empty sums for the :meth:`weights` of ``targets`` frames: with ``eye_sigma``, the eyes' own rows

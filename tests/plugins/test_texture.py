@@ -361,3 +361,18 @@ def test_the_eyes_own_rows_summed_over_their_band_alone_give_the_same_texture():
         sums.add(cache.weighted, cache.detail, weights)
     fast, full = (backend.finish(s, cache.totals, fiducials, targets) for s in (banded, whole))
     assert np.abs(fast - full).max() < 0.01  # summed over the eyes' region alone: 0.11
+
+
+def test_the_neutral_row_of_the_video_weights_is_the_given_neutral_or_the_mean():
+    """The last row of the video-mode weights stands for B at rest (the detail a drive gives back):
+    the photos' mean fiducials by default, the neutral a drive retargets about when it passes one
+    (stages.motion.params.neutral_share)."""
+    rng = np.random.default_rng(0)
+    fiducials = generic_template().fiducials3d[:, :2] + rng.normal(0, 3, (30, 49, 2))
+    targets, rest = fiducials[:4] + 1.0, fiducials[7] + 0.5
+    ours = MultiscaleTexture(SIGMA)
+    default, given = ours.weights(fiducials, targets), ours.weights(fiducials, targets, neutral=rest)
+    np.testing.assert_array_equal(default[:-1], given[:-1])
+    np.testing.assert_array_equal(default[-1], ours.expression(fiducials, mean_shape(fiducials)[None])[0])
+    np.testing.assert_array_equal(given[-1], ours.expression(fiducials, rest[None])[0])
+    assert np.argmax(given[-1]) == 7 != np.argmax(default[-1])
