@@ -106,3 +106,4 @@ def local_cluster(folder: Path, protocol: str = "tcp", tls: list[str] = (), secu
                 p.wait(timeout=20)
             except subprocess.TimeoutExpired:
                 p.kill()
+                p.wait()
