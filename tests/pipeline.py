@@ -1,16 +1,27 @@
 """Helpers for pipeline tests: synthetic collections on disk, workflows, store comparison."""
 
 import os
+import re
+import signal
 import socket
 import subprocess
 import sys
+import threading
+import time
 from pathlib import Path
 
 import numpy as np
+import psutil
+import pytest
 import yaml
 
 from persona.dag.demo import write_collection
 from persona.stores.layout import open_store
+
+PERSONA = str(Path(sys.executable).with_name("persona"))
+#: a progress line (runner._Lines): "12:00:01 people/bea landmarks: started: 8 photos"; two build threads can
+#: print on one line, so they are found anywhere in it
+EVENT = re.compile(r"\d\d:\d\d:\d\d (\S+) ([a-z0-9. ]+?): (started|done|stopped)\b")
 
 
 def write_photos(folder: Path, photos) -> Path:
@@ -107,3 +118,81 @@ def local_cluster(folder: Path, protocol: str = "tcp", tls: list[str] = (), secu
             except subprocess.TimeoutExpired:
                 p.kill()
                 p.wait()
+
+
+def events(line: str) -> list[str]:
+    """The progress events of a line, as "people/bea landmarks: started"."""
+    return [f"{m[1]} {m[2].strip()}: {m[3]}" for m in EVENT.finditer(line)]
+
+
+class Run:
+    """One ``persona run`` of the workflow into ``store`` and ``output`` (``args``: more of its options), as a
+    process group of its own; every line it prints read as it comes, with the time it came (and written to
+    ``log``). ``note`` begins the message of a failure (e.g. the seed that replays it)."""
+
+    def __init__(self, workflow: Path, store: Path, output: Path, log: Path, args=(), env=None, note: str = ""):
+        self.log, self.note = log, note
+        self.proc = subprocess.Popen([PERSONA, "run", str(workflow), "--set", f"store={store}", "--set",
+                                      f"output={output}", *args], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                                     text=True, start_new_session=True, env=env)
+        self.start = time.monotonic()
+        self.working = None  # when its first progress line came
+        self.lines: list[tuple[float, str]] = []
+        self._reader = threading.Thread(target=self._read, daemon=True)
+        self._reader.start()
+
+    def _read(self):
+        with self.proc.stdout, open(self.log, "w") as log:
+            for line in self.proc.stdout:
+                self.lines.append((time.monotonic(), line.rstrip("\n")))
+                log.write(line)
+                log.flush()
+
+    def wait(self, timeout: float = 600) -> int:
+        """The run's exit status once it ended; a test failure (the run killed) when it runs for longer than
+        ``timeout`` seconds from its start (a hang is a failure too)."""
+        try:
+            self.proc.wait(timeout=max(1.0, timeout - (time.monotonic() - self.start)))
+        except subprocess.TimeoutExpired:
+            self.kill()
+            pytest.fail(f"{self.note}the run did not end within {timeout} s:\n{self.tail()}")
+        self._reader.join(timeout=30)
+        return self.proc.returncode
+
+    def kill(self) -> None:
+        """SIGKILL the whole run: every process of its group."""
+        os.killpg(self.proc.pid, signal.SIGKILL)
+        self.proc.wait()
+        self._reader.join(timeout=30)
+
+    def workers(self) -> list[int]:
+        """The process ids of the Dask workers of the run's own local cluster: processes its nannies spawned
+        that listen for their peers (the process that cleans a mesh for a build thread is spawned too, and
+        listens to none)."""
+        try:
+            children = psutil.Process(self.proc.pid).children(recursive=True)
+        except psutil.NoSuchProcess:
+            return []
+        found = []
+        for child in children:
+            try:
+                if "spawn_main" in " ".join(child.cmdline()) and any(
+                        c.status == psutil.CONN_LISTEN for c in child.net_connections("tcp")):
+                    found.append(child.pid)
+            except psutil.Error:
+                continue
+        return sorted(found)
+
+    def seen(self, text: str) -> bool:
+        """Whether a line it printed so far holds ``text``."""
+        return any(text in line for _, line in self.lines)
+
+    def text(self) -> str:
+        return "\n".join(line for _, line in self.lines)
+
+    def tail(self, n: int = 40) -> str:
+        return "\n".join(line for _, line in self.lines[-n:])
+
+    def last_step(self) -> str:
+        steps = [line for _, line in self.lines if EVENT.search(line)]
+        return steps[-1] if steps else "(no progress line yet)"

@@ -1,11 +1,15 @@
 """Fixtures for pipeline tests."""
 
 import shutil
+import time
 
 import pytest
+import yaml
 
+from persona.dag.demo import driver_identity, write_collection
 from persona.plugins.face import synthetic
-from pipeline import local_cluster, make_certificates
+from persona.stores import media
+from pipeline import Run, events, local_cluster, make_certificates
 
 
 @pytest.fixture(scope="session")
@@ -37,3 +41,45 @@ def tls_cluster(tmp_path):
         yield next(cluster), files
     finally:
         cluster.close()
+
+
+@pytest.fixture(scope="session")
+def batch(tmp_path_factory):
+    """A small version-2 batch (bea and cy performing al's video, 8 frames in 2 shards; 8, 8 and 9 photos:
+    about the fewest that give each a 3D shape, 8) and its uninterrupted run (`persona run`, its own local
+    cluster of two workers): (folder, workflow, timeline, end). Its store, ``folder/reference.zarr``, is
+    the one every interrupted or otherwise placed run of the batch must end with (test_chaos.py,
+    test_runner.py's cluster that loses workers and its scheduler, test_slurm.py); its progress lines,
+    with when each came from the first (``timeline``, up to ``end`` seconds), are the timeline the chaos
+    test draws its kill points on. The folder is shared: a test writes its own store and output elsewhere."""
+    folder = tmp_path_factory.mktemp("batch")
+    data = folder / "data"
+    quick = {"supersample": 1}  # drawn without antialiasing: 2.5 times faster, and dlib finds them as well
+    write_collection(data / "bea", synthetic.make_collection(8, seed=0, **quick))
+    write_collection(data / "cy", synthetic.make_collection(8, seed=7, **quick))
+    write_collection(data / "al", synthetic.make_collection(9, seed=1, **quick))
+    video = synthetic.make_driver_video(8, seed=2, identity=driver_identity(0), **quick)
+    media.write_video_mp4(data / "al.mp4", (frame.image for frame in video), fps=25)
+    workflow = folder / "batch.yaml"
+    workflow.write_text(yaml.safe_dump({
+        "version": 2, "name": "batch", "store": "run.zarr", "output": "out",
+        "people": {"bea": {"photos": "data/bea/*.png"}, "cy": {"photos": "data/cy/*.png"},
+                   "al": {"photos": "data/al/*.png"}},
+        "drives": [{"puppet": ["bea", "cy"], "driver": "al", "video": "data/al.mp4"}],
+        "photos_per_shard": 4, "stages": {"pose": {"params": {"focal_factor": 2.0}}},
+        "evaluate": {"identity_frames": 2, "collection_sample": 4},  # dlib's descriptors: the slowest figures
+        "cluster": {"scheduler": "local", "workers": 2}}, sort_keys=False))
+
+    start = time.monotonic()
+    run = Run(workflow, folder / "reference.zarr", folder / "reference", folder / "reference.log")
+    assert run.wait() == 0, f"the uninterrupted run failed:\n{run.tail()}"
+    seconds = time.monotonic() - start
+    timeline: dict[str, float] = {}
+    first = next(t for t, line in run.lines if events(line))
+    for t, line in run.lines:
+        for event in events(line):
+            timeline.setdefault(event, t - first)
+    end = run.lines[-1][0] - first
+    print(f"\nuninterrupted run of the batch: {seconds:.0f} s, {end:.0f} s from its first progress line; "
+          f"{len(timeline)} progress events")
+    return folder, workflow, timeline, end

@@ -8,6 +8,8 @@ The points come from a seeded generator, a new seed each session: PERSONA_CHAOS_
 points and kinds of a failure (every assertion's message gives the seed; where a point lands varies a
 little with the machine's load), and each run's output is kept in the test's folder when it fails
 (``chaos_<n>.log``).
+
+The batch and its uninterrupted run are conftest.py's ``batch``, shared with the other tests that run it.
 """
 
 import json
@@ -16,25 +18,17 @@ import re
 import secrets
 import signal
 import subprocess
-import sys
-import threading
 import time
 from pathlib import Path
 
 import numpy as np
-import psutil
 import pytest
-import yaml
 
 from persona.dag.cli import main as cli
-from persona.dag.demo import driver_identity, write_collection
-from persona.plugins.face import synthetic
-from persona.stores import media
 from persona.stores.lock import NAME as LOCK
 
-from pipeline import assert_same_store
+from pipeline import Run, assert_same_store, events
 
-PERSONA = str(Path(sys.executable).with_name("persona"))
 SEED = int(os.environ.get("PERSONA_CHAOS_SEED") or secrets.randbelow(2**31))
 KILLS = 10
 #: of which the whole run (the others: one worker). A whole-run kill costs most: the next run's start, the
@@ -50,78 +44,16 @@ TIMEOUT = 600
 #: evaluation); Dask gives a task up after 4 workers died under it (its allowed-failures, 3), a stop the
 #: run makes clear (test_runner.py) and that would be a failure here
 ENV = {**os.environ, "DASK_DISTRIBUTED__SCHEDULER__ALLOWED_FAILURES": str(KILLS)}
-#: a progress line (runner._Lines): "12:00:01 people/bea landmarks: started: 8 photos"; two build threads can
-#: print on one line, so they are found anywhere in it
-EVENT = re.compile(r"\d\d:\d\d:\d\d (\S+) ([a-z0-9. ]+?): (started|done|stopped)\b")
 
 
 def _why(where: str) -> str:
     return f"(seed {SEED}: PERSONA_CHAOS_SEED={SEED} replays it) {where}"
 
 
-class Run:
-    """One ``persona run`` of the workflow into ``store`` and ``output``, as a process group of its own; every
-    line it prints read as it comes, with the time it came (and written to ``log``)."""
-
-    def __init__(self, workflow: Path, store: Path, output: Path, log: Path):
-        self.log = log
-        self.proc = subprocess.Popen([PERSONA, "run", str(workflow), "--set", f"store={store}", "--set",
-                                      f"output={output}"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                                     text=True, start_new_session=True, env=ENV)
-        self.start = time.monotonic()
-        self.working = None  # when its first progress line came
-        self.lines: list[tuple[float, str]] = []
-        self._reader = threading.Thread(target=self._read, daemon=True)
-        self._reader.start()
-
-    def _read(self):
-        with self.proc.stdout, open(self.log, "w") as log:
-            for line in self.proc.stdout:
-                self.lines.append((time.monotonic(), line.rstrip("\n")))
-                log.write(line)
-                log.flush()
-
-    def wait(self, timeout: float = TIMEOUT) -> int:
-        try:
-            self.proc.wait(timeout=max(1.0, timeout - (time.monotonic() - self.start)))
-        except subprocess.TimeoutExpired:
-            self.kill()
-            pytest.fail(_why(f"the run did not end within {timeout} s:\n{self.tail()}"))
-        self._reader.join(timeout=30)
-        return self.proc.returncode
-
-    def kill(self) -> None:
-        """SIGKILL the whole run: every process of its group."""
-        os.killpg(self.proc.pid, signal.SIGKILL)
-        self.proc.wait()
-        self._reader.join(timeout=30)
-
-    def workers(self) -> list[int]:
-        """The process ids of the run's Dask workers: processes its local cluster's nannies spawned that listen
-        for their peers (the process that cleans a mesh for a build thread is spawned too, and listens to none)."""
-        try:
-            children = psutil.Process(self.proc.pid).children(recursive=True)
-        except psutil.NoSuchProcess:
-            return []
-        found = []
-        for child in children:
-            try:
-                if "spawn_main" in " ".join(child.cmdline()) and any(
-                        c.status == psutil.CONN_LISTEN for c in child.net_connections("tcp")):
-                    found.append(child.pid)
-            except psutil.Error:
-                continue
-        return sorted(found)
-
-    def text(self) -> str:
-        return "\n".join(line for _, line in self.lines)
-
-    def tail(self, n: int = 40) -> str:
-        return "\n".join(line for _, line in self.lines[-n:])
-
-    def last_step(self) -> str:
-        steps = [line for _, line in self.lines if EVENT.search(line)]
-        return steps[-1] if steps else "(no progress line yet)"
+def _run(workflow: Path, store: Path, output: Path, log: Path) -> Run:
+    """A run of the batch as the chaos test makes them: Dask's allowed failures raised (ENV), and the seed
+    in the message of a failure."""
+    return Run(workflow, store, output, log, env=ENV, note=_why(""))
 
 
 def _same_store(store: Path, reference: Path) -> None:
@@ -129,48 +61,6 @@ def _same_store(store: Path, reference: Path) -> None:
         assert_same_store(store, reference)
     except AssertionError as exc:
         raise AssertionError(_why(f"{store} is not the uninterrupted run's store: {exc}")) from None
-
-
-def _events(line: str) -> list[str]:
-    return [f"{m[1]} {m[2].strip()}: {m[3]}" for m in EVENT.finditer(line)]
-
-
-@pytest.fixture(scope="module")
-def batch(tmp_path_factory):
-    """The batch's data and workflow (bea and cy performing al's video, 8 frames in 2 shards; 8, 8 and 9
-    photos: about the fewest that give each a 3D shape, 8) and its uninterrupted run, whose store is the
-    reference and whose progress lines, with when each came, are the timeline the kill points are drawn on."""
-    folder = tmp_path_factory.mktemp("chaos")
-    data = folder / "data"
-    quick = {"supersample": 1}  # drawn without antialiasing: 2.5 times faster, and dlib finds them as well
-    write_collection(data / "bea", synthetic.make_collection(8, seed=0, **quick))
-    write_collection(data / "cy", synthetic.make_collection(8, seed=7, **quick))
-    write_collection(data / "al", synthetic.make_collection(9, seed=1, **quick))
-    video = synthetic.make_driver_video(8, seed=2, identity=driver_identity(0), **quick)
-    media.write_video_mp4(data / "al.mp4", (frame.image for frame in video), fps=25)
-    workflow = folder / "batch.yaml"
-    workflow.write_text(yaml.safe_dump({
-        "version": 2, "name": "chaos", "store": "run.zarr", "output": "out",
-        "people": {"bea": {"photos": "data/bea/*.png"}, "cy": {"photos": "data/cy/*.png"},
-                   "al": {"photos": "data/al/*.png"}},
-        "drives": [{"puppet": ["bea", "cy"], "driver": "al", "video": "data/al.mp4"}],
-        "photos_per_shard": 4, "stages": {"pose": {"params": {"focal_factor": 2.0}}},
-        "evaluate": {"identity_frames": 2, "collection_sample": 4},  # dlib's descriptors: the slowest figures
-        "cluster": {"scheduler": "local", "workers": 2}}, sort_keys=False))
-
-    start = time.monotonic()
-    run = Run(workflow, folder / "reference.zarr", folder / "reference", folder / "reference.log")
-    assert run.wait() == 0, f"the uninterrupted run failed:\n{run.tail()}"
-    seconds = time.monotonic() - start
-    timeline: dict[str, float] = {}
-    first = next(t for t, line in run.lines if _events(line))
-    for t, line in run.lines:
-        for event in _events(line):
-            timeline.setdefault(event, t - first)
-    end = run.lines[-1][0] - first
-    print(f"\nuninterrupted run: {seconds:.0f} s, {end:.0f} s from its first progress line; "
-          f"{len(timeline)} progress events")
-    return folder, workflow, timeline, end
 
 
 class Progress:
@@ -207,7 +97,7 @@ def _kill_on_points(run: Run, progress: Progress, points: list, kinds: list, kil
         now = time.monotonic()
         new, seen = run.lines[seen:], seen + len(run.lines[seen:])
         for when, line in new:
-            for event in _events(line):
+            for event in events(line):
                 run.working = run.working or when
                 progress.saw(event, when)
         if now - run.start > TIMEOUT:
@@ -249,9 +139,9 @@ def test_a_batch_killed_at_ten_points_ends_as_an_uninterrupted_run(batch, tmp_pa
     started = time.monotonic()
     try:
         while not runs or killed:  # a run after each whole-run kill
-            runs.append(Run(workflow, store, output, tmp_path / f"chaos_{len(runs) + 1}.log"))
+            runs.append(_run(workflow, store, output, tmp_path / f"chaos_{len(runs) + 1}.log"))
             killed = _kill_on_points(runs[-1], progress, points, kinds, kills, rng)
-        rc = runs[-1].wait()
+        rc = runs[-1].wait(TIMEOUT)
     finally:
         for run in runs:  # a test that failed half-way leaves no run behind
             if run.proc.poll() is None:
@@ -324,7 +214,7 @@ def test_a_batch_on_a_disk_that_fills_up_stops_clearly_and_resumes(batch, small_
     disk, resize, used = small_disk
     store, output = disk / "run.zarr", tmp_path / "out"
     start = time.monotonic()
-    run = Run(workflow, store, output, tmp_path / "full.log")
+    run = _run(workflow, store, output, tmp_path / "full.log")
     rc = run.wait()
     text = run.text()
     assert rc == 2, _why(f"exit status {rc} on a full disk:\n{text}")
@@ -335,7 +225,7 @@ def test_a_batch_on_a_disk_that_fills_up_stops_clearly_and_resumes(batch, small_
     assert any(" done: " in line for _, line in run.lines), _why(f"the disk was full before any work:\n{text}")
 
     resize(2 * used + 16)
-    again = Run(workflow, store, output, tmp_path / "again.log")
+    again = _run(workflow, store, output, tmp_path / "again.log")
     assert again.wait() == 0, _why(f"the run did not resume with space again:\n{again.tail()}")
     text = again.text()
     assert "Traceback" not in text and "error:" not in text, _why(text)
