@@ -187,52 +187,54 @@ def _landmark_states(store):
         return None
 
 
-def test_resume_after_sigkill_recomputes_nothing_finished(tmp_path, synthetic_photos):
-    photos = write_photos(tmp_path / "photos", synthetic_photos * 2)  # 48 photos, 12 shards
-    killed = tmp_path / "killed"
-    clean = tmp_path / "clean"
-    for folder in (killed, clean):
-        folder.mkdir()
-        write_workflow(folder, str(photos))
+@pytest.fixture(scope="module")
+def twelve_photos(tmp_path_factory, synthetic_photos):
+    """12 synthetic photos and the store of their run in this process (the default workflow): the store
+    every run of them elsewhere must give."""
+    folder = tmp_path_factory.mktemp("twelve")
+    photos = write_photos(folder / "photos", synthetic_photos[:12])
+    run_workflow(load_workflow(write_workflow(folder, str(photos))), scheduler="sync", progress=False)
+    return photos, folder / "run.zarr"
 
-    proc = subprocess.Popen([PERSONA, "run", str(killed / "wf.yaml"), "--scheduler", "sync", "--quiet"],
+
+def test_resume_after_sigkill_recomputes_nothing_finished(tmp_path, twelve_photos):
+    """A run in this process (scheduler "sync") SIGKILLed part-way through the landmarks: the next run
+    skips every shard that was finished, leaves its files as they were and decodes none of its photos
+    again, and ends with the store of a run that was not killed."""
+    photos, reference = twelve_photos  # 3 shards of 4
+    write_workflow(tmp_path, str(photos))
+    proc = subprocess.Popen([PERSONA, "run", str(tmp_path / "wf.yaml"), "--scheduler", "sync", "--quiet"],
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
 
     def some_done():
-        state = _landmark_states(killed / "run.zarr")
+        state = _landmark_states(tmp_path / "run.zarr")
         return state is not None and (state != PENDING).sum() >= 4
 
     assert _wait_for(some_done, timeout=120), "the run never got into the landmarks stage"
     proc.send_signal(signal.SIGKILL)
     proc.wait()
-    state = _landmark_states(killed / "run.zarr")
+    state = _landmark_states(tmp_path / "run.zarr")
     finished = int((state != PENDING).sum())
     assert 0 < finished < len(state), "the kill did not land part-way through landmarks"
-    shard_file = killed / "run.zarr" / "puppet" / "landmarks" / "points" / "c" / "0" / "0" / "0"
+    shard_file = tmp_path / "run.zarr" / "puppet" / "landmarks" / "points" / "c" / "0" / "0" / "0"
     before = shard_file.stat().st_mtime_ns
 
-    resumed = run_workflow(load_workflow(killed / "wf.yaml"), scheduler="sync", progress=False)
+    resumed = run_workflow(load_workflow(tmp_path / "wf.yaml"), scheduler="sync", progress=False)
     landmarks = [r for r in resumed["stages"] if r["stage"] == "landmarks"][0]
     assert landmarks["n_skipped"] >= finished - finished % 4
-    assert landmarks["n_done"] + landmarks["n_skipped"] == 48
+    assert landmarks["n_done"] + landmarks["n_skipped"] == 12
     assert shard_file.stat().st_mtime_ns == before  # the first shard was not rewritten
     ingest = [r for r in resumed["stages"] if r["stage"] == "ingest"][0]
     assert ingest["n_skipped"] >= landmarks["n_skipped"]  # photos are not decoded again either
-
-    run_workflow(load_workflow(clean / "wf.yaml"), scheduler="sync", progress=False)
-    assert_same_store(killed / "run.zarr", clean / "run.zarr")
+    assert_same_store(tmp_path / "run.zarr", reference)
 
 
-def test_distributed_cluster_gives_the_same_store_as_a_local_run(tmp_path, synthetic_photos, dask_cluster):
-    photos = write_photos(tmp_path / "photos", synthetic_photos[:12])
-    remote, local = tmp_path / "remote", tmp_path / "local"
-    for folder in (remote, local):
-        folder.mkdir()
-        write_workflow(folder, str(photos))
-    assert cli(["run", str(remote / "wf.yaml"), "--scheduler", dask_cluster, "--quiet"]) == 0
-    run_workflow(load_workflow(local / "wf.yaml"), scheduler="sync", progress=False)
-    assert_same_store(remote / "run.zarr", local / "run.zarr")
-    metrics = json.loads((remote / "out" / "metrics.json").read_text())
+def test_distributed_cluster_gives_the_same_store_as_a_local_run(tmp_path, twelve_photos, dask_cluster):
+    photos, reference = twelve_photos
+    write_workflow(tmp_path, str(photos))
+    assert cli(["run", str(tmp_path / "wf.yaml"), "--scheduler", dask_cluster, "--quiet"]) == 0
+    assert_same_store(tmp_path / "run.zarr", reference)
+    metrics = json.loads((tmp_path / "out" / "metrics.json").read_text())
     assert metrics["collections"]["puppet"]["accepted"] >= 10
 
 
@@ -577,16 +579,13 @@ def test_a_worker_killed_in_each_kind_of_step_leaves_the_run_to_the_others(batch
     assert_same_store(store, folder / "reference.zarr")
 
 
-def test_a_lost_scheduler_stops_the_run_clearly_and_a_new_one_resumes_it(tmp_path):
-    """The scheduler SIGKILLed mid-run: the run exits 2 within seconds, saying it lost the scheduler
-    and how to resume; with a new scheduler and workers the re-run gives the uninterrupted store."""
+def test_a_lost_scheduler_stops_the_run_clearly_and_a_new_one_resumes_it(tmp_path, twelve_photos):
+    """The scheduler SIGKILLed mid-run (a version-1 run): the run exits 2 within seconds, saying it lost the
+    scheduler and how to resume; with a new scheduler and workers the re-run gives the uninterrupted store."""
     from distributed import Client
 
-    from persona.dag.demo import make_demo_data
-
-    remote, local = tmp_path / "remote", tmp_path / "local"
-    for folder in (remote, local):
-        make_demo_data(folder, n_photos=10, n_frames=16)
+    photos, reference = twelve_photos
+    write_workflow(tmp_path, str(photos))
     first = local_cluster(tmp_path)
     address = next(first)
     with Client(address, timeout="30s") as client:
@@ -594,11 +593,11 @@ def test_a_lost_scheduler_stops_the_run_clearly_and_a_new_one_resumes_it(tmp_pat
 
     def aligned():
         try:
-            return (Collection(open_store(remote / "run.zarr", mode="r"), "puppet").state("frontalize") != PENDING).sum()
+            return (Collection(open_store(tmp_path / "run.zarr", mode="r"), "puppet").state("frontalize") != PENDING).sum()
         except Exception:
             return 0
 
-    proc = subprocess.Popen([PERSONA, "run", str(remote / "demo.yaml"), "--scheduler", address, "--quiet"],
+    proc = subprocess.Popen([PERSONA, "run", str(tmp_path / "wf.yaml"), "--scheduler", address, "--quiet"],
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     try:
         assert _wait_for(lambda: aligned() >= 1, timeout=300), "the run never got going"
@@ -611,11 +610,10 @@ def test_a_lost_scheduler_stops_the_run_clearly_and_a_new_one_resumes_it(tmp_pat
     assert "Traceback" not in err, err
     second = local_cluster(tmp_path)
     try:
-        assert cli(["run", str(remote / "demo.yaml"), "--scheduler", next(second), "--quiet"]) == 0
+        assert cli(["run", str(tmp_path / "wf.yaml"), "--scheduler", next(second), "--quiet"]) == 0
     finally:
         second.close()
-    run_workflow(load_workflow(local / "demo.yaml"), scheduler="sync", progress=False)
-    assert_same_store(remote / "run.zarr", local / "run.zarr")
+    assert_same_store(tmp_path / "run.zarr", reference)
 
 
 def test_a_1080p_clip_keeps_its_size(tmp_path):
