@@ -4,6 +4,7 @@ CI starts a single-node SLURM with .ci/slurm-up.sh (called by `bash setup.sh tes
 `sbatch` or an idle node these tests skip with the reason.
 """
 
+import json
 import os
 import shutil
 import subprocess
@@ -108,25 +109,15 @@ def test_slurm_workers_give_the_same_store_as_a_local_run(tmp_path, synthetic_ph
 
 
 @needs_slurm
-def test_a_batch_of_drives_on_slurm_gives_the_same_store_as_a_local_run(tmp_path):
-    """Fig. 8 in small (docs/batch.md): two puppets built once and driven by one driver's video, every
-    stage through Dask workers that sbatch started, gives the same store, array for array, as the
-    same workflow run in this process."""
-    import yaml
-
-    from persona.dag.demo import make_demo_data, write_collection
-    from persona.plugins.face import synthetic
-
-    make_demo_data(tmp_path, n_photos=10, n_frames=8)
-    write_collection(tmp_path / "data" / "puppet2", synthetic.make_collection(10, seed=7))
-    for name, cluster in (("slurm", SLURM), ("local", {"scheduler": "sync"})):
-        workflow = {"version": 2, "name": f"fig8 on {name}", "store": f"{name}.zarr", "output": name,
-                    "people": {"bea": {"photos": "data/puppet/*.png"}, "cy": {"photos": "data/puppet2/*.png"},
-                               "al": {"photos": "data/driver/*.png"}},
-                    "drives": [{"puppet": ["bea", "cy"], "driver": "al", "video": "data/driver.mp4"}],
-                    "photos_per_shard": 4, "stages": {"pose": {"params": {"focal_factor": 2.0}}}, "cluster": cluster}
-        (tmp_path / f"{name}.yaml").write_text(yaml.safe_dump(workflow))
-        report = run_workflow(load_workflow(tmp_path / f"{name}.yaml"), progress=False)
-        assert set(report["drives"]) == {"bea_al_driver", "cy_al_driver"}
+def test_a_batch_of_drives_on_slurm_gives_the_same_store_as_a_local_run(batch, tmp_path):
+    """Fig. 8 in small (docs/batch.md): two puppets built once and driven by one driver's video (conftest.py's
+    batch), every stage through Dask workers that sbatch started, gives the same store, array for array, as
+    the batch's uninterrupted run on a local cluster (whose store is the one a run in this process makes:
+    test_people.py's two-at-a-time test)."""
+    folder, workflow, _, _ = batch
+    wf = load_workflow(workflow, [f"store={tmp_path / 'slurm.zarr'}", f"output={tmp_path / 'slurm'}",
+                                  f"cluster={json.dumps(SLURM)}"])
+    report = run_workflow(wf, progress=False)
+    assert set(report["drives"]) == {"bea_al_al", "cy_al_al"}
     assert (tmp_path / "slurm" / "worker-logs").is_dir()  # the batch jobs' logs
-    assert_same_store(tmp_path / "slurm.zarr", tmp_path / "local.zarr")
+    assert_same_store(tmp_path / "slurm.zarr", folder / "reference.zarr")
