@@ -347,6 +347,21 @@ def test_masked_psnr_and_ssim():
     assert np.isnan(masked_psnr(a, c, np.zeros_like(mask)))
 
 
+def test_masked_ssim_on_the_masks_box_is_the_whole_images_figure():
+    from skimage.metrics import structural_similarity
+
+    rng = np.random.default_rng(3)
+    a = rng.integers(0, 256, (64, 80, 3), dtype=np.uint8)
+    b = np.clip(a + rng.normal(0, 20, a.shape), 0, 255).astype(np.uint8)
+    _, full = structural_similarity(a, b, full=True, channel_axis=-1, data_range=255)
+    for box in ((slice(10, 40), slice(20, 50)), (slice(0, 30), slice(60, 80)), (slice(30, 32), slice(5, 7)),
+                (slice(None), slice(None))):  # inside, at the image's corner, smaller than the window, all
+        mask = np.zeros((64, 80), bool)
+        mask[box] = True
+        mask[box][::3, ::2] = False  # holes: only the masked pixels count
+        assert masked_ssim(a, b, mask) == pytest.approx(float(np.mean(full[mask])), rel=1e-12, abs=1e-12)
+
+
 def test_gaze_signals_are_the_two_eyes_mean_and_one_eye_when_the_other_is_not_seen():
     offsets = np.array([[[0.1, 0.02], [0.2, 0.04]], [[np.nan, np.nan], [-0.1, 0.0]], [[np.nan] * 2] * 2])
     signals = ev.gaze_signals(offsets)
