@@ -198,8 +198,9 @@ def _cmd_evaluate(args) -> int:
                            f"`persona run {args.workflow}` first")
     results = {}
     with executor_for(wf, args.scheduler, args.workers) as ex:
+        runner = Runner(wf, ex, progress=False)  # one: a person in several drives is described once
         for plan in plans:
-            results[plan.name] = Runner(wf, ex, progress=False).evaluate(plan.cast)
+            results[plan.name] = runner.evaluate(plan.cast)
             results[plan.name].pop("series")
     result = results.get("drive", {}) if wf.version == 1 else results  # version 2: by drive
     if args.json:

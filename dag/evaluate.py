@@ -154,24 +154,41 @@ def _sample(ok: np.ndarray, k: int) -> list[int]:
     return [int(i) for i in idx[np.linspace(0, len(idx) - 1, min(k, len(idx))).round().astype(int)]] if len(idx) else []
 
 
+def photo_centroid(store: str, root, actor: str, path: str, executor, identity: tuple[str, dict], sample: int,
+                   known: dict) -> np.ndarray:
+    """The centroid of the descriptors of ``sample`` of the accepted photos of the collection at ``path``
+    (the ``actor``'s), from ``known`` when it holds the same photos' (the same accepted rows of the same
+    landmarks, the same identity backend), else computed by two tasks and kept there."""
+    coll = Collection(root, path)
+    if not coll.has("status/screen/state"):
+        raise InputError(f"{store}: the {actor}'s photos were processed by an older Persona, before the "
+                         "collection's screen existed; run `persona run` on the workflow again to bring "
+                         "the store up to date, then evaluate")
+    chosen = _sample(accepted(coll), sample)
+    landmarks = coll.provenance("landmarks/points")
+    key = None if landmarks is None else (store, path, landmarks.key, tuple(chosen), repr(identity))
+    if key is None or key not in known:
+        parts = list(executor.run(describe_photos, [(store, path, chosen[i::2], identity) for i in range(2)]))
+        if key is None:
+            return ev.centroid(np.concatenate(parts))
+        known[key] = ev.centroid(np.concatenate(parts))
+    return known[key]
+
+
 def evaluate(store: str, executor, *, identity: tuple[str, dict], threshold: float = 0.6,
              collection_sample: int = 100, identity_frames: int = 0, self_reenactment: bool = False,
              cast: Cast = Cast(),
-             progress: Callable[[int], object] = lambda frames: None) -> dict:
+             progress: Callable[[int], object] = lambda frames: None, known: dict | None = None) -> dict:
     """Every figure of a finished drive (``cast``; a format-1 store's by default), as a JSON-ready
     dict (plus per-frame series under "series"); ``progress(n)`` is called as each shard of n
-    frames is analysed. Identity is judged on ``identity_frames`` frames evenly spaced (0: all)."""
+    frames is analysed. Identity is judged on ``identity_frames`` frames evenly spaced (0: all).
+    ``known``: the collections' descriptor centroids already computed (:func:`photo_centroid`), which a
+    caller that evaluates several drives keeps from one to the next (a person who drives two puppets,
+    or a puppet driven by its own person, is described once)."""
     root = open_store(store, mode="r")
-    centroids = {}
-    for actor, path in (("puppet", cast.puppet), ("driver", cast.driver)):
-        coll = Collection(root, path)
-        if not coll.has("status/screen/state"):
-            raise InputError(f"{store}: the {actor}'s photos were processed by an older Persona, before the "
-                             "collection's screen existed; run `persona run` on the workflow again to bring "
-                             "the store up to date, then evaluate")
-        chosen = _sample(accepted(coll), collection_sample)
-        parts = list(executor.run(describe_photos, [(store, path, chosen[i::2], identity) for i in range(2)]))
-        centroids[actor] = ev.centroid(np.concatenate(parts))
+    known = {} if known is None else known
+    centroids = {actor: photo_centroid(store, root, actor, path, executor, identity, collection_sample, known)
+                 for actor, path in (("puppet", cast.puppet), ("driver", cast.driver))}
     drive = Collection(root, cast.drive)
     every = identity_every(drive.n, identity_frames)
     tasks = [(store, s, e, identity, self_reenactment, cast, every) for s, e in drive.shard_ranges()]

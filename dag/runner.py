@@ -486,6 +486,8 @@ class Runner:
     timer: StageTimer = field(default_factory=StageTimer)
     #: why a collection has no 3D shape in this run (its arrays from an earlier run must not be used)
     shape_problems: dict = field(default_factory=dict)
+    #: the collections' descriptor centroids the evaluation computed in this run (dag.evaluate.photo_centroid)
+    centroids: dict = field(default_factory=dict)
 
     def __post_init__(self):
         if self.pm is None:
@@ -919,7 +921,7 @@ class Runner:
         return evaluate(self.wf.store, self.executor, identity=self.wf.stage("identity"),
                         threshold=e.threshold, collection_sample=e.collection_sample,
                         identity_frames=e.identity_frames, self_reenactment=e.self_reenactment, cast=cast,
-                        progress=progress)
+                        progress=progress, known=self.centroids)
 
 
 class _OneByOne:

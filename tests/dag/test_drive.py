@@ -205,6 +205,26 @@ def test_identity_judged_on_a_few_frames_gives_every_frames_own_distances(drive_
     assert results[5]["identity"]["frames_without_face"] == results[0]["identity"]["frames_without_face"]
 
 
+def test_a_collection_is_described_once_by_a_runner_that_evaluates_again(drive_run, monkeypatch):
+    """The centroid of a collection's photo descriptors is computed once by a runner (a run, or `persona
+    evaluate` of every drive of a workflow): a second evaluation, or a second drive of the same person,
+    takes it again from the first, with the same figures."""
+    from persona.dag import evaluate as evaluation
+    from persona.dag.runner import Runner, executor_for
+
+    _, path, _ = drive_run
+    described, describe = [], evaluation.describe_photos
+    monkeypatch.setattr(evaluation, "describe_photos", lambda *task: described.append(task[1]) or describe(*task))
+    wf = load_workflow(path, ["evaluate.identity_frames=2"])
+    with executor_for(wf, "sync", None) as ex:
+        runner = Runner(wf, ex, progress=False)
+        first = runner.evaluate()
+        assert sorted(described) == ["driver", "driver", "puppet", "puppet"]  # two tasks each
+        again = runner.evaluate()
+    assert len(described) == 4
+    assert json.dumps(again["identity"]) == json.dumps(first["identity"])
+
+
 def test_evaluating_a_store_from_before_the_screen_says_to_run_again(drive_run, tmp_path, capsys):
     """A store written before the collection's screen existed has no accepted photos by today's
     rule: the evaluation says so and what to do, rather than judging identity against nothing."""
