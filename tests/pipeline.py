@@ -52,8 +52,12 @@ def store_arrays(url) -> dict[str, np.ndarray]:
     return out
 
 
-def assert_same_store(a, b):
+def assert_same_store(a, b, within: tuple[str, ...] = ()):
+    """Store ``a`` has every array of store ``b`` and no other, each equal (float ones to 1e-6). ``within``:
+    only the arrays of ``b`` under these groups (``a`` made only some of what ``b`` holds)."""
     left, right = store_arrays(a), store_arrays(b)
+    if within:
+        right = {name: array for name, array in right.items() if name.startswith(tuple(f"{g}/" for g in within))}
     assert sorted(left) == sorted(right)
     for name in left:
         x, y = left[name], right[name]

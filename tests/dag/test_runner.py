@@ -534,12 +534,13 @@ def test_a_full_disk_stops_with_a_clear_error_and_the_run_resumes(tmp_path, synt
 
 
 def test_a_worker_killed_in_each_kind_of_step_leaves_the_run_to_the_others(batch, tmp_path):
-    """The batch of conftest.py on an existing Dask cluster (a scheduler and two `dask worker`s, each with its
-    nanny), one person built at a time (cluster.builds 1: each step's tasks are the only ones running). A
-    worker is SIGKILLed while it runs a task of each kind of step: the per-photo chain (bea's landmarks), a
-    step of one task (bea's 3D shape), a fold over shards (bea's texture cache) and the per-frame chain (the
-    first drive's dynamics), each once the nanny's new worker has joined. Dask gives each task to another
-    worker: the run exits 0, prints no traceback and no step stopped or failed, and the store is the
+    """The first drive of conftest.py's batch (bea performing al's video: bea, al and the video built, not
+    cy) on an existing Dask cluster (a scheduler and two `dask worker`s, each with its nanny), one person
+    built at a time (cluster.builds 1: each step's tasks are the only ones running). A worker is SIGKILLed
+    while it runs a task of each kind of step: the per-photo chain (bea's landmarks), a step of one task
+    (bea's 3D shape), a fold over shards (bea's texture cache) and the per-frame chain (the drive's
+    dynamics), each once the nanny's new worker has joined. Dask gives each task to another worker: the
+    run exits 0, prints no traceback and no step stopped or failed, and every array it made is the
     uninterrupted run's."""
     from distributed import Client
 
@@ -549,8 +550,10 @@ def test_a_worker_killed_in_each_kind_of_step_leaves_the_run_to_the_others(batch
              ("people/bea tex. cache: started", "on_shard"), ("drives/bea_al_al dynamics: started", "run_chain"))
     cluster = local_cluster(tmp_path)
     address = next(cluster)
+    first_drive = ["--set", "people={bea: {photos: data/bea/*.png}, al: {photos: data/al/*.png}}",
+                   "--set", "drives=[{puppet: bea, driver: al, video: data/al.mp4}]"]
     run = Run(workflow, store, tmp_path / "out", tmp_path / "run.log",
-              ["--scheduler", address, "--set", "cluster.builds=1"])
+              ["--scheduler", address, "--set", "cluster.builds=1", *first_drive])
     try:
         with Client(address, timeout="30s") as client:
             for step, task in steps:
@@ -576,7 +579,8 @@ def test_a_worker_killed_in_each_kind_of_step_leaves_the_run_to_the_others(batch
     # (a step that "stopped" in a run that went on: a lost task, done again, counted as undone)
     assert not [line for _, line in run.lines if line.startswith("error:") or "failed:" in line
                 or ": stopped: " in line], text
-    assert_same_store(store, folder / "reference.zarr")
+    assert_same_store(store, folder / "reference.zarr", within=("people/bea", "people/al", "videos/al",
+                                                                "drives/bea_al_al"))
 
 
 def test_a_lost_scheduler_stops_the_run_clearly_and_a_new_one_resumes_it(tmp_path, twelve_photos):
