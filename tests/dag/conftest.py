@@ -49,9 +49,10 @@ def batch(tmp_path_factory):
     about the fewest that give each a 3D shape, 8) and its uninterrupted run (`persona run`, its own local
     cluster of two workers): (folder, workflow, timeline, end). Its store, ``folder/reference.zarr``, is
     the one every interrupted or otherwise placed run of the batch must end with (test_chaos.py,
-    test_runner.py's cluster that loses workers and its scheduler, test_slurm.py); its progress lines,
-    with when each came from the first (``timeline``, up to ``end`` seconds), are the timeline the chaos
-    test draws its kill points on. The folder is shared: a test writes its own store and output elsewhere."""
+    test_runner.py's worker kills, test_slurm.py, test_people.py's run in this process); its progress
+    lines, with when each came from the first (``timeline``, up to ``end`` seconds), are the timeline the
+    chaos test draws its kill points on and show test_people.py two people built at once. The folder is
+    shared: a test writes its own store, output and files elsewhere."""
     folder = tmp_path_factory.mktemp("batch")
     data = folder / "data"
     quick = {"supersample": 1}  # drawn without antialiasing: 2.5 times faster, and dlib finds them as well
