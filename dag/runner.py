@@ -56,6 +56,10 @@ class RunError(PersonaError, RuntimeError):
     """A run could not finish; the message says how to resume or fix it."""
 
 
+class ClusterLost(RunError):
+    """The run's Dask scheduler, or every one of its workers, is gone: no person, video or drive can go on."""
+
+
 # -- executing tasks ---------------------------------------------------------------------
 
 class Executor:
@@ -199,7 +203,7 @@ class Executor:
                     log.warning("the Dask scheduler has no worker left; waiting %.0f s for one to come back",
                                 self.workerless_seconds)
                 elif time.monotonic() - gone_since > self.workerless_seconds:
-                    raise RunError(f"every Dask worker left the scheduler ({self.scheduler}) and none came "
+                    raise ClusterLost(f"every Dask worker left the scheduler ({self.scheduler}) and none came "
                                    f"back within {self.workerless_seconds:.0f} s; the run stops here. Finished "
                                    "shards are kept: start workers again (or run locally) and re-run the "
                                    "workflow to resume") from None
@@ -209,7 +213,7 @@ class Executor:
                 yield done.pop()
 
     def _lost(self) -> RunError:
-        return RunError(f"the run lost the connection to its Dask scheduler ({self.scheduler}): it stopped, or "
+        return ClusterLost(f"the run lost the connection to its Dask scheduler ({self.scheduler}): it stopped, or "
                         "the network between them did. Finished shards are kept: start the scheduler and its "
                         "workers again (or run locally) and re-run the workflow to resume")
 
@@ -262,9 +266,10 @@ def disk_full(exc: BaseException) -> bool:
 
 def _stops_the_run(exc: BaseException) -> bool:
     """An error that stops a whole version-2 run rather than failing the drives that need the person or
-    video it met: a damaged chunk (:meth:`Runner.run` recovers it and starts again) or a full disk, on which
-    no other person, video or drive can be written either (``persona run`` says so, once)."""
-    return isinstance(exc, ChunkError) or disk_full(exc)
+    video it met: a damaged chunk (:meth:`Runner.run` recovers it and starts again), a full disk, on which
+    no other person, video or drive can be written either (``persona run`` says so, once), or a lost
+    scheduler or workers, without which none can be computed."""
+    return isinstance(exc, (ChunkError, ClusterLost)) or disk_full(exc)
 
 
 class _HandledFailures(logging.Filter):
@@ -945,7 +950,8 @@ class _OneByOne:
 
 def _built(build: Future) -> str | None:
     """Waits for a collection's build (:meth:`Runner._build`): None when it is built, else why not. A
-    damaged chunk met there is raised, for :meth:`Runner.run` to recover, and so is a full disk."""
+    damaged chunk met there is raised, for :meth:`Runner.run` to recover, and so are a full disk and a lost
+    cluster (:func:`_stops_the_run`)."""
     exc = build.exception()
     if exc is not None and (not isinstance(exc, Exception) or _stops_the_run(exc)):
         raise exc

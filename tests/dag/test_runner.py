@@ -567,6 +567,26 @@ def test_a_worker_killed_in_each_kind_of_step_leaves_the_run_to_the_others(batch
                                                                 "drives/bea_al_al"))
 
 
+def test_a_lost_cluster_stops_a_batch_rather_than_failing_its_drives_one_by_one():
+    """In a version-2 batch, a person's build that failed fails only the drives that need it; one that lost
+    the run's scheduler (or every worker) stops the whole run with that message, as a full disk does, instead
+    of each later drive failing in turn and the run ending "the others are done" with nothing done."""
+    from concurrent.futures import Future
+
+    from persona.dag.runner import ClusterLost, Executor, RunError, _built
+
+    def failed(exc):
+        future = Future()
+        future.set_exception(exc)
+        return future
+
+    assert _built(failed(RunError("no photo of bea was accepted"))) == "no photo of bea was accepted"
+    lost = Executor.__new__(Executor)
+    lost.scheduler = "tcp://127.0.0.1:8786"
+    with pytest.raises(ClusterLost, match="lost the connection to its Dask scheduler"):
+        _built(failed(lost._lost()))
+
+
 def test_a_lost_scheduler_stops_the_run_clearly_and_a_new_one_resumes_it(tmp_path, twelve_photos):
     """The scheduler SIGKILLed mid-run (a version-1 run): the run exits 2 within seconds, saying it lost the
     scheduler and how to resume; with a new scheduler and workers the re-run gives the uninterrupted store
