@@ -339,7 +339,7 @@ class Workflow(Strict):
 class IngestParams(Strict):
     max_side: int = Field(MAX_SIDE, ge=64, description="photos and video frames larger than this (px, longer "
                           "side) are downscaled; 1920 keeps a 1080p clip at its own size, so the output videos "
-                          "are the driver's (was 1600, which made a 1080p drive 1600x900)")
+                          "are the driver's")
     max_pixels: int = Field(MAX_PIXELS, ge=1, description="headers claiming more pixels are rejected "
                             "as decompression bombs without decoding")
     min_side: int = Field(MIN_SIDE, ge=1, description="photos smaller than this (px, shorter side) are rejected")

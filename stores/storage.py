@@ -2,8 +2,8 @@
 
 Every file Persona reads or writes outside the Zarr store (photos, videos, landmark sidecars, the
 pictures, videos, meshes and reports of the output) goes through these functions, so that workers
-on machines without a shared file system cooperate through object storage. A local path takes the
-same route as before (``os``, ``glob``, ``open``); a URL goes through fsspec (``s3fs`` for
+on machines without a shared file system cooperate through object storage. A local path goes
+through Python's own ``os``, ``glob`` and ``open``; a URL goes through fsspec (``s3fs`` for
 ``s3://``, installed with ``pip install 'persona[s3]'``).
 
 The storage options of ``s3://`` URLs (endpoint, credentials) are the workflow's
