@@ -34,7 +34,8 @@ def persona_register_backends(register):
 def persona_before_stage(stage, collection, info):
     """Called before a stage runs on one collection (e.g. ``"puppet"``).
 
-    ``info`` is a dict with at least ``backend``, ``params`` and ``n_items``.
+    ``info``: for a per-photo or per-frame stage, a dict with ``backend``, ``params`` and ``n_items``; for a
+    collection-level step (shape, texture, motion, ...: one step, not items), an empty dict.
     """
 
 
@@ -42,7 +43,8 @@ def persona_before_stage(stage, collection, info):
 def persona_after_stage(stage, collection, summary):
     """Called after a stage finished on one collection.
 
-    ``summary`` holds ``seconds``, ``n_done``, ``n_skipped``, ``n_ok`` and ``n_rejected``.
+    ``summary`` holds ``seconds``, and for a per-photo or per-frame stage also ``n_done``, ``n_skipped``,
+    ``n_ok`` and ``n_rejected``.
     """
 
 
