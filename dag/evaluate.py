@@ -167,12 +167,13 @@ def photo_centroid(store: str, root, actor: str, path: str, executor, identity: 
     chosen = _sample(accepted(coll), sample)
     landmarks = coll.provenance("landmarks/points")
     key = None if landmarks is None else (store, path, landmarks.key, tuple(chosen), repr(identity))
-    if key is None or key not in known:
-        parts = list(executor.run(describe_photos, [(store, path, chosen[i::2], identity) for i in range(2)]))
-        if key is None:
-            return ev.centroid(np.concatenate(parts))
-        known[key] = ev.centroid(np.concatenate(parts))
-    return known[key]
+    if key in known:
+        return known[key]
+    parts = list(executor.run(describe_photos, [(store, path, chosen[i::2], identity) for i in range(2)]))
+    centroid = ev.centroid(np.concatenate(parts))
+    if key is not None:
+        known[key] = centroid
+    return centroid
 
 
 def evaluate(store: str, executor, *, identity: tuple[str, dict], threshold: float = 0.6,
