@@ -3,61 +3,39 @@
 from __future__ import annotations
 
 import argparse
-import errno
 import json
-import os
 import shlex
-import shutil
 import sys
 from pathlib import Path
 
 from persona.plugins.base import Rejected
 from persona.plugins.manager import PluginError
-from persona.stores.errors import InputError, PersonaError, StorageError
+from persona.stores.errors import InputError, PersonaError
 from persona.stores.layout import StoreUnreadable, item
 from persona.stores.lock import StoreLocked
 from persona.stores.output import OutputTaken
 
 
 def _cmd_run(args) -> int:
-    from .runner import run_workflow
-    from .workflow import load_workflow
+    from . import api
 
-    wf = load_workflow(args.workflow, args.set)
+    wf = api.workflow(args.workflow, args.set)
     if args.dry_run:
         print(_plan(wf))
         return 0
     try:
-        report = run_workflow(wf, scheduler=args.scheduler, workers=args.workers, progress=not args.quiet,
-                              force=args.force)
+        report = api.run(wf, scheduler=args.scheduler, workers=args.workers, progress=not args.quiet,
+                         force=args.force)
     except KeyboardInterrupt:
         _resume_hint(args)
         return 130
     except (InputError, Rejected, StoreLocked, OutputTaken, StoreUnreadable):  # running again cannot help: no hint
         raise
-    except OSError as exc:
-        _resume_hint(args)
-        if exc.errno not in (errno.ENOSPC, errno.EDQUOT):
-            raise
-        raise StorageError(f"the disk is full ({exc.strerror}) writing {exc.filename or wf.store}: free space "
-                           f"there ({_free_space(exc.filename or wf.store)}) or set store: / output: to a larger "
-                           "disk, then run again (finished work is kept)") from None
-    except Exception:
+    except Exception:  # a full disk (api.run's StorageError), a lost cluster, ...: finished work is kept
         _resume_hint(args)
         raise
     _print_report(report)
     return 0
-
-
-def _free_space(path) -> str:
-    """What is free on the disk of a local path, as people read it."""
-    folder = os.path.dirname(os.path.abspath(str(path)))
-    while folder and not os.path.isdir(folder):
-        folder = os.path.dirname(folder)
-    try:
-        return f"{shutil.disk_usage(folder).free / 2**20:.1f} MiB free in {folder}"
-    except OSError:
-        return "its free space unknown"
 
 
 def _plan(wf) -> str:
