@@ -6,10 +6,11 @@
 #   bash setup.sh         # install only
 #
 # Installs: the system packages open3d needs (libusb-1.0-0, libgomp1; for `test` also
-# chromium, in which a test opens the report), a virtual environment in .venv with
-# Persona (editable) and its Python dependencies. For `test` it also starts a single-node
-# SLURM (.ci/slurm-up.sh: Debian's slurm-wlm and munge); when that fails, the tests that
-# need it skip.
+# chromium, in which the tests open the reports, and npm when it is missing), a virtual
+# environment in .venv with Persona (editable) and its Python dependencies. For `test` it also
+# installs the Khronos glTF validator (npm's gltf-validator, into .venv/node), which checks the
+# .glb exports, and starts a single-node SLURM (.ci/slurm-up.sh: Debian's slurm-wlm and munge);
+# when that fails, the tests that need it skip.
 set -euo pipefail
 cd "$(dirname "$0")"
 
@@ -18,7 +19,10 @@ PYTHON=${PYTHON:-python3}
   echo "Persona needs Python 3.11 or newer; set PYTHON=/path/to/python3.11" >&2; exit 1; }
 
 packages=(libusb-1.0-0 libgomp1)
-[ "${1:-}" = test ] && packages+=(chromium)   # the report's test opens it in a real browser
+if [ "${1:-}" = test ]; then
+  packages+=(chromium)                        # the reports' tests open them in a real browser
+  command -v npm >/dev/null || packages+=(npm)  # installs the glTF validator below
+fi
 missing=()
 for pkg in "${packages[@]}"; do
   dpkg -s "$pkg" >/dev/null 2>&1 || missing+=("$pkg")
@@ -42,6 +46,13 @@ fi
 
 [ -x .venv/bin/python ] || "$PYTHON" -m venv .venv
 .venv/bin/python -m pip install -q -e ".[test]"
+
+if [ "${1:-}" = test ]; then  # the Khronos glTF validator for the .glb tests (tests/gltf_check.py)
+  SECONDS=0
+  [ -d .venv/node/node_modules/gltf-validator ] ||
+    npm install --prefix .venv/node --no-audit --no-fund --silent gltf-validator@2.0.0-dev.3.10 ||
+    echo "gltf-validator not installed ($SECONDS s): the .glb validation tests will skip"
+fi
 
 if [ "${1:-}" = test ]; then  # a single-node SLURM for the batch-cluster tests; they skip without it
   SECONDS=0

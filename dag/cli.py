@@ -385,6 +385,31 @@ def _verify(args) -> int:
     return 1
 
 
+def _cmd_glb(args) -> int:
+    """Every person's average face and every drive of a run as .glb files in ``--out``."""
+    from persona.stores import storage
+
+    from . import api
+
+    run = api.open(args.source)
+    chosen = set(args.only)
+    unknown = chosen - set(run.people) - set(run.drives)
+    if unknown:
+        raise PersonaError(f"{', '.join(sorted(unknown))}: not a person or drive of {run.store}; its people: "
+                           f"{', '.join(run.people) or '(none)'}; its drives: {', '.join(run.drives) or '(none)'}")
+    out = args.out or (run.output or ".")
+    for name, person in run.people.items():
+        if (not chosen or name in chosen) and person.has_shape:
+            path = person.glb(storage.join(out, f"{person.path.replace('/', '_')}_mesh.glb"))  # beside its OBJ
+            print(f"{name}: {path} ({storage.stat(path)[0] / 2**20:.1f} MB)")
+    for name, drive in run.drives.items():
+        if not chosen or name in chosen:
+            written = drive.glb(storage.join(out, f"{name}.glb"), step=args.step)
+            print(f"{name}: {written['path']} ({written['frames']} frames at {written['fps']:g} fps, "
+                  f"{written['vertices']} vertices, {written['bytes'] / 2**20:.1f} MB)")
+    return 0
+
+
 def _version() -> str:
     from .runner import persona_version
 
@@ -492,6 +517,19 @@ def build_parser() -> argparse.ArgumentParser:
     p = command("plugins", "list the installed backends", "persona plugins --json")
     p.add_argument("--json", action="store_true", help="print one JSON list, with each backend's params schema")
     p.set_defaults(func=_cmd_plugins)
+
+    p = command("glb", "write each person's average face and each drive as glTF 2.0 binary files (.glb) that Blender "
+                "and web viewers open: a drive moves frame by frame at the video's rate, its head posed",
+                "persona glb workflows/fig8.yaml --only bush_obama_address")
+    p.add_argument("source", help="the workflow YAML file, or the run's Zarr store")
+    p.add_argument("--out", help="the folder for the .glb files (default: the workflow's output folder; with a store, "
+                   "the current folder)")
+    p.add_argument("--only", action="append", default=[], metavar="NAME",
+                   help="only this person or drive (repeat for several); `persona inspect` lists them")
+    p.add_argument("--step", type=int, default=2, help="a drive's mesh keeps every STEP-th point of the face's grid "
+                   "across and down: 2 keeps a quarter (a 300-frame drive is about 17 MB), 1 every point (4 times "
+                   "the size)")
+    p.set_defaults(func=_cmd_glb)
 
     p = command("inspect", "summarise a store: each person, video and drive, its accepted and rejected photos, "
                 "the stages that built it and the drives that use it; with --verify, check every chunk",

@@ -344,7 +344,8 @@ def write_run_report(wf, root, metrics: dict, series: dict | None, *, cast: Cast
     """report.html in ``output`` (the workflow's output folder by default), from a run's ``metrics``
     (metrics.json), its store (pictures, and the frame strip of the drive of ``cast``, also written as
     frames.png; none when ``cast`` is None or its drive is not in the store) and ``series`` (the
-    plots); with every texture evaluation found in the folder."""
+    plots); with every texture evaluation found in the folder. A drive with per-frame meshes is also
+    written as puppet.glb (:func:`persona.dag.export.write_drive_glb`: about 4 s for 269 frames)."""
     out = wf.output if output is None else output
     pictures = collection_images(metrics)
     strip = peaks = None
@@ -357,6 +358,10 @@ def write_run_report(wf, root, metrics: dict, series: dict | None, *, cast: Cast
                                          if k.startswith("driver_")})
             peaks = (found, frames_strip(drive, frames, side=200, at=[t for _, t in found]))
     fps = float(root[cast.frames].attrs["fps"]) if strip is not None else 25.0
+    if strip is not None and Collection(root, cast.drive).has("mesh"):  # a 3D drive: puppet.glb beside the videos
+        from .export import write_drive_glb
+
+        write_drive_glb(root, cast, storage.join(out, "puppet.glb"))
     texture = []
     for file in storage.glob(storage.join(out, "*_texture_evaluation*.json")):
         result = json.loads(storage.read_text(file))
