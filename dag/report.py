@@ -23,6 +23,10 @@ from persona.stores.layout import Cast, Collection, item
 from .stages import accepted, render_alpha
 
 MAX_EMBEDDED_VIDEO = 40 * 2**20
+#: the largest puppet.glb the page embeds for its 3D view (a 300-frame drive is about 17 MB)
+MAX_EMBEDDED_MODEL = 48 * 2**20
+#: the 3D view's WebGL viewer, shipped with the package and inlined into the page
+VIEWER = Path(__file__).with_name("viewer.js")
 
 
 def _png(image: np.ndarray) -> str:
@@ -358,10 +362,11 @@ def write_run_report(wf, root, metrics: dict, series: dict | None, *, cast: Cast
                                          if k.startswith("driver_")})
             peaks = (found, frames_strip(drive, frames, side=200, at=[t for _, t in found]))
     fps = float(root[cast.frames].attrs["fps"]) if strip is not None else 25.0
-    if strip is not None and Collection(root, cast.drive).has("mesh"):  # a 3D drive: puppet.glb beside the videos
+    model = None
+    if strip is not None and Collection(root, cast.drive).has("mesh"):  # a 3D drive: puppet.glb, the 3D view's
         from .export import write_drive_glb
 
-        write_drive_glb(root, cast, storage.join(out, "puppet.glb"))
+        model = write_drive_glb(root, cast, storage.join(out, "puppet.glb"))["path"]
     texture = []
     for file in storage.glob(storage.join(out, "*_texture_evaluation*.json")):
         result = json.loads(storage.read_text(file))
@@ -370,17 +375,18 @@ def write_run_report(wf, root, metrics: dict, series: dict | None, *, cast: Cast
     return write_report(storage.join(out, "report.html"), metrics=metrics, pictures=pictures, strip=strip,
                         peaks=peaks, series=series, threshold=wf.evaluate.threshold, fps=fps,
                         videos=[storage.join(out, f"{name}.mp4") for name in ("composite", "puppet", "side_by_side")],
-                        texture=texture)
+                        texture=texture, model=model)
 
 
 def write_report(path, *, metrics: dict, pictures: dict[str, np.ndarray], strip: np.ndarray | None,
                  series: dict | None, threshold: float, fps: float, videos: list = (),
                  texture: list[tuple[dict, np.ndarray | None]] = (),
-                 peaks: tuple[list, np.ndarray] | None = None) -> Path | str:
+                 peaks: tuple[list, np.ndarray] | None = None, model=None) -> Path | str:
     """Write the page atomically; ``pictures`` are titled images (means, contact sheets); ``videos``
     are embedded in their order (the composite first), each up to ``MAX_EMBEDDED_VIDEO`` bytes;
     ``texture``: the results of ``persona evaluate --texture`` (its JSON, and its picture grid); ``peaks``:
-    the driver's expression peaks (evaluate.expression_peaks) and their :func:`frames_strip`."""
+    the driver's expression peaks (evaluate.expression_peaks) and their :func:`frames_strip`; ``model``:
+    the drive's .glb, shown by the 3D view (:func:`model_view`) after the videos."""
     parts = [f"<h1>Persona — {html.escape(str(metrics.get('workflow', '')))}</h1>"]
     if metrics.get("warnings"):
         items = [f"<li>{html.escape(str(w))}</li>" for w in metrics["warnings"]]
@@ -391,6 +397,8 @@ def write_report(path, *, metrics: dict, pictures: dict[str, np.ndarray], strip:
         title = storage.name(storage.with_suffix(v, "")).replace("_", " ")
         parts += [f"<h2>{html.escape(title)}</h2>",
                   f'<video controls loop width="720" src="data:video/mp4;base64,{data}"></video>']
+    if model is not None:
+        parts += model_view(model)
     ev = metrics.get("evaluation")
     if ev:
         rows = figure_rows(ev)
@@ -423,6 +431,20 @@ def write_report(path, *, metrics: dict, pictures: dict[str, np.ndarray], strip:
               + html.escape(json.dumps(metrics, indent=2, default=str)) + "</pre></details>"]
     media.write_bytes(path, _page("Persona report", parts).encode())
     return path
+
+
+def model_view(model) -> list[str]:
+    """The page's 3D view of a drive's .glb: the file embedded (base64) and the WebGL viewer (viewer.js)
+    inlined, so the page still needs no network and no server; a line naming the file beside the page
+    when it is too large to embed."""
+    size = storage.stat(model)[0]
+    title = "<h2>The puppet in 3D (drag to turn it; puppet.glb opens in Blender and web viewers)</h2>"
+    if size > MAX_EMBEDDED_MODEL:
+        return [title, f"<p>puppet.glb ({size / 2**20:.0f} MB) is beside this page, too large to show in it.</p>"]
+    data = base64.b64encode(storage.read_bytes(model)).decode()
+    return [title, '<div class="persona-3d" data-glb="persona-glb" data-width="480" data-height="480"></div>',
+            f'<script type="application/octet-stream" id="persona-glb">{data}</script>',
+            f"<script>{VIEWER.read_text()}</script>"]
 
 
 def rejected_section(metrics: dict, shown: int = 12) -> list[str]:
