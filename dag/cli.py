@@ -410,6 +410,12 @@ def _cmd_glb(args) -> int:
     return 0
 
 
+def _positive(value: str) -> int:
+    if not value.isdigit() or int(value) < 1:
+        raise argparse.ArgumentTypeError(f"expected a whole number of 1 or more, got {value!r}")
+    return int(value)
+
+
 def _version() -> str:
     from .runner import persona_version
 
@@ -526,7 +532,7 @@ def build_parser() -> argparse.ArgumentParser:
                    "the current folder)")
     p.add_argument("--only", action="append", default=[], metavar="NAME",
                    help="only this person or drive (repeat for several); `persona inspect` lists them")
-    p.add_argument("--step", type=int, default=2, help="a drive's mesh keeps every STEP-th point of the face's grid "
+    p.add_argument("--step", type=_positive, default=2, help="a drive's mesh keeps every STEP-th point of the face's grid "
                    "across and down: 2 keeps a quarter (a 300-frame drive is about 17 MB), 1 every point (4 times "
                    "the size)")
     p.set_defaults(func=_cmd_glb)

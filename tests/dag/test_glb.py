@@ -59,3 +59,6 @@ def test_persona_glb_writes_each_person_and_drive(batch, tmp_path, capsys):
     np.testing.assert_allclose(scene.bounds, [face.vertices.min(axis=0), face.vertices.max(axis=0)], atol=1e-6)
     assert cli(["glb", store, "--only", "nobody"]) == 2
     assert "nobody: not a person or drive" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        cli(["glb", store, "--step", "0"])
+    assert "--step: expected a whole number of 1 or more" in capsys.readouterr().err
