@@ -1,4 +1,4 @@
-"""glTF 2.0 binary files (.glb), which Blender, three.js, Windows' 3D viewer and most web viewers open.
+"""glTF 2.0 binary files (.glb), which Blender and the web viewers built on three.js or Babylon.js open.
 
 Two kinds, written from arrays (this module knows the format, not the face):
 
