@@ -15,7 +15,7 @@ import socket
 import time
 from pathlib import Path
 
-from .runner import RunError
+from .errors import RunError
 from .workflow import Cluster
 
 log = logging.getLogger(__name__)

@@ -11,9 +11,10 @@ from pathlib import Path
 from persona.plugins.base import Rejected
 from persona.plugins.manager import PluginError
 from persona.stores.errors import InputError, PersonaError
-from persona.stores.layout import StoreUnreadable, item
+from persona.stores.layout import StoreUnreadable
 from persona.stores.lock import StoreLocked
 from persona.stores.output import OutputTaken
+from persona.stores.paths import item
 
 
 def _cmd_run(args) -> int:

@@ -18,7 +18,8 @@ import numpy as np
 from persona.plugins.builtin.evaluate import GAIN_BLOCK, expression_peaks
 from persona.plugins.face import composite
 from persona.stores import media, storage
-from persona.stores.layout import Cast, Collection, item
+from persona.stores.layout import Cast, Collection
+from persona.stores.paths import item
 
 from .stages import accepted, render_alpha
 

@@ -29,10 +29,12 @@ from persona.plugins.manager import get_plugin_manager
 from persona.stores import lock, media, output, storage, verify
 from persona.stores.chunks import ChunkError
 from persona.stores.errors import InputError, PersonaError
-from persona.stores.layout import OK, PENDING, REJECTED, Cast, Collection, item, open_store, rejections
+from persona.stores.layout import OK, PENDING, REJECTED, Cast, Collection, open_store, rejections
+from persona.stores.paths import item
 from persona.stores.provenance import Provenance, cache_key
 
 from . import stages as st
+from .errors import ClusterLost, RunError
 from .drive import run_drive, write_videos
 from .shape import run_alignment, run_shape
 from .texture import run_texture
@@ -50,14 +52,6 @@ def persona_version() -> str:
         return importlib.metadata.version("persona")
     except importlib.metadata.PackageNotFoundError:
         return "0+unknown"
-
-
-class RunError(PersonaError, RuntimeError):
-    """A run could not finish; the message says how to resume or fix it."""
-
-
-class ClusterLost(RunError):
-    """The run's Dask scheduler, or every one of its workers, is gone: no person, video or drive can go on."""
 
 
 # -- executing tasks ---------------------------------------------------------------------

@@ -20,6 +20,7 @@ from zarr.core.codec_pipeline import BatchedCodecPipeline
 from zarr.registry import register_pipeline
 
 from .errors import PersonaError
+from .paths import array_of, item
 
 #: bytes-to-bytes codecs of every array Persona creates: zarr's default compressor, then a checksum
 COMPRESSORS = (ZstdCodec(level=0, checksum=False), Crc32cCodec())
@@ -33,14 +34,6 @@ def has_checksums(array: zarr.Array) -> bool:
         if isinstance(codec, ShardingCodec):
             codecs += codec.codecs
     return any(isinstance(codec, Crc32cCodec) for codec in codecs)
-
-
-def array_of(key: str) -> tuple[str, tuple[int, ...]]:
-    """The array path and chunk coordinates of a chunk's store key (``puppet/aligned/rgb/c/3/0/0/0``)."""
-    path, _, coords = key.rpartition("/c/")
-    if not path:  # a 0-d array's only chunk, "<path>/c"
-        return key.removesuffix("/c"), ()
-    return path, tuple(int(c) for c in coords.split("/"))
 
 
 class ChunkError(PersonaError, ValueError):
@@ -62,8 +55,6 @@ class ChunkError(PersonaError, ValueError):
         return array_of(self.key)[0]
 
     def __str__(self) -> str:
-        from .layout import item
-
         key, rows, reason = self.args
         coords = array_of(key)[1]
         held = f" ({item(self.array)}s {rows[0]}–{rows[1] - 1})" if rows is not None else ""

@@ -82,17 +82,6 @@ def open_store(url: str, mode: str = "a") -> zarr.Group:
 IMAGE_BYTES = 4096
 
 
-#: the collections whose items are a video's frames: the driver's frames and the drive (format 1),
-#: every video and every drive (format 2)
-FRAME_COLLECTIONS = ("driver/frames", "drive", "videos", "drives")
-
-
-def item(path: str) -> str:
-    """What one item of the collection at ``path`` (or of an array in it) is: a video's "frame" (the
-    driver's frames, the drive) or a "photo"."""
-    return "frame" if any(path == c or path.startswith(c + "/") for c in FRAME_COLLECTIONS) else "photo"
-
-
 @dataclass(frozen=True)
 class Cast:
     """Where one drive's collections are in the store: B's photos (``puppet``), A's photos (``driver``,

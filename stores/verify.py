@@ -24,8 +24,9 @@ import numpy as np
 import zarr
 from zarr.core.sync import sync
 
-from .chunks import ChunkError, array_of, has_checksums
-from .layout import OK, item
+from .chunks import ChunkError, has_checksums
+from .layout import OK
+from .paths import array_of, item
 
 #: how many photo ids a problem names before "and N more"
 SHOWN_IDS = 8

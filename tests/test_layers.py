@@ -1,6 +1,7 @@
 """The three layers, one direction (README, "Layout"): ``dag/`` may use ``plugins/`` and
 ``stores/``; ``plugins/`` (the maths, pure NumPy) uses neither ``dag/`` nor ``stores/`` nor the
-dataflow's libraries; ``stores/`` (layout and media) uses neither ``dag/`` nor ``plugins/``.
+dataflow's libraries; ``stores/`` (layout and media) uses neither ``dag/`` nor ``plugins/``. And no two
+modules import each other, however indirectly: each can be read, and changed, after what it uses.
 
 Read from the source with :mod:`ast`, every import anywhere in a file (inside functions too),
 relative imports resolved against the file's package."""
@@ -23,8 +24,9 @@ FORBIDDEN = {
 }
 
 
-def imports(path: Path, layer: str) -> list[tuple[int, str]]:
-    """(line, module) of every import in the file ``path`` of ``layer``."""
+def imports(path: Path, layer: str, names: bool = False) -> list[tuple[int, str]]:
+    """(line, module) of every import in the file ``path`` of ``layer``; with ``names``, each name a
+    ``from`` import takes as well (``from . import stages`` gives ``persona.dag`` and ``persona.dag.stages``)."""
     package = ".".join([PACKAGES[layer], *path.relative_to(ROOT / layer).parent.parts])
     found = []
     for node in ast.walk(ast.parse(path.read_text(), str(path))):
@@ -37,6 +39,8 @@ def imports(path: Path, layer: str) -> list[tuple[int, str]]:
             else:
                 module = node.module
             found.append((node.lineno, module))
+            if names:
+                found += [(node.lineno, f"{module}.{alias.name}") for alias in node.names]
     return found
 
 
@@ -47,6 +51,43 @@ def offences(layer: str) -> list[str]:
             if any(module == bad or module.startswith(bad + ".") for bad in FORBIDDEN[layer]):
                 out.append(f"{path.relative_to(ROOT)}:{line} imports {module}")
     return out
+
+
+def cycles() -> list[str]:
+    """Every import cycle among the project's modules (packages' ``__init__`` aside), as "a -> b -> a"."""
+    files = {}
+    for layer, package in PACKAGES.items():
+        for path in sorted((ROOT / layer).rglob("*.py")):
+            if path.name != "__init__.py":
+                files[".".join([package, *path.relative_to(ROOT / layer).with_suffix("").parts])] = (path, layer)
+    uses = {name: sorted({m for _, m in imports(path, layer, names=True) if m in files and m != name})
+            for name, (path, layer) in files.items()}
+    found, done = [], set()
+
+    def visit(name, trail):  # depth first; a module met again on the trail closes a cycle
+        if name in trail:
+            found.append(" -> ".join(trail[trail.index(name):] + [name]))
+        elif name not in done:
+            for other in uses[name]:
+                visit(other, trail + [name])
+            done.add(name)
+    for name in sorted(uses):
+        visit(name, [])
+    return found
+
+
+def test_no_two_modules_import_each_other():
+    assert cycles() == []
+
+
+def test_the_cycle_check_sees_a_cycle_through_a_function(tmp_path, monkeypatch):
+    fake = tmp_path / "dag"
+    fake.mkdir()
+    (fake / "a.py").write_text("from . import b\n")
+    (fake / "b.py").write_text("def f():\n    from .c import g\n")
+    (fake / "c.py").write_text("from persona.dag.a import x\n")
+    monkeypatch.setattr(sys.modules[__name__], "ROOT", tmp_path)
+    assert cycles() == ["persona.dag.a -> persona.dag.b -> persona.dag.c -> persona.dag.a"]
 
 
 @pytest.mark.parametrize("layer", sorted(FORBIDDEN))
