@@ -25,6 +25,7 @@ from distributed.diagnostics.plugin import WorkerPlugin
 from persona.plugins.base import Rejected
 from persona.plugins.face.fiducials import mean_shape
 from persona.plugins.hookspecs import hookimpl
+from persona.plugins import manager
 from persona.plugins.manager import get_plugin_manager
 from persona.stores import lock, media, output, storage, verify
 from persona.stores.chunks import ChunkError
@@ -220,7 +221,8 @@ class Executor:
 
 class WorkerSetup(WorkerPlugin):
     """A Dask worker plugin, on every worker present and future: the run's storage options
-    (:func:`persona.stores.storage.configure`; sent to the workers, never written anywhere),
+    (:func:`persona.stores.storage.configure`; sent to the workers, never written anywhere), the
+    run's choice of third-party plugins (``PERSONA_PLUGINS``, :func:`persona.plugins.manager.select`),
     OpenCV on one thread (Dask runs a task per worker thread already; OpenCV's own pool of a thread
     per core on top oversubscribes the cores, as Dask's nanny says of OpenMP and BLAS),
     :func:`malloc_for_arrays` and :func:`no_profile`; in the workers of the run's own local cluster, whose
@@ -228,11 +230,13 @@ class WorkerSetup(WorkerPlugin):
 
     def __init__(self, options: dict | None, local: bool = False):
         self.options, self.local = options, local
+        self.plugins = manager.selected()
 
     def setup(self, worker) -> None:
         one_thread()  # for the worker's life
         malloc_for_arrays()
         storage.configure(self.options)
+        manager.select(self.plugins)
         no_profile(worker)
         quiet_handled_failures()
         if self.local:

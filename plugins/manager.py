@@ -145,9 +145,27 @@ def _builtin_distribution() -> str:
         return "persona (not installed)"
 
 
+def selected() -> str | None:
+    """This process's choice of entry-point plugins: ``PERSONA_PLUGINS`` (None: all of them)."""
+    return os.environ.get("PERSONA_PLUGINS")
+
+
+def select(choice: str | None) -> None:
+    """Load the entry-point plugins ``choice`` (as :func:`selected` gives it) from now on in this process,
+    the registry rebuilt on its next use: a run's Dask workers load the plugins the run's own process
+    loads, whatever their machine's environment says."""
+    if choice == selected():
+        return
+    if choice is None:
+        os.environ.pop("PERSONA_PLUGINS", None)
+    else:
+        os.environ["PERSONA_PLUGINS"] = choice
+    default_registry.cache_clear()
+
+
 def _entry_points() -> list[importlib.metadata.EntryPoint]:
     eps = list(importlib.metadata.entry_points(group=ENTRY_POINT_GROUP))
-    allow = os.environ.get("PERSONA_PLUGINS")
+    allow = selected()
     if allow is None:
         return eps
     wanted = {n.strip() for n in allow.split(",") if n.strip()}

@@ -329,6 +329,67 @@ def test_the_workers_sample_no_profile():
         ex.close()
 
 
+PLUGIN = """
+from persona.plugins.base import Params
+from persona.plugins.hookspecs import hookimpl
+from persona.plugins.kinds import LandmarkBackend
+
+
+class Elsewhere(LandmarkBackend):
+    name = "elsewhere"
+    description = "a third party's landmarks, installed beside the test"
+
+    class Params(Params):
+        pass
+
+
+@hookimpl
+def persona_register_backends(register):
+    register(Elsewhere)
+
+
+def landmark_backends():  # those of the process this runs in (importing this module registers nothing)
+    from persona.plugins.manager import default_registry
+
+    return default_registry().names("landmarks")
+"""
+
+
+@pytest.fixture
+def installed_plugin(tmp_path, monkeypatch):
+    """A third-party plugin installed as pip would (its module and a .dist-info naming its ``persona``
+    entry point ``elsewhere``) on a folder this process and the processes it starts import from."""
+    site = tmp_path / "site"
+    info = site / "persona_elsewhere-1.0.dist-info"
+    info.mkdir(parents=True)
+    (site / "persona_elsewhere.py").write_text(PLUGIN)
+    (info / "METADATA").write_text("Metadata-Version: 2.1\nName: persona-elsewhere\nVersion: 1.0\n")
+    (info / "entry_points.txt").write_text("[persona]\nelsewhere = persona_elsewhere\n")
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(site), os.environ.get("PYTHONPATH", "")]))
+    monkeypatch.syspath_prepend(str(site))
+    return "elsewhere"
+
+
+def test_the_workers_load_the_plugins_the_run_chose(installed_plugin, dask_cluster, monkeypatch):
+    """Workers started with PERSONA_PLUGINS empty (as tests/pipeline.py starts them; on a cluster, whatever
+    their machine's environment says) load the plugins the run's own process chose."""
+    from persona.dag.runner import Executor
+    from persona.plugins import manager
+
+    from persona_elsewhere import landmark_backends
+
+    monkeypatch.setenv("PERSONA_PLUGINS", installed_plugin)
+    manager.default_registry.cache_clear()
+    assert installed_plugin in landmark_backends()
+    ex = Executor(dask_cluster, None)
+    try:
+        seen = list(ex.run(landmark_backends, [()] * 4))
+        assert all(installed_plugin in names for names in seen), seen
+    finally:
+        ex.close()
+        manager.default_registry.cache_clear()
+
+
 def _tasks_on_scheduler(dask_scheduler):
     return list(dask_scheduler.tasks)
 
