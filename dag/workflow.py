@@ -248,10 +248,10 @@ class StorageOptions(Strict):
 class Evaluation(Strict):
     threshold: float = Field(0.6, gt=0, description="descriptor distance under which two faces are the same person")
     collection_sample: int = Field(100, ge=1, description="photos per collection whose descriptors make its centroid")
-    identity_frames: int = Field(300, ge=0, description="output frames, evenly spaced, whose face descriptors judge "
-                                 "identity (dlib's descriptor takes 0.2-0.3 s a face on one core, most of the "
-                                 "evaluation's time); 0 = every frame. The landmarks, and every other figure, "
-                                 "take every frame")
+    identity_frames: int = Field(100, ge=0, description="output frames, evenly spaced, whose face descriptors judge "
+                                 "identity (dlib's descriptor is most of the evaluation's time; 100 frames count "
+                                 "the 'B and not A' fraction in steps of 1 %); 0 = every frame. The landmarks, and "
+                                 "every other figure, take every frame")
     self_reenactment: bool = Field(False, description="B and A are the same person and A's frames are not in "
                                    "B's collection: also compare the output with A's real frames (PSNR, SSIM)")
 
