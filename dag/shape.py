@@ -74,7 +74,7 @@ def run_shape(runner, coll: Collection, aligned: Provenance) -> dict[str, str]:
     """Photometric stereo over the aligned collection -> normals, albedo, lighting, depth;
     the textured mesh (PLY, OBJ) and shaded previews into the output folder. The collection's
     mean (the mesh's texture) is a sum over shards; the rest is one task on a worker
-    (:func:`photometric_stereo`), which holds the collection's grey faces."""
+    (:func:`photometric_stereo`), which streams the collection's grey faces through the backend."""
     shape_name, shape_params = runner.wf.stage("shape")
     integrate_name, integrate_params = runner.wf.stage("integrate")
     registry = st.default_registry()
@@ -113,8 +113,9 @@ def photometric_stereo(url: str, path: str, seen: np.ndarray, prov: Provenance,
                        integrate_params: dict) -> tuple[np.ndarray, np.ndarray]:
     """:func:`run_shape`'s task on a worker: the shape backend over the aligned collection (its
     accepted photos, grey, or those of them it takes: ``images_for``), on the template's mask where at
-    least 30 % of them see (``seen``), then the integrate backend. Stores normals, albedo, mask and
-    lights, and returns (depth, mask)."""
+    least 30 % of them see (``seen``), then the integrate backend. The photos go to the backend a shard
+    at a time (``reconstruct_chunks``): this task holds no more of them than the backend does. Stores
+    normals, albedo, mask and lights, and returns (depth, mask)."""
     from persona.plugins.builtin.shape import as_grey
     from persona.plugins.face.template import generic_template
 
@@ -126,18 +127,15 @@ def photometric_stereo(url: str, path: str, seen: np.ndarray, prov: Provenance,
     ok[accepted[backend.images_for(len(accepted))]] = True  # all, or as many as the backend takes
     template = generic_template()
     mask = template.mask & seen
-    # the aligned collection, grey (n x H x W), filled a shard at a time: no second copy of it
-    images = np.empty((int(ok.sum()), *mask.shape))
-    visible = np.empty(images.shape, bool)
-    done = 0
-    for start, stop in coll.shard_ranges():
-        keep = ok[start:stop]
-        if keep.any():
-            rows = np.s_[done:done + int(keep.sum())]
-            images[rows] = as_grey(coll.array("collection/rgb")[start:stop][keep].astype(np.float32) / 255)
-            visible[rows] = coll.array("collection/mask")[start:stop][keep]
-            done = rows.stop
-    result = backend.reconstruct(images, mask, visible, template.normals, template.depth)
+
+    def shards():  # the aligned collection, grey (m x H x W), and where each photo sees, a shard at a time
+        for start, stop in coll.shard_ranges():
+            keep = ok[start:stop]
+            if keep.any():
+                yield (as_grey(coll.array("collection/rgb")[start:stop][keep].astype(np.float32) / 255),
+                       coll.array("collection/mask")[start:stop][keep])
+
+    result = backend.reconstruct_chunks(shards(), mask, template.normals, template.depth)
     mask &= np.isfinite(result.normals).all(axis=-1)  # pixels seen by too few photos have no normal
     depth = registry.get("integrate", integrate_name)(integrate_params).integrate(
         result.normals, mask, reference=template.depth)

@@ -202,9 +202,21 @@ class ShapeBackend(Backend):
         template_normals: (H, W, 3); template_depth: (H, W)."""
         raise NotImplementedError
 
+    def reconstruct_chunks(self, chunks, mask: np.ndarray, template_normals: np.ndarray,
+                           template_depth: np.ndarray) -> Shape:
+        """:meth:`reconstruct` of the images that ``chunks`` gives, an iterable (read once) of (images,
+        visibility) pairs of consecutive images, each as :meth:`reconstruct` takes them. The DAG calls this,
+        a shard of photos at a time; a backend that streams keeps its memory flat in the photos, and this
+        default gathers them all and calls :meth:`reconstruct`."""
+        pairs = list(chunks)
+        images = np.concatenate([i for i, _ in pairs]) if pairs else np.empty((0, *np.shape(mask)))
+        seen = None if all(v is None for _, v in pairs) else np.concatenate(
+            [np.ones(np.shape(i)[:3], bool) if v is None else np.asarray(v) for i, v in pairs])
+        return self.reconstruct(images, mask, seen, template_normals, template_depth)
+
     def images_for(self, n: int) -> np.ndarray:
         """Which of a collection's n aligned photos :meth:`reconstruct` is given (ascending
-        indices; its memory grows with their number): all of them unless a backend says otherwise."""
+        indices): all of them unless a backend says otherwise."""
         return np.arange(n)
 
 
