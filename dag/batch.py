@@ -65,11 +65,8 @@ def start_batch_cluster(config: Cluster):
     except OSError as exc:
         raise RunError(f"the Dask scheduler cannot listen on {host} ({exc.strerror or exc}): set cluster.host to "
                        "an address of this machine that the worker nodes reach") from None
-    cluster = cluster_class(
-        cores=config.cores, processes=config.cores, memory=config.memory, queue=config.queue,
-        walltime=config.walltime, job_extra_directives=config.job_extra_directives,
-        job_script_prologue=config.job_script_prologue, log_directory=str(logs), job_name="persona-worker",
-        scheduler_options={"host": host, "dashboard_address": "127.0.0.1:0"})
+    cluster = cluster_class(**job_options(config), log_directory=str(logs),
+                            scheduler_options={"host": host, "dashboard_address": "127.0.0.1:0"})
     script = logs / "job.sh"  # what every job runs, for whoever wants to try it by hand
     script.write_text(cluster.job_script())
     try:
@@ -81,6 +78,16 @@ def start_batch_cluster(config: Cluster):
         raise
     log.info("%s jobs %s: workers joined the scheduler at %s", kind, _job_ids(cluster), cluster.scheduler_address)
     return cluster, client
+
+
+def job_options(config: Cluster) -> dict:
+    """What each worker job asks of the batch scheduler, as dask-jobqueue's job classes take it: the
+    account is SLURM's and PBS's ``account`` and SGE's and LSF's ``project``."""
+    charged = {} if config.account is None else {
+        "account" if config.kind in ("slurm", "pbs") else "project": config.account}
+    return dict(cores=config.cores, processes=config.cores, memory=config.memory, queue=config.queue,
+                walltime=config.walltime, job_extra_directives=config.job_extra_directives,
+                job_script_prologue=config.job_script_prologue, job_name="persona-worker", **charged)
 
 
 def close(cluster) -> None:

@@ -155,7 +155,8 @@ class Cluster(Strict):
     memory: str = Field("4GiB", description='memory per batch job, e.g. "16GiB", shared by its worker processes')
     queue: str | None = Field(None, description="queue (SLURM: partition) of the jobs; default: the "
                               "batch scheduler's default")
-    account: str | None = Field(None, description="account (project) the jobs are charged to")
+    account: str | None = Field(None, description="account the jobs are charged to (SLURM, PBS: account; SGE, LSF: "
+                                "project)")
     walltime: str = Field("01:00:00", description='time limit of each job, "HH:MM:SS": a run that outlives '
                           "its workers stops and resumes when run again")
     job_extra_directives: list[str] = Field(default_factory=list, description='more directives for the job '

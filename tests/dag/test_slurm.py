@@ -14,7 +14,7 @@ import pytest
 
 from persona.dag.batch import scheduler_host
 from persona.dag.runner import Runner, RunError, executor_for, resolve_inputs, run_workflow
-from persona.dag.workflow import WorkflowError, load_workflow, parse_workflow
+from persona.dag.workflow import Cluster, WorkflowError, load_workflow, parse_workflow
 
 from pipeline import assert_same_store, write_photos, write_workflow
 
@@ -33,6 +33,21 @@ _PROBLEM = _slurm_problem()
 needs_slurm = pytest.mark.skipif(_PROBLEM is not None, reason=str(_PROBLEM))
 
 SLURM = {"kind": "slurm", "jobs": 1, "cores": 1, "memory": "2GiB", "start_timeout": 120}
+
+
+@pytest.mark.parametrize("kind, line", [("slurm", "#SBATCH -A faces"), ("pbs", "#PBS -A faces"),
+                                        ("sge", "#$ -P faces"), ("lsf", '#BSUB -P "faces"')])
+def test_the_account_and_queue_reach_each_kind_of_job_script(kind, line):
+    """cluster.account charges the jobs (SLURM, PBS: account; SGE, LSF: project), as the job script says."""
+    import dask_jobqueue
+
+    from persona.dag.batch import JOBQUEUE, job_options
+
+    config = Cluster(kind=kind, account="faces", queue="compute", cores=2)
+    job = getattr(dask_jobqueue, JOBQUEUE[kind][0]).job_cls(scheduler="tcp://127.0.0.1:1", **job_options(config))
+    script = job.job_script()
+    assert line in script.splitlines(), script
+    assert "compute" in script
 
 
 def test_a_batch_kind_and_a_scheduler_address_do_not_mix():
