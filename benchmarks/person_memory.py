@@ -76,7 +76,9 @@ def distinct_photos(size: int, folder: Path) -> Path:
     return out
 
 
-def build(size: int, workers: int, tmp: Path) -> tuple[dict, dict, int]:
+def build(photos: Path, workers: int, tmp: Path) -> tuple[dict, dict, int]:
+    """Build the person of the folder ``photos`` as a run builds a puppet, its store in ``tmp``; returns each
+    step's seconds, each step's peaks (client, largest worker; bytes) and the number of accepted photos."""
     from persona.dag.runner import Runner, executor_for, resolve_inputs
     from persona.dag.shape import compute_subspace, run_alignment, run_shape
     from persona.dag.stages import accepted
@@ -84,7 +86,7 @@ def build(size: int, workers: int, tmp: Path) -> tuple[dict, dict, int]:
     from persona.dag.workflow import load_workflow
 
     wf = {"version": 1, "name": "memory", "store": str(tmp / "run.zarr"), "output": str(tmp / "out"),
-          "puppet": {"photos": str(distinct_photos(size, tmp))},
+          "puppet": {"photos": str(photos)},
           "cluster": {"scheduler": "local", "workers": workers}}
     (tmp / "wf.yaml").write_text(yaml.safe_dump(wf))
     workflow = load_workflow(tmp / "wf.yaml")
@@ -122,7 +124,7 @@ def main():
         return
     for size in args.sizes:
         with tempfile.TemporaryDirectory() as tmp:
-            times, peaks, accepted = build(size, args.workers, Path(tmp))
+            times, peaks, accepted = build(distinct_photos(size, Path(tmp)), args.workers, Path(tmp))
         print(f"\n{size} photos ({accepted} accepted), {args.workers} workers:")
         print(f"  {'step':<10} {'seconds':>8} {'client peak GiB':>16} {'worker peak GiB':>16}")
         for phase, seconds in times.items():
