@@ -330,8 +330,8 @@ class TemplatePhotometricStereo(ShapeBackend):
                                 "that the shape's time matters. On Bush, every 2nd of 530 photos moves the "
                                 "normals by 0.66° (median; docs/shape.md)")
         chunk_images: int = Field(64, ge=1, description="images the fit holds in memory at once. The collection "
-                                  "waits, grey on the mask's pixels, in a temporary folder (TMPDIR; 8 bytes a "
-                                  "pixel, about 0.2 MB a photo) and every round of the fit is a pass over it, a "
+                                  "waits, grey on the mask's pixels, in a temporary folder (TMPDIR; 9 bytes a "
+                                  "pixel, about 0.25 MB a photo) and every round of the fit is a pass over it, a "
                                   "chunk at a time: memory grows with this and not with the photos. The result "
                                   "does not depend on it beyond rounding")
         min_visible: float = Field(0.6, ge=0, le=1, description="a mask pixel seen by fewer than this "
