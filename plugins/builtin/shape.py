@@ -140,10 +140,14 @@ class _Faces:
         self.total += np.where(seen, grey, 0.0).sum(axis=0)
         self.n += len(grey)
         self._pending.append(grey)
-        while sum(len(g) for g in self._pending) >= self.size:
-            rows = np.concatenate(self._pending)
-            self._pending = [rows[self.size:]]
-            self._write(rows[:self.size])
+        if sum(len(g) for g in self._pending) < self.size:
+            return
+        rows = np.concatenate(self._pending)
+        start = 0
+        while len(rows) - start >= self.size:
+            self._write(rows[start:start + self.size])
+            start += self.size
+        self._pending = [rows[start:]]
 
     def _write(self, rows: np.ndarray) -> None:
         self.files.append(os.path.join(self.folder, f"{len(self.files):06d}.npy"))
