@@ -13,6 +13,7 @@ import shutil
 import struct
 import subprocess
 import sys
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -69,3 +70,11 @@ def accessor(doc: dict, blob: bytes, index: int) -> np.ndarray:
         where = np.frombuffer(blob, _DTYPES[s["indices"]["componentType"]], s["count"], iv.get("byteOffset", 0))
         out[where] = np.frombuffer(blob, dtype, s["count"] * width, vv.get("byteOffset", 0)).reshape(-1, width)
     return out
+
+
+def trimesh_scene(path):
+    """The file as trimesh reads it (a Scene), or the test skips without trimesh."""
+    trimesh = pytest.importorskip("trimesh")
+    with warnings.catch_warnings():  # trimesh's own deprecations are not ours to fail on
+        warnings.simplefilter("ignore")
+        return trimesh.load(path)

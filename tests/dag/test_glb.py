@@ -1,22 +1,13 @@
 """The .glb exports of a run (docs/api.md): each drive's puppet.glb beside its other outputs and `persona glb`,
 checked by the Khronos validator and read back by trimesh, on the shared batch's store."""
 
-import warnings
-
 import numpy as np
 import pytest
 
-from gltf_check import accessor, read_glb, validate
+from gltf_check import accessor, read_glb, trimesh_scene, validate
 from persona.dag.cli import main as cli
 from persona.dag.export import drive_frames, person_mesh
 from persona.stores.layout import Cast, Collection, open_store
-
-
-def _scene(path):
-    trimesh = pytest.importorskip("trimesh")
-    with warnings.catch_warnings():  # trimesh's own deprecations are not ours to fail on
-        warnings.simplefilter("ignore")
-        return trimesh.load(path)
 
 
 def test_every_drive_writes_a_valid_animated_glb_beside_its_videos(batch):
@@ -34,7 +25,7 @@ def test_every_drive_writes_a_valid_animated_glb_beside_its_videos(batch):
         times = accessor(doc, blob, doc["animations"][0]["samplers"][0]["input"])[:, 0]
         assert len(times) == len(doc["meshes"][0]["primitives"][0]["targets"]) == len(frames) == 8
         assert times[1] == pytest.approx(1 / fps) and fps == pytest.approx(25)
-        scene = _scene(path)
+        scene = trimesh_scene(path)
         (mesh,) = scene.geometry.values()
         assert len(mesh.vertices) == len(rest.vertices) == report["info"]["totalVertexCount"]
         np.testing.assert_allclose(scene.bounds, [rest.vertices.min(axis=0), rest.vertices.max(axis=0)], atol=1e-5)
@@ -53,7 +44,7 @@ def test_persona_glb_writes_each_person_and_drive(batch, tmp_path, capsys):
     reports = validate(person, drive)
     assert all(r["numErrors"] == 0 and r["numWarnings"] == 0 for r in reports.values()), reports
     face = person_mesh(Collection(open_store(store, mode="r"), "people/bea"))
-    scene = _scene(person)
+    scene = trimesh_scene(person)
     (mesh,) = scene.geometry.values()
     assert len(mesh.vertices) == len(face.vertices)
     np.testing.assert_allclose(scene.bounds, [face.vertices.min(axis=0), face.vertices.max(axis=0)], atol=1e-6)

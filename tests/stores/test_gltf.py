@@ -1,11 +1,9 @@
 """stores/gltf.py: .glb files the Khronos validator passes, read back by trimesh and by hand."""
 
-import warnings
-
 import numpy as np
 import pytest
 
-from gltf_check import accessor, read_glb, validate
+from gltf_check import accessor, read_glb, trimesh_scene, validate
 from persona.stores.gltf import write_animated_glb, write_mesh_glb
 
 
@@ -20,13 +18,6 @@ def _grid(n=12):
     return vertices, triangles, uvs, texture
 
 
-def _trimesh_scene(path):
-    trimesh = pytest.importorskip("trimesh")
-    with warnings.catch_warnings():  # trimesh's own deprecations are not ours to fail on
-        warnings.simplefilter("ignore")
-        return trimesh.load(path)
-
-
 def test_a_textured_mesh_passes_the_validator_and_reads_back(tmp_path):
     vertices, triangles, uvs, texture = _grid()
     path = tmp_path / "face.glb"
@@ -34,7 +25,7 @@ def test_a_textured_mesh_passes_the_validator_and_reads_back(tmp_path):
                    normals=np.tile([0, 0, 1.0], (len(vertices), 1)), extras={"units": "metres"})
     report = validate(path)[str(path)]
     assert report["numErrors"] == 0 and report["numWarnings"] == 0, report["messages"]
-    scene = _trimesh_scene(path)
+    scene = trimesh_scene(path)
     (mesh,) = scene.geometry.values()
     assert len(mesh.vertices) == len(vertices) and len(mesh.faces) == len(triangles)
     np.testing.assert_allclose(scene.bounds, [vertices.min(axis=0), vertices.max(axis=0)], atol=1e-6)
@@ -58,7 +49,7 @@ def test_an_animated_mesh_passes_the_validator_and_every_frame_reads_back(tmp_pa
     assert report["numErrors"] == 0 and report["numWarnings"] == 0, report["messages"]
     assert report["info"]["animationCount"] == 1 and report["info"]["totalVertexCount"] == len(vertices)
 
-    scene = _trimesh_scene(path)  # the rest shape, its 16-bit positions scaled to metres by its node
+    scene = trimesh_scene(path)  # the rest shape, its 16-bit positions scaled to metres by its node
     (mesh,) = scene.geometry.values()
     assert len(mesh.vertices) == len(vertices)
     np.testing.assert_allclose(scene.bounds, [vertices.min(axis=0), vertices.max(axis=0)], atol=2 * written["quantum_m"])
