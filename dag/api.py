@@ -20,7 +20,6 @@ its glTF export (:mod:`persona.dag.export`). A walk-through: docs/api.md.
 from __future__ import annotations
 
 import copy
-import errno
 import json
 import os
 import shutil
@@ -64,13 +63,13 @@ def run(source: str | os.PathLike | dict | Workflow, *, overrides: list[str] = (
     ``scheduler``: "local", "sync" (everything in this process) or a Dask scheduler's address, replacing
     the workflow's cluster; ``force``: write into an output folder that holds files Persona did not write.
     A full disk is a :class:`~persona.stores.errors.StorageError` saying where to free space."""
-    from .runner import run_workflow
+    from .runner import disk_full, run_workflow
 
     wf = workflow(source, overrides)
     try:
         return run_workflow(wf, scheduler=scheduler, workers=workers, progress=progress, force=force)
     except OSError as exc:
-        if exc.errno not in (errno.ENOSPC, errno.EDQUOT):
+        if not disk_full(exc):
             raise
         where = exc.filename or wf.store
         raise StorageError(f"the disk is full ({exc.strerror}) writing {where}: free space there "

@@ -349,8 +349,8 @@ def write_run_report(wf, root, metrics: dict, series: dict | None, *, cast: Cast
     """report.html in ``output`` (the workflow's output folder by default), from a run's ``metrics``
     (metrics.json), its store (pictures, and the frame strip of the drive of ``cast``, also written as
     frames.png; none when ``cast`` is None or its drive is not in the store) and ``series`` (the
-    plots); with every texture evaluation found in the folder. A drive with per-frame meshes is also
-    written as puppet.glb (:func:`persona.dag.export.write_drive_glb`: about 4 s for 269 frames)."""
+    plots); with every texture evaluation found in the folder, and the 3D view of the drive's puppet.glb
+    when the folder has it."""
     out = wf.output if output is None else output
     pictures = collection_images(metrics)
     strip = peaks = None
@@ -363,11 +363,8 @@ def write_run_report(wf, root, metrics: dict, series: dict | None, *, cast: Cast
                                          if k.startswith("driver_")})
             peaks = (found, frames_strip(drive, frames, side=200, at=[t for _, t in found]))
     fps = float(root[cast.frames].attrs["fps"]) if strip is not None else 25.0
-    model = None
-    if strip is not None and Collection(root, cast.drive).has("mesh"):  # a 3D drive: puppet.glb, the 3D view's
-        from .export import write_drive_glb
-
-        model = write_drive_glb(root, cast, storage.join(out, "puppet.glb"))["path"]
+    model = storage.join(out, "puppet.glb")  # a 3D drive's, written with its videos: the 3D view's
+    model = model if strip is not None and storage.isfile(model) else None
     texture = []
     for file in storage.glob(storage.join(out, "*_texture_evaluation*.json")):
         result = json.loads(storage.read_text(file))

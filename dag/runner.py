@@ -25,8 +25,7 @@ from distributed.diagnostics.plugin import WorkerPlugin
 from persona.plugins.base import Rejected
 from persona.plugins.face.fiducials import mean_shape
 from persona.plugins.hookspecs import hookimpl
-from persona.plugins import manager
-from persona.plugins.manager import get_plugin_manager
+from persona.plugins.manager import get_plugin_manager, select, selected
 from persona.stores import lock, media, output, storage, verify
 from persona.stores.chunks import ChunkError
 from persona.stores.errors import InputError, PersonaError
@@ -35,11 +34,12 @@ from persona.stores.paths import item
 from persona.stores.provenance import Provenance, cache_key
 
 from . import stages as st
-from .errors import ClusterLost, RunError
 from .drive import run_drive, write_videos
+from .errors import ClusterLost, RunError
 from .shape import run_alignment, run_shape
 from .texture import run_texture
 from .evaluate import VERSION as EVALUATION_VERSION, evaluate
+from .export import write_drive_glb
 from .report import collection_pictures, write_batch_page, write_run_report
 from .workflow import TLS, Cluster, VideoRange, Workflow, tls_problem
 
@@ -199,9 +199,9 @@ class Executor:
                                 self.workerless_seconds)
                 elif time.monotonic() - gone_since > self.workerless_seconds:
                     raise ClusterLost(f"every Dask worker left the scheduler ({self.scheduler}) and none came "
-                                   f"back within {self.workerless_seconds:.0f} s; the run stops here. Finished "
-                                   "shards are kept: start workers again (or run locally) and re-run the "
-                                   "workflow to resume") from None
+                                      f"back within {self.workerless_seconds:.0f} s; the run stops here. Finished "
+                                      "shards are kept: start workers again (or run locally) and re-run the "
+                                      "workflow to resume") from None
                 continue
             pending -= done
             while done:  # popped, so that a future the caller is done with is held by nothing here
@@ -209,8 +209,8 @@ class Executor:
 
     def _lost(self) -> RunError:
         return ClusterLost(f"the run lost the connection to its Dask scheduler ({self.scheduler}): it stopped, or "
-                        "the network between them did. Finished shards are kept: start the scheduler and its "
-                        "workers again (or run locally) and re-run the workflow to resume")
+                           "the network between them did. Finished shards are kept: start the scheduler and its "
+                           "workers again (or run locally) and re-run the workflow to resume")
 
     def close(self):
         if self.client is not None:
@@ -230,13 +230,13 @@ class WorkerSetup(WorkerPlugin):
 
     def __init__(self, options: dict | None, local: bool = False):
         self.options, self.local = options, local
-        self.plugins = manager.selected()
+        self.plugins = selected()
 
     def setup(self, worker) -> None:
         one_thread()  # for the worker's life
         malloc_for_arrays()
         storage.configure(self.options)
-        manager.select(self.plugins)
+        select(self.plugins)
         no_profile(worker)
         quiet_handled_failures()
         if self.local:
@@ -887,8 +887,11 @@ class Runner:
             kept["speed"].update(speed)  # a drive made again (the same bytes) was timed again
             return kept
         out = {"outputs_key": key, "speed": speed}
-        with self.step("videos", plan.cast.drive):
+        with self.step("videos", plan.cast.drive):  # and a 3D drive's puppet.glb (about 4 s for 269 frames)
             out["videos"] = write_videos(drive, Collection(self.root, plan.cast.frames), plan.output)
+            if drive.has("mesh"):
+                glb = write_drive_glb(self.root, plan.cast, storage.join(plan.output, "puppet.glb"))
+                out["videos"]["glb"] = glb["path"]
         t0 = time.perf_counter()
         with self.step("evaluate", plan.cast.drive), \
                 self.progress_bar(f"{plan.cast.drive:>13} {'analyse':<10}", drive.n) as bar:

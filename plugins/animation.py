@@ -20,8 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from .face.mesh import grid_triangles
-from .face.meshing import metric_frame
+from .face.meshing import grid_mesh, metric_frame
 
 __all__ = ["FLIP", "FaceMesh", "face_mesh", "head_motion", "to_file_frame", "vertex_normals"]
 
@@ -82,18 +81,13 @@ def face_mesh(depth: np.ndarray, mask: np.ndarray, fiducials: np.ndarray, textur
     m = np.asarray(mask, bool) & np.isfinite(z)
     h, w = z.shape
     origin, scale = metric_frame(fiducials, z, m)
-    sub = m[::step, ::step]  # the grid points kept; a quad of them is a quad of the mesh
-    tris = grid_triangles(sub).astype(np.int64)
-    used = np.unique(tris)
-    remap = np.full(sub.size, -1, np.int64)
-    remap[used] = np.arange(used.size)
-    r, c = np.divmod(used, sub.shape[1])
+    # the grid points kept; a quad of them is a quad of the mesh. grid_triangles winds the triangles to face
+    # the camera (normal -Z) in canonical px; FLIP turns that to +z, seen from the viewer at +z:
+    # counter-clockwise, glTF's front faces
+    triangles, r, c = grid_mesh(m[::step, ::step])
     rows, cols = r * step, c * step
     canonical = np.stack([cols, rows, z[rows, cols]], axis=1).astype(np.float64)
     vertices = to_file_frame(canonical, origin, scale)
-    # grid_triangles winds them to face the camera (normal -Z) in canonical px; FLIP turns that to +z,
-    # seen from the viewer at +z: counter-clockwise, glTF's front faces
-    triangles = remap[tris]
     uvs = np.stack([(cols + 0.5) / w, (rows + 0.5) / h], axis=1).astype(np.float32)
     return FaceMesh(vertices, triangles, uvs, None if texture is None else np.asarray(texture, np.uint8),
                     vertex_normals(vertices, triangles), rows, cols, origin, scale)

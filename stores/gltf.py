@@ -31,7 +31,7 @@ import struct
 
 import numpy as np
 
-from .media import write_bytes
+from .media import png_bytes, write_bytes
 
 __all__ = ["write_animated_glb", "write_mesh_glb"]
 
@@ -94,18 +94,24 @@ class _Builder:
 
     def texture(self, image: np.ndarray) -> dict:
         """The image as an embedded PNG, and the material's texture reference to it."""
-        from PIL import Image
-
         rgb = np.asarray(image)
         if rgb.dtype != np.uint8 or rgb.ndim != 3 or rgb.shape[2] != 3:
             raise ValueError(f"a texture must be an (h, w, 3) uint8 RGB image, got {rgb.dtype} {rgb.shape}")
-        png = io.BytesIO()
-        Image.fromarray(rgb).save(png, format="PNG")
-        self.doc["images"] = [{"bufferView": self.view(png.getvalue()), "mimeType": "image/png"}]
+        self.doc["images"] = [{"bufferView": self.view(png_bytes(rgb, "the texture")), "mimeType": "image/png"}]
         self.doc["samplers"] = [{"magFilter": LINEAR, "minFilter": LINEAR, "wrapS": CLAMP_TO_EDGE,
                                  "wrapT": CLAMP_TO_EDGE}]
         self.doc["textures"] = [{"sampler": 0, "source": 0}]
         return {"index": 0}
+
+    def material(self, name: str, texture: np.ndarray, *, unlit: bool = False) -> None:
+        """The file's one material: matte, double-sided, coloured by ``texture``; ``unlit``: shown as the
+        texture is, without the viewer's lights (``KHR_materials_unlit``)."""
+        material = {"name": name, "doubleSided": True,
+                    "pbrMetallicRoughness": {"baseColorTexture": self.texture(texture), "metallicFactor": 0.0,
+                                             "roughnessFactor": 1.0}}
+        if unlit:
+            material["extensions"] = {"KHR_materials_unlit": {}}
+        self.doc["materials"] = [material]
 
     def write(self, path) -> int:
         """The file at ``path``, atomically; its size in bytes."""
@@ -144,10 +150,8 @@ def write_mesh_glb(path, *, vertices: np.ndarray, triangles: np.ndarray, uvs: np
                   "TEXCOORD_0": g.data(uv, target=ARRAY_BUFFER)}
     if normals is not None:
         attributes["NORMAL"] = g.data(np.asarray(normals, np.float32), target=ARRAY_BUFFER)
-    material = {"name": name, "doubleSided": True,
-                "pbrMetallicRoughness": {"baseColorTexture": g.texture(texture), "metallicFactor": 0.0,
-                                         "roughnessFactor": 1.0}}
-    g.doc.update(materials=[material], meshes=[{"name": name, "primitives": [
+    g.material(name, texture)
+    g.doc.update(meshes=[{"name": name, "primitives": [
         {"attributes": attributes, "indices": g.data(indices, target=ELEMENT_ARRAY_BUFFER), "material": 0}]}],
         nodes=[{"name": name, "mesh": 0}], scenes=[{"nodes": [0]}], scene=0)
     g.write(path)
@@ -186,9 +190,7 @@ def write_animated_glb(path, *, rest: np.ndarray, frames: np.ndarray, triangles:
     targets = [{"POSITION": g.accessor(morphs, deltas[t], offset=t * len(v) * 8, bounds=True)} for t in range(count)]
     primitive = {"attributes": {"POSITION": position, "TEXCOORD_0": g.data(uv, target=ARRAY_BUFFER)},
                  "indices": g.data(indices, target=ELEMENT_ARRAY_BUFFER), "material": 0, "targets": targets}
-    material = {"name": name, "doubleSided": True, "extensions": {"KHR_materials_unlit": {}},
-                "pbrMetallicRoughness": {"baseColorTexture": g.texture(texture), "metallicFactor": 0.0,
-                                         "roughnessFactor": 1.0}}
+    g.material(name, texture, unlit=True)
     times = g.data(np.arange(count, dtype=np.float32) / np.float32(fps), bounds=True)
     ones = np.arange(count, dtype=np.uint32) * (count + 1)  # frame t's own target, in the T x T weights
     weights = g.accessor(None, np.zeros(1, np.float32), count=count * count, extra={"sparse": {
@@ -199,7 +201,6 @@ def write_animated_glb(path, *, rest: np.ndarray, frames: np.ndarray, triangles:
                 {"input": times, "output": weights, "interpolation": "LINEAR"}]
     g.doc.update(
         extensionsUsed=["KHR_mesh_quantization", "KHR_materials_unlit"], extensionsRequired=["KHR_mesh_quantization"],
-        materials=[material],
         meshes=[{"name": name, "primitives": [primitive], "weights": [0.0] * count,
                  "extras": {"targetNames": [f"frame_{t:05d}" for t in range(count)]}}],
         # the head (posed per frame) holds the face, whose scale turns the 16-bit positions into metres

@@ -950,16 +950,21 @@ def _check_uint8_image(image: np.ndarray, what: str = "image") -> np.ndarray:
     return a
 
 
-def write_png(path, image: np.ndarray) -> None:
-    """Write a uint8 (h, w) grey or (h, w, 3) RGB image as PNG, atomically
-    (a temporary file in the same folder, then ``os.replace``); creates parent folders."""
-    a = _check_uint8_image(image)
+def png_bytes(image: np.ndarray, what: str = "image") -> bytes:
+    """A uint8 (h, w) grey or (h, w, 3) RGB image encoded as PNG."""
+    a = _check_uint8_image(image, what)
     if a.ndim == 3:
         a = a[..., ::-1]
     ok, buf = cv2.imencode(".png", np.ascontiguousarray(a))
     if not ok:
-        raise OSError(f"OpenCV could not encode a PNG for {path}")
-    write_bytes(path, buf.tobytes())
+        raise OSError(f"OpenCV could not encode {what} as a PNG")
+    return buf.tobytes()
+
+
+def write_png(path, image: np.ndarray) -> None:
+    """Write a uint8 (h, w) grey or (h, w, 3) RGB image as PNG, atomically
+    (a temporary file in the same folder, then ``os.replace``); creates parent folders."""
+    write_bytes(path, png_bytes(image))
 
 
 def contact_sheet(

@@ -157,14 +157,15 @@ class _Faces:
         """The rows still pending written; then every file rewritten on these pixels alone (indices into those
         added), as the values, 0 where unseen, and where they are seen."""
         rest = np.concatenate(self._pending) if self._pending else np.empty((0, len(self.count)))
-        if len(rest):
-            self._write(rest)
         self._pending = []
         self.count, self.total = self.count[columns], self.total[columns]
+        if not self.files and len(rest):  # one chunk in all: held as it is, never written
+            self._held = _valued(rest[:, columns])
+            return
+        if len(rest):
+            self._write(rest)
         for path in self.files:
-            M = np.load(path)[:, columns]
-            W = np.isfinite(M)
-            M[~W] = 0.0
+            M, W = _valued(np.load(path)[:, columns])
             if len(self.files) == 1:
                 self._held = (M, W)
             else:
@@ -178,11 +179,19 @@ class _Faces:
     def chunks(self):
         """(rows, M, W) for each file in turn: the images' rows in the collection (a slice), their grey values
         on the pixels kept, 0 where unseen, and where they are seen (bool)."""
+        held = [self._held] if self._held is not None else (
+            (np.load(path), np.load(path[:-4] + "_seen.npy")) for path in self.files)
         start = 0
-        for path in self.files:
-            M, W = self._held or (np.load(path), np.load(path[:-4] + "_seen.npy"))
+        for M, W in held:
             yield slice(start, start + len(M)), M, W
             start += len(M)
+
+
+def _valued(M: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Grey values (m, p), NaN where unseen, as :meth:`_Faces.chunks` gives them: 0 where unseen, and where seen."""
+    W = np.isfinite(M)
+    M[~W] = 0.0
+    return M, W
 
 
 def _top_singular(faces: _Faces, k: int, matrix, tolerance: float = 1e-10,

@@ -20,7 +20,8 @@ import open3d as o3d
 
 from .mesh import grid_triangles, raycasting_scene
 
-__all__ = ["MEAN_IOD_M", "METRIC_UNITS", "depth_to_mesh", "metric_frame", "pixel_uvs", "shaded_previews"]
+__all__ = ["MEAN_IOD_M", "METRIC_UNITS", "depth_to_mesh", "grid_mesh", "metric_frame", "pixel_uvs",
+           "shaded_previews"]
 
 #: the mean adult distance between the eye centres, metres (about 63 mm): the scale of the meshes
 #: Persona writes, which otherwise have none (a face seen by one camera has no size)
@@ -48,6 +49,18 @@ def pixel_uvs(rows: np.ndarray, cols: np.ndarray, shape: tuple[int, int]) -> np.
     return np.stack([(np.asarray(cols) + 0.5) / w, 1.0 - (np.asarray(rows) + 0.5) / h], axis=-1)
 
 
+def grid_mesh(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The mesh of a grid's ``mask`` (H, W) bool: its triangles (:func:`grid_triangles`, two per quad of
+    four mask pixels) as (m, 3) int64 indices into the pixels they use, and those pixels' rows and
+    columns (k,), in row-major order."""
+    tris = grid_triangles(mask).astype(np.int64)
+    used = np.unique(tris)
+    remap = np.full(mask.size, -1, np.int64)
+    remap[used] = np.arange(used.size)
+    rows, cols = np.divmod(used, mask.shape[1])
+    return remap[tris], rows, cols
+
+
 def depth_to_mesh(depth: np.ndarray, mask: np.ndarray, texture: np.ndarray | None = None) -> o3d.geometry.TriangleMesh:
     """A triangle mesh of a depth map.
 
@@ -72,22 +85,16 @@ def depth_to_mesh(depth: np.ndarray, mask: np.ndarray, texture: np.ndarray | Non
         texture = np.asarray(texture)
         if texture.dtype != np.uint8 or texture.shape != z.shape + (3,):
             raise ValueError(f"texture must be uint8 of shape {z.shape + (3,)}, got {texture.dtype} {texture.shape}")
-    h, w = z.shape
-    m = m & np.isfinite(z)
-    tris = grid_triangles(m).astype(np.int64)
-    used = np.unique(tris)
-    remap = np.full(h * w, -1, np.int64)
-    remap[used] = np.arange(used.size)
-    rows, cols = np.divmod(used, w)
-    verts = np.stack([cols.astype(np.float64), rows.astype(np.float64), z.ravel()[used]], axis=1)
+    triangles, rows, cols = grid_mesh(m & np.isfinite(z))
+    verts = np.stack([cols.astype(np.float64), rows.astype(np.float64), z[rows, cols]], axis=1)
     mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(verts),
-                                     o3d.utility.Vector3iVector(remap[tris].astype(np.int32)))
+                                     o3d.utility.Vector3iVector(triangles.astype(np.int32)))
     mesh.compute_vertex_normals()
     if texture is not None:
-        mesh.vertex_colors = o3d.utility.Vector3dVector(texture.reshape(-1, 3)[used].astype(np.float64) / 255.0)
-        r, c = np.divmod(tris.ravel(), w)
-        mesh.triangle_uvs = o3d.utility.Vector2dVector(pixel_uvs(r, c, (h, w)))
-        mesh.triangle_material_ids = o3d.utility.IntVector(np.zeros(len(tris), np.int32))
+        mesh.vertex_colors = o3d.utility.Vector3dVector(texture[rows, cols].astype(np.float64) / 255.0)
+        corners = triangles.ravel()
+        mesh.triangle_uvs = o3d.utility.Vector2dVector(pixel_uvs(rows[corners], cols[corners], z.shape))
+        mesh.triangle_material_ids = o3d.utility.IntVector(np.zeros(len(triangles), np.int32))
     return mesh
 
 
