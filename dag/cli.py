@@ -120,7 +120,8 @@ def _identity_line(ev: dict, key: str, of: str) -> str:
     own = ev.get("self_reenactment", {})
     psnr = (f"; self-reenactment {own['psnr_db_composite']:.1f} dB on the composite"
             if "psnr_db_composite" in own else "")
-    return f"B and not A: not judged (dlib sees B and A as one person){psnr}"
+    why = "the puppet is the driver" if ev["identity"].get("judged") is False else "dlib sees B and A as one person"
+    return f"B and not A: not judged ({why}){psnr}"
 
 
 def _print_report(report: dict) -> None:

@@ -59,7 +59,7 @@ from .stages import RENDER_3D, accepted, render_alpha
 
 #: the figures' version: a run keeps its last evaluation only when this is the same (raise it whenever a
 #: figure is added or computed differently)
-VERSION = 5
+VERSION = 6
 
 
 def _identity(spec: tuple[str, dict]):
@@ -82,7 +82,8 @@ def describe_photos(url: str, path: str, indices: list[int], identity: tuple[str
 def analyse_frames(url: str, start: int, stop: int, identity: tuple[str, dict], compare: bool, cast: Cast,
                    every: int = 1) -> dict:
     """For output frames [start, stop) of the drive of ``cast``: landmarks found anew, descriptors
-    (of every ``every``-th frame of the drive, NaN for the others: :func:`identity_every`), the mean
+    (of every ``every``-th frame of the drive, NaN for the others: :func:`identity_every`; none when
+    ``every`` is 0), the mean
     face colour of output and driver inside the rendered face less both mouths (ev.without_mouths), and
     (``compare``) PSNR and SSIM against the driver, of the render and of the composite (the composite
     stage's frames, composite.mp4's)."""
@@ -112,7 +113,7 @@ def analyse_frames(url: str, start: int, stop: int, identity: tuple[str, dict], 
         for k, (image, found) in enumerate(((face, landmarks), (blended, composite_landmarks))):
             try:
                 found[j] = detector.detect(image).points
-                if (start + j) % every == 0:
+                if every and (start + j) % every == 0:
                     descriptors[j, k] = backend.describe(image, found[j])
             except Rejected:
                 pass
@@ -182,16 +183,17 @@ def evaluate(store: str, executor, *, identity: tuple[str, dict], threshold: flo
              progress: Callable[[int], object] = lambda frames: None, known: dict | None = None) -> dict:
     """Every figure of a finished drive (``cast``; a format-1 store's by default), as a JSON-ready
     dict (plus per-frame series under "series"); ``progress(n)`` is called as each shard of n
-    frames is analysed. Identity is judged on ``identity_frames`` frames evenly spaced (0: all).
+    frames is analysed. Identity is judged on ``identity_frames`` frames evenly spaced (0: all), and not at
+    all where the puppet is the driver (a self-reenactment from one collection: B is A, and dlib's
+    descriptors, two a frame, were most of the evaluation's time).
     ``known``: the collections' descriptor centroids already computed (:func:`photo_centroid`), which a
     caller that evaluates several drives keeps from one to the next (a person who drives two puppets,
     or a puppet driven by its own person, is described once)."""
     root = open_store(store, mode="r")
     known = {} if known is None else known
-    centroids = {actor: photo_centroid(store, root, actor, path, executor, identity, collection_sample, known)
-                 for actor, path in (("puppet", cast.puppet), ("driver", cast.driver))}
     drive = Collection(root, cast.drive)
-    every = identity_every(drive.n, identity_frames)
+    judged = cast.puppet != cast.driver
+    every = identity_every(drive.n, identity_frames) if judged else 0
     tasks = [(store, s, e, identity, self_reenactment, cast, every) for s, e in drive.shard_ranges()]
     parts = []
     for part in executor.run(analyse_frames, tasks):
@@ -201,13 +203,21 @@ def evaluate(store: str, executor, *, identity: tuple[str, dict], threshold: flo
     joined = {k: np.concatenate([p[k] for p in parts]) for k in parts[0] if k != "start"}
 
     driver_landmarks = driver_frame_landmarks(root, cast.frames)
-    judged = joined["descriptors"][::every]  # the frames described
-    identity_figures = ev.identity_figures(judged[:, 0], centroids["puppet"], centroids["driver"], threshold)
-    on_composite = ev.identity_figures(judged[:, 1], centroids["puppet"], centroids["driver"], threshold)
-    distances = {}  # per frame, NaN where not judged
-    for name in ("distance_to_b", "distance_to_a"):
-        distances[name] = np.full(drive.n, np.nan)
-        distances[name][::every] = identity_figures[name]
+    without_face = int(np.isnan(joined["landmarks"][:, 0, 0]).sum())
+    distances = {name: np.full(drive.n, np.nan) for name in ("distance_to_b", "distance_to_a")}  # NaN: not judged
+    if judged:
+        centroids = {actor: photo_centroid(store, root, actor, path, executor, identity, collection_sample, known)
+                     for actor, path in (("puppet", cast.puppet), ("driver", cast.driver))}
+        described = joined["descriptors"][::every]
+        figures = ev.identity_figures(described[:, 0], centroids["puppet"], centroids["driver"], threshold)
+        on_composite = ev.identity_figures(described[:, 1], centroids["puppet"], centroids["driver"], threshold)
+        for name in distances:
+            distances[name][::every] = figures[name]
+        identity = {**{k: v for k, v in figures.items() if not isinstance(v, np.ndarray)},
+                    "fraction_b_not_a_composite": on_composite["fraction_b_not_a"],
+                    "frames_judged": len(described), "frames_without_face": without_face}
+    else:  # the puppet is the driver: nothing to tell apart
+        identity = {"judged": False, "frames_judged": 0, "frames_without_face": without_face}
     video = ev.compare_videos(driver_landmarks, joined["landmarks"], jaw=False)  # the face alone has none
     on_composite_video = ev.compare_videos(driver_landmarks, joined["composite_landmarks"])
     stability = video["stability"]
@@ -224,9 +234,7 @@ def evaluate(store: str, executor, *, identity: tuple[str, dict], threshold: flo
     stability["texture_change_driver"] = _median(joined["driver_change"])
     stability["texture_change_ratio"] = _ratio(stability["texture_change_output"], stability["texture_change_driver"])
     result = {
-        "identity": {**{k: v for k, v in identity_figures.items() if not isinstance(v, np.ndarray)},
-                     "fraction_b_not_a_composite": on_composite["fraction_b_not_a"],
-                     "frames_judged": len(judged), "frames_without_face": int(np.isnan(joined["landmarks"][:, 0, 0]).sum())},
+        "identity": identity,
         "texture": texture_figures(root, cast, collection_sample),
         "expression": video["expression"],
         "amplitude": video["amplitude"],

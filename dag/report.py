@@ -58,16 +58,17 @@ def plots(series: dict, threshold: float, fps: float) -> dict[str, str]:
 
     out = {}
     t = np.arange(len(series["distance_to_b"])) / fps
-    fig, ax = plt.subplots(figsize=(9, 2.8))
-    for name, label in (("distance_to_b", "to B (puppet)"), ("distance_to_a", "to A (driver)")):
-        distance = np.asarray(series[name], float)
-        judged = np.isfinite(distance)  # the frames described (evaluate.identity_frames)
-        ax.plot(t[judged], distance[judged], label=label, lw=1)
-    ax.axhline(threshold, color="k", ls="--", lw=0.8, label=f"same-person threshold {threshold:g}")
-    ax.set(xlabel="seconds", ylabel="descriptor distance", title="Identity of the output frames judged")
-    ax.legend(loc="upper right", fontsize=8)
-    out["identity"] = _figure(fig)
-    plt.close(fig)
+    if np.isfinite(np.asarray(series["distance_to_b"], float)).any():  # none where identity is not judged
+        fig, ax = plt.subplots(figsize=(9, 2.8))
+        for name, label in (("distance_to_b", "to B (puppet)"), ("distance_to_a", "to A (driver)")):
+            distance = np.asarray(series[name], float)
+            judged = np.isfinite(distance)  # the frames described (evaluate.identity_frames)
+            ax.plot(t[judged], distance[judged], label=label, lw=1)
+        ax.axhline(threshold, color="k", ls="--", lw=0.8, label=f"same-person threshold {threshold:g}")
+        ax.set(xlabel="seconds", ylabel="descriptor distance", title="Identity of the output frames judged")
+        ax.legend(loc="upper right", fontsize=8)
+        out["identity"] = _figure(fig)
+        plt.close(fig)
     names = ("mouth_open", "mouth_width", "mouth_corners", "eye_open", "brow_height")
     fig, axes = plt.subplots(len(names), 1, figsize=(9, 10), sharex=True)
     for ax, name in zip(axes, names):
@@ -95,6 +96,8 @@ def _table(rows: list[tuple]) -> str:
     """Rows of (label, value), (label, value, what is good) or (label, value, what is good, target): a
     table, the guide in a third column and, where a row has a target, whether it is met in a fourth."""
     def fmt(v):
+        if v is None:  # a figure this run does not give (identity where the puppet is the driver)
+            return "–"
         if isinstance(v, float):
             return f"{v:.3f}"
         return html.escape(str(v))
@@ -189,11 +192,11 @@ def figure_rows(ev: dict) -> list[tuple]:
             ("frames bridged (no face in the driver)", ev["bridged_frames"], "lower is better", None),
             ("frames whose identity is judged", identity.get("frames_judged", ev["frames"]),
              "evenly spaced (evaluate.identity_frames); = frames when that is 0", None),
-            ("frames that are B and not A", identity["fraction_b_not_a"], "higher is better; target ≥ 0.95", judged),
+            ("frames that are B and not A", identity.get("fraction_b_not_a"), "higher is better; target ≥ 0.95", judged),
             ("composite.mp4 frames that are B and not A", identity.get("fraction_b_not_a_composite"),
              "higher is better; target ≥ 0.95", judged),
-            ("mean distance to B", identity["mean_distance_to_b"], "lower is better; < 0.6 = the same person", None),
-            ("mean distance to A", identity["mean_distance_to_a"], "higher is better; > 0.6 = another person", None),
+            ("mean distance to B", identity.get("mean_distance_to_b"), "lower is better; < 0.6 = the same person", None),
+            ("mean distance to A", identity.get("mean_distance_to_a"), "higher is better; > 0.6 = another person", None),
             ("output frames without a face", identity["frames_without_face"], "lower is better; target 0", (None, 0))]
     rows += [(f"expression correlation: {k.replace('_', ' ')}", v, "higher is better; target ≥ 0.85 (mouth)",
               (0.85, None) if k == "mouth_open" else None) for k, v in ev["expression"].items()]
@@ -257,8 +260,12 @@ def _self_reenactment_rows(figures: dict) -> list[tuple]:
 
 
 def identity_caveat(ev: dict) -> str | None:
-    """Why "B and not A" cannot judge identity in this run, when dlib sees B and A as one person."""
+    """Why "B and not A" cannot judge identity in this run: the puppet is the driver, or dlib sees B and A
+    as one person."""
     identity = ev["identity"]
+    if identity.get("judged") is False:
+        return ("the puppet is the driver (a self-reenactment from one collection): B is A, so \"B and not A\" "
+                "is not judged; PSNR and SSIM against A's frames are.")
     near_a, near_b = identity.get("mean_distance_to_a"), identity.get("mean_distance_to_b")
     if near_a is None or near_b is None or not (near_a < 0.6 and near_b < 0.6):
         return None

@@ -182,6 +182,24 @@ def test_evaluate_command_prints_json(drive_run, capsys):
     assert all(0.4 < v < 1.2 for v in result["sharpness"].values()), result["sharpness"]
 
 
+def test_a_puppet_driven_by_its_own_collection_judges_no_identity(drive_run):
+    """Where the puppet is the driver (a self-reenactment from one collection) no descriptor is taken and
+    identity is not judged (B is A); the expression figures are those of the same drive judged as two people."""
+    from persona.dag.report import identity_caveat
+    from persona.dag.runner import Runner, executor_for
+    from persona.stores.layout import Cast
+
+    _, path, report = drive_run
+    wf = load_workflow(path)
+    with executor_for(wf, "sync", None) as ex:
+        own = Runner(wf, ex, progress=False).evaluate(Cast(driver="puppet"))
+    faceless = report["evaluation"]["identity"]["frames_without_face"]
+    assert own["identity"] == {"judged": False, "frames_judged": 0, "frames_without_face": faceless}
+    assert np.isnan(own["series"]["distance_to_b"]).all() and np.isnan(own["series"]["distance_to_a"]).all()
+    assert json.dumps(own["amplitude"]) == json.dumps(report["evaluation"]["amplitude"])
+    assert "the puppet is the driver" in identity_caveat(own)
+
+
 def test_identity_judged_on_a_few_frames_gives_every_frames_own_distances(drive_run):
     """evaluate.identity_frames: only every k-th frame is described, each with the distances it has when
     every frame is; the landmarks, and the figures made from them, stay every frame's."""

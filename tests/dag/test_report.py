@@ -38,10 +38,14 @@ def test_every_figure_says_what_is_good():
     assert "interval" not in guides["expression gain (output / driver): eye open"]  # none given
 
 
-def test_identity_caveat_when_dlib_sees_one_person():
+def test_identity_caveat_when_dlib_sees_one_person_or_the_puppet_is_the_driver():
     assert identity_caveat(evaluation(0.3, 0.9)) is None  # B, and not A: identity can be judged
     text = identity_caveat(evaluation(0.3, 0.4))  # self-reenactment, or synthetic faces
     assert "cannot judge identity" in text
+    own = {**evaluation(0.3, 0.4), "identity": {"judged": False, "frames_judged": 0, "frames_without_face": 0}}
+    assert "the puppet is the driver" in identity_caveat(own)
+    rows = {r[0]: r for r in figure_rows(own)}  # no identity figure, no target for one
+    assert rows["frames that are B and not A"][1] is None and rows["frames that are B and not A"][3] is None
 
 
 def test_each_target_is_marked_met_or_not():
