@@ -252,7 +252,8 @@ class Evaluation(Strict):
     identity_frames: int = Field(100, ge=0, description="output frames, evenly spaced, whose face descriptors judge "
                                  "identity (dlib's descriptor is most of the evaluation's time; 100 frames count "
                                  "the 'B and not A' fraction in steps of 1 %); 0 = every frame. The landmarks, and "
-                                 "every other figure, take every frame")
+                                 "every other figure, take every frame. A drive whose puppet is its driver (a "
+                                 "self-reenactment from one collection) is not judged for identity: B is A")
     self_reenactment: bool = Field(False, description="B and A are the same person and A's frames are not in "
                                    "B's collection: also compare the output with A's real frames (PSNR, SSIM)")
 
