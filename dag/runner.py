@@ -33,14 +33,14 @@ from persona.stores.layout import OK, PENDING, REJECTED, Cast, Collection, open_
 from persona.stores.paths import item
 from persona.stores.provenance import Provenance, cache_key
 
+from . import graph as dag_graph
 from . import stages as st
-from .drive import run_drive, write_videos
+from .drive import write_videos
 from .errors import ClusterLost, RunError
-from .shape import run_alignment, run_shape
-from .texture import run_texture
-from .evaluate import VERSION as EVALUATION_VERSION, evaluate
+from .evaluate import evaluate
 from .export import write_drive_glb
-from .report import collection_pictures, write_batch_page, write_run_report
+from .graph import Target
+from .report import write_batch_page, write_run_report
 from .workflow import TLS, Cluster, VideoRange, Workflow, tls_problem
 
 log = logging.getLogger(__name__)
@@ -498,6 +498,7 @@ class Runner:
         self.pm.register(self.timer)
         self.root = open_store(self.wf.store)
         self.version = persona_version()
+        self.graph = dag_graph.build(self.wf)
 
     def _ingest_params(self) -> dict:
         return self.wf.backendless("ingest")
@@ -521,10 +522,10 @@ class Runner:
         # video ranges photo by photo (a frame decoded from the start of its video: exact)
         video = sources[0].path if all(s.frame is not None and s.path == sources[0].path for s in sources) else None
         stats = [(s.path, s.frame, *storage.signature(s.path)) for s in sources]
-        prov = Provenance.make(stage="ingest", backend="-", backend_version="1", params=params,
-                               inputs={"sources": cache_key(sources=stats)}, persona_version=self.version)
+        prov = st.provenance("ingest", params=params, inputs={"sources": cache_key(sources=stats)},
+                             persona_version=self.version)
         coll = Collection(self.root, path)
-        if not (coll.exists() and coll.made_by("status/ingest/state", prov)):
+        if not st.is_done(coll, prov, *st.STAGES["ingest"].done):
             self._create_collection(coll, sources, video, params, prov)
         return coll, video is not None
 
@@ -579,7 +580,7 @@ class Runner:
         prov = Provenance.make(stage=stage.name, backend=backend, backend_version=version,
                                params=params, inputs=inputs, persona_version=self.version)
         # outputs another stage wrote since (the 2D and 3D renderers share render/*) count as stale
-        if not all(coll.made_by(name, prov) for name in (f"status/{stage.name}/state", *(o.name for o in stage.outputs))):
+        if not st.is_done(coll, prov, f"status/{stage.name}/state", *(o.name for o in stage.outputs)):
             self._create_outputs(coll, stage, prov)
         return prov
 
@@ -588,7 +589,7 @@ class Runner:
         then the screen, which needs every photo's fiducials."""
         steps = self.steps(coll)
         if video:  # frames come from one sequential decoding pass, then the chain without ingest
-            self._run(coll, steps[:1], [(self.wf.store, coll.path, steps[0][2])], st.ingest_video)
+            self.run_tasks(coll, steps[:1], [(self.wf.store, coll.path, steps[0][2])], st.ingest_video)
             steps = steps[1:]
         self.run_stage_tasks(coll, steps)
         coll.group.attrs["stages"] = list(st.COLLECTION_STAGES)  # stores made before the screen existed
@@ -600,7 +601,7 @@ class Runner:
         states = [coll.state(name) for name, _, _ in steps]
         pending = [(s, e) for s, e in coll.shard_ranges() if any((state[s:e] == PENDING).any() for state in states)]
         tasks = [(self.wf.store, coll.path, s, e, steps) for s, e in pending]
-        self._run(coll, steps, tasks, st.run_chain)
+        self.run_tasks(coll, steps, tasks, st.run_chain)
 
     @contextmanager
     def step(self, stage: str, collection: str):
@@ -655,7 +656,8 @@ class Runner:
                 bar.update(stop - start)
                 yield start, result
 
-    def _run(self, coll, steps, tasks, fn):
+    def run_tasks(self, coll, steps, tasks, fn):
+        """``fn(*task)`` for each of ``tasks``, the per-photo ``steps`` they run timed, hooked and shown."""
         names = [name for name, _, _ in steps]
         done = {name: int((coll.state(name) != PENDING).sum()) for name in names}
         counts = {name: {"n_done": 0, "n_skipped": done[name], "seconds": 0.0} for name in names}
@@ -696,12 +698,13 @@ class Runner:
         ok = st.accepted(coll)
         if not ok.any():
             return None
+        prov = st.provenance("mean", params={}, inputs={"screen": coll.provenance("status/screen/state").key},
+                             persona_version=self.version)
+        if st.is_done(coll, prov, *st.STAGES["mean"].done):
+            return coll.array("aligned/mean")[...]
         sums = self.fold_shards(coll, "mean face", st.aligned_sum, st.add_sums)
         count = sums["count"]
         mean = (sums["sum"] / np.maximum(count, 1)[..., None]).astype(np.float32)
-        prov = Provenance.make(stage="mean", backend="-", backend_version="1", params={},
-                               inputs={"screen": coll.provenance("status/screen/state").key},
-                               persona_version=self.version)
         coll.create_single("aligned/mean", mean, ("y", "x", "channel"), prov)
         coll.create_single("aligned/coverage", (count / ok.sum()).astype(np.float32), ("y", "x"), prov)
         fiducials = mean_shape(coll.array("aligned/fiducials")[:][ok])
@@ -836,51 +839,71 @@ class Runner:
         return failed
 
     def build_collection(self, plan, sources: list[media.Source], report: dict) -> dict:
-        """One collection's per-photo stages, mean face and pictures; for photo collections (not a
-        video's frames) their alignment and 3D shape, and for puppets their texture cache. Returns its
-        counts and pictures."""
-        coll, video = self.collection(plan.path, sources)
-        self.run_photo_stages(coll, video)
-        if not st.accepted(coll).any():
-            raise RunError(f"{plan.path}: no photo of the {coll.n} got through to an aligned face; "
-                           f"see `persona inspect {self.wf.store}` for each photo's reason")
-        mean = self.mean_face(coll)
-        pictures = collection_pictures(coll, mean, self.wf.output)
-        shape_seconds = None
-        if not plan.video:  # the 3D shape comes from photo collections, not video frames
+        """One collection's stages, in the graph's order (:mod:`persona.dag.graph`): the per-photo
+        stages, the mean face and its pictures; for photo collections (not a video's frames) their
+        alignment and 3D shape, and for puppets their texture cache. A stage only photo collections
+        have that is rejected (too few photos for a 3D shape) leaves the collection without a shape,
+        and the run goes on. Returns its counts and pictures."""
+        target = Target(plan.path, sources=sources)
+        shape_seconds = None if plan.video else 0.0
+        for node in self.graph.of(plan.path):
+            stage = st.STAGES[node.stage]
             t0 = time.perf_counter()
             try:
-                aligned = run_alignment(self, coll)  # per-photo stages: timed as such
-                with self.step("shape", plan.path):
-                    pictures.update(run_shape(self, coll, aligned))
-                if plan.texture:  # B's expression-dependent texture (video mode)
-                    with self.step("texture", plan.path):
-                        pictures.update(run_texture(self, coll, aligned))
-            except Rejected as exc:  # e.g. too few photos for photometric stereo: the run goes on
+                self.run_stage(stage, target)
+            except Rejected as exc:  # e.g. too few photos for photometric stereo
+                if "video" in stage.where:
+                    raise
+                coll = Collection(self.root, plan.path)
                 coll.remove("shape", "texture")  # an earlier run's: nothing later may take them for this one's
                 self.shape_problems[plan.path] = exc.reason
                 log.warning("%s: no 3D shape: %s", plan.path, exc.reason)
                 report.setdefault("warnings", []).append(f"{plan.path}: no 3D shape: {exc.reason}")
-            shape_seconds = round(time.perf_counter() - t0, 3)
+                shape_seconds += time.perf_counter() - t0
+                break
+            if "video" not in stage.where and not stage.mesh:
+                shape_seconds += time.perf_counter() - t0
+        coll = Collection(self.root, plan.path)
         accepted = int(st.accepted(coll).sum())
         return {"n_photos": coll.n, "accepted": accepted, "rejected": coll.n - accepted,
-                "rejections": rejections(coll), "pictures": pictures, "shape_seconds": shape_seconds}
+                "rejections": rejections(coll), "pictures": target.pictures,
+                "shape_seconds": None if shape_seconds is None else round(shape_seconds, 3)}
+
+    def run_stage(self, stage: st.Stage, target: Target) -> None:
+        """One stage on one collection or drive: its ``run``; a stage over a whole collection or drive
+        as one step of the hooks and the progress lines (:meth:`step`), the per-photo and per-frame ones
+        timed by their tasks. The per-photo stages of the chain run inside ``ingest``'s."""
+        run = stage.function()
+        if run is None:
+            return
+        if stage.per in ("photo", "frame"):
+            run(self, stage, target)
+            return
+        with self.step(stage.name, target.path):
+            run(self, stage, target)
+
+    def uses_mesh(self) -> bool:
+        """Whether the workflow's renderer draws the 3D puppet (:func:`persona.dag.graph.uses_mesh`)."""
+        return dag_graph.uses_mesh(self.wf)
 
     def drive(self, plan) -> dict:
-        """One drive: its stages, its videos and its evaluation (``videos``, ``speed``, ``evaluation``
-        and the per-frame ``series`` of the report's plots). The videos and the evaluation are kept
-        from the last run when nothing they are made from changed (:meth:`kept_outputs`); the drive's
-        speed is this run's whenever it rendered every frame, the last run's otherwise."""
+        """One drive: its stages in the graph's order, its videos and its evaluation (``videos``,
+        ``speed``, ``evaluation`` and the per-frame ``series`` of the report's plots). The videos and the
+        evaluation are kept from the last run when nothing they are made from changed
+        (:meth:`kept_outputs`); the drive's speed is this run's whenever it rendered every frame, the last
+        run's otherwise."""
         t0 = time.perf_counter()
-        drive = run_drive(self, plan.cast, plan.output)
+        target = Target(plan.cast.drive, cast=plan.cast, output=plan.output)
+        for node in self.graph.of(plan.cast.drive):
+            self.run_stage(st.STAGES[node.stage], target)
+        drive = Collection(self.root, plan.cast.drive)
         drive_seconds = time.perf_counter() - t0
         render = [r for r in self.timer.records if r["stage"] in ("render", "render3d")][-1]
         speed = {}
         if render["n_done"] == drive.n:  # timed only when this run rendered every frame
             speed = {"ms_per_driver_frame": 1000 * drive_seconds / drive.n,
                      "render_ms_per_frame_one_worker": 1000 * render["task_seconds"] / drive.n}
-        key = cache_key(composite=drive.provenance("composite/rgb").key, identity=self.wf.stage("identity"),
-                        evaluate=self.wf.evaluate.model_dump(mode="json"), figures=EVALUATION_VERSION)
+        key = dag_graph.outputs_key(self.wf, drive.provenance("composite/rgb"))
         kept = self.kept_outputs(plan.output, key)
         if kept is not None:
             log.info("%s: nothing new since its videos and evaluation were made: kept", plan.cast.drive)
