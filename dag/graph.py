@@ -16,8 +16,9 @@ from dataclasses import dataclass, field
 from persona.plugins.manager import default_registry
 from persona.stores import storage
 from persona.stores.layout import OK, PENDING, Cast, Collection
-from persona.stores.provenance import Provenance
+from persona.stores.provenance import Provenance, cache_key
 
+from . import evaluate as evaluation
 from .stages import STAGES, Stage
 from .workflow import CollectionPlan, DrivePlan, Workflow
 
@@ -171,12 +172,8 @@ def _outputs_done(wf: Workflow, graph: Graph, drive: Collection) -> bool:
 def outputs_key(wf: Workflow, composite: Provenance) -> str:
     """The cache key of a drive's videos and evaluation: the composite's key and the evaluation's
     settings. A drive's metrics.json records it (``outputs_key``); a run whose key is the same keeps them."""
-    from persona.stores.provenance import cache_key
-
-    from .evaluate import VERSION as EVALUATION_VERSION
-
     return cache_key(composite=composite.key, identity=wf.stage("identity"),
-                     evaluate=wf.evaluate.model_dump(mode="json"), figures=EVALUATION_VERSION)
+                     evaluate=wf.evaluate.model_dump(mode="json"), figures=evaluation.VERSION)
 
 
 def _failed_drives(wf: Workflow) -> set[str]:

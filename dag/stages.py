@@ -380,7 +380,7 @@ class Stage:
     per: str
     needs: tuple[str, ...] = ()
     done: tuple[str, ...] = ()
-    version: str = "1"
+    version: str | None = None
     run: str | None = None
     runs: str = "tasks over shards"
     mesh: bool = False
@@ -405,7 +405,7 @@ _PERSON = ("puppet", "driver")
 _CHAIN_RUNS = "the per-photo chain: one task per shard, ingest to frontalize"
 STAGES = {stage.name: stage for stage in (
     Stage("ingest", _COLLECTION, ("ingest",), "each photo (or video frame) decoded onto the collection's canvas",
-          "photo", done=("status/ingest/state",), run="persona.dag.collection:run_chain_stages",
+          "photo", done=("status/ingest/state",), version="1", run="persona.dag.collection:run_chain_stages",
           runs=_CHAIN_RUNS + "; a video's frames decoded in one pass first", photo=(INGEST,)),
     Stage("landmarks", _COLLECTION, ("landmarks",), "the face's 68 landmarks and its box", "photo",
           ("ingest",), ("status/landmarks/state",), runs=_CHAIN_RUNS, photo=(LANDMARKS,)),
@@ -417,10 +417,10 @@ STAGES = {stage.name: stage for stage in (
           "rejected", "photo", ("frontalize",), ("status/screen/state",), run="persona.dag.collection:run_screen",
           photo=(SCREEN,)),
     Stage("mean", _COLLECTION, (), "the mean face of the accepted photos, its coverage and mean fiducials",
-          "collection", ("screen",), ("aligned/mean_fiducials",), run="persona.dag.collection:run_mean",
+          "collection", ("screen",), ("aligned/mean_fiducials",), "1", run="persona.dag.collection:run_mean",
           runs="tasks over shards (a sum each), then the client"),
     Stage("subspace", _PERSON, ("align",), "the rank-k appearance subspace of the frontalized faces", "collection",
-          ("mean",), ("subspace/basis",), run="persona.dag.shape:run_subspace",
+          ("mean",), ("subspace/basis",), "1", run="persona.dag.shape:run_subspace",
           runs="a randomised SVD over shards (dask.array)"),
     Stage("align", _PERSON, ("align", "flow"), "each photo's collection flow to the mean face", "photo",
           ("subspace",), ("status/align/state",), run="persona.dag.shape:run_alignment", photo=(ALIGN,)),
@@ -436,8 +436,8 @@ STAGES = {stage.name: stage for stage in (
           ("video:screen", "puppet:mean", "driver:mean"), ("status/retarget/state",), "2",
           run="persona.dag.drive:run_retarget", runs="the client"),
     Stage("gaze", ("drive",), ("texture",), "where the driver's irises sit in their eyes in each frame, from the "
-          "clip's usual gaze", "drive", ("retarget", "video:screen"), ("eyes/gaze",), run="persona.dag.drive:run_gaze",
-          runs="the client"),
+          "clip's usual gaze", "drive", ("retarget", "video:screen"), ("eyes/gaze",), "1",
+          run="persona.dag.drive:run_gaze", runs="the client"),
     Stage("frame textures", ("drive",), ("texture",), "B's face for each frame's expression and gaze", "drive",
           ("retarget", "gaze", "puppet:texture"), ("texture/rgb",), run="persona.dag.texture:run_frame_textures",
           key="frame_texture"),
@@ -449,12 +449,12 @@ STAGES = {stage.name: stage for stage in (
           run="persona.dag.motion:run_motion", mesh=True),
     Stage("teeth", ("drive",), ("render",), "how much of B's teeth each frame shows, as the driver's mouth "
           "shows them (mouth_choice: driver)", "drive", ("retarget", "puppet:mouth", "video:screen"),
-          ("mouth/teeth",), run="persona.dag.drive:run_teeth", runs="the client", mesh=True),
+          ("mouth/teeth",), "1", run="persona.dag.drive:run_teeth", runs="the client", mesh=True),
     Stage("render", ("drive",), ("render",), "the puppet's frames", "frame",
           ("retarget", "frame textures", "motion", "teeth"), ("status/render/state",),
           run="persona.dag.drive:run_render", photo=(RENDER, RENDER_3D)),
     Stage("light", ("drive",), ("composite",), "A's light at B's edge (fitted with the render), made "
-          "steady over the frames around", "drive", ("render",), ("composite/light",),
+          "steady over the frames around", "drive", ("render",), ("composite/light",), "1",
           run="persona.dag.drive:run_light", runs="the client"),
     Stage("composite", ("drive",), ("composite",), "B's face blended into each of the driver's frames", "frame",
           ("render", "light"), ("status/composite/state",), run="persona.dag.drive:run_composite",
@@ -477,8 +477,10 @@ def provenance(name: str, *, params: dict, inputs: dict[str, str], persona_versi
     stage's own version (or ``backend_version``, a backend's), ``params`` and ``inputs`` (name -> the
     cache key of what it reads)."""
     stage = STAGES[name]
-    return Provenance.make(stage=stage.provenance_name, backend=backend,
-                           backend_version=stage.version if backend_version is None else backend_version,
+    version = stage.version if backend_version is None else backend_version
+    if version is None:
+        raise ValueError(f"stage {name!r} declares no version and has no backend's to take")
+    return Provenance.make(stage=stage.provenance_name, backend=backend, backend_version=version,
                            params=params, inputs=inputs, persona_version=persona_version)
 
 

@@ -11,7 +11,8 @@ from persona.stores.layout import Collection
 
 BRIGHTNESS = st.Stage(
     "brightness", ("drive",), (), "each composite frame's mean brightness", "drive",
-    needs=("composite",), done=("example/brightness",), run="example_stage:run_brightness", runs="the client")
+    needs=("composite",), done=("example/brightness",), version="1", run="example_stage:run_brightness",
+    runs="the client")
 
 
 def run_brightness(runner, stage: st.Stage, target) -> None:
