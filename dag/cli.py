@@ -190,7 +190,9 @@ def _cmd_demo(args) -> int:
 def _cmd_evaluate(args) -> int:
     from persona.stores.layout import open_store
 
-    from .runner import RunError, executor_for, Runner
+    from .errors import RunError
+    from .executor import executor_for
+    from .runner import Runner
     from .workflow import load_workflow
 
     wf = load_workflow(args.workflow, args.set)
@@ -259,7 +261,9 @@ def _texture_methods(value: str) -> tuple[str, ...]:
 def _evaluate_texture(wf, args) -> int:
     from persona.stores.layout import Collection, open_store
 
-    from .runner import RunError, executor_for, Runner
+    from .errors import RunError
+    from .executor import executor_for
+    from .runner import Runner
     from .texture_eval import LABELS, evaluate_texture
 
     if not Collection(open_store(wf.store, mode="r"), args.collection).has("aligned/fiducials"):
@@ -297,7 +301,7 @@ def _evaluate_texture(wf, args) -> int:
 def _cmd_validate(args) -> int:
     from .workflow import load_workflow
 
-    from .runner import resolve_inputs
+    from .inputs import resolve_inputs
 
     wf = load_workflow(args.workflow, args.set)
     counts = {path: len(sources) for path, sources in resolve_inputs(wf).items()}

@@ -24,12 +24,13 @@ from persona.stores import media, storage
 from persona.stores.layout import OK, PENDING, Cast, Collection
 
 from . import stages as st
+from .context import RunContext
 from .graph import Target
 
 log = logging.getLogger(__name__)
 
 
-def run_retarget(runner, stage, target: Target) -> None:
+def run_retarget(runner: RunContext, stage: st.Stage, target: Target) -> None:
     """``retarget``: the driver's smoothed poses and pose-corrected fiducials, frames without a face bridged,
     and B's target fiducials; creates the drive's collection (``target.path``, one item per frame)."""
     cast = target.cast
@@ -58,7 +59,7 @@ def run_retarget(runner, stage, target: Target) -> None:
     target.made[stage.name] = prov
 
 
-def run_render(runner, stage, target: Target) -> None:
+def run_render(runner: RunContext, stage: st.Stage, target: Target) -> None:
     """``render``: the render backend draws every frame (Dask tasks over shards of frames); a renderer of
     the 3D puppet takes B's meshes, mouth and teeth too (:data:`persona.dag.stages.RENDER_3D`)."""
     drive, made = Collection(runner.root, target.path), target.made
@@ -72,20 +73,20 @@ def run_render(runner, stage, target: Target) -> None:
     drive.group.attrs["stages"] = ["retarget", *(["dynamics"] if photo is st.RENDER_3D else []), photo.name,
                                    "composite"]
     render = runner.prepare_stage(drive, photo, inputs)
-    runner.run_stage_tasks(drive, [(photo.name, render.backend, render.params)])
+    runner.tasks.run_stage_tasks(drive, [(photo.name, render.backend, render.params)])
     made[stage.name] = render
 
 
-def run_composite(runner, stage, target: Target) -> None:
+def run_composite(runner: RunContext, stage: st.Stage, target: Target) -> None:
     """``composite``: B's rendered face blended into each of the driver's frames (Dask tasks over shards)."""
     drive = Collection(runner.root, target.path)
     composite = runner.prepare_stage(drive, st.COMPOSITE, {"render": target.made["render"].key,
                                                            "light": target.made["light"].key})
-    runner.run_stage_tasks(drive, [("composite", composite.backend, composite.params)])
+    runner.tasks.run_stage_tasks(drive, [("composite", composite.backend, composite.params)])
     target.made[stage.name] = composite
 
 
-def run_light(runner, stage, target: Target) -> None:
+def run_light(runner: RunContext, stage: st.Stage, target: Target) -> None:
     """``composite/light``: the light planes the render fitted on each frame (``render/light``), made
     steady in time (``stages.composite.params.light_sigma``; composite.steady_light)."""
     drive = Collection(runner.root, target.path)
@@ -99,7 +100,7 @@ def run_light(runner, stage, target: Target) -> None:
     target.made[stage.name] = prov
 
 
-def run_gaze(runner, stage, target: Target) -> None:
+def run_gaze(runner: RunContext, stage: st.Stage, target: Target) -> None:
     """``eyes/gaze`` (frame, eye, along / across): how far the driver's irises sit from where they usually do
     in the clip, in eye widths (gaze.iris_offsets on each frame and its landmarks, gaze.gaze_shift); frames
     without a face look where they usually do."""
@@ -120,7 +121,7 @@ def run_gaze(runner, stage, target: Target) -> None:
     target.made[stage.name] = prov
 
 
-def run_teeth(runner, stage, target: Target) -> None:
+def run_teeth(runner: RunContext, stage: st.Stage, target: Target) -> None:
     """``mouth/teeth``: how much of B's teeth (rather than B's cavity) each frame's mouth shows, as the
     driver's own mouth shows them there (mouth.teeth_share), made steady in time (the render's
     ``mouth_sigma``); 1 in every frame unless the render draws it and the puppet has both interiors
@@ -154,8 +155,8 @@ def driver_neutral(choice: str, cast: Cast) -> str:
     return "collection" if cast.driver == cast.puppet else "clip"
 
 
-def _retarget(runner, cast, drive, frames, puppet, found, prov, sigma: float, lips: str, steady: int,
-              widen: str, neutral: str, share: float) -> None:
+def _retarget(runner: RunContext, cast, drive, frames, puppet, found, prov, sigma: float, lips: str,
+              steady: int, widen: str, neutral: str, share: float) -> None:
     n = frames.n
     group = runner.root.require_group(cast.drive)
     cast.record(group)

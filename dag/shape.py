@@ -23,13 +23,14 @@ from persona.stores.layout import OK, Collection, open_store
 from persona.stores.provenance import Provenance
 
 from . import stages as st
+from .context import RunContext
 from .graph import Target
 
 log = logging.getLogger(__name__)
 
 
-def compute_subspace(runner, coll: Collection, *, source: str, state: str, rank: int, tps_lambda: float,
-                     upstream: str) -> Provenance:
+def compute_subspace(runner: RunContext, coll: Collection, *, source: str, state: str, rank: int,
+                     tps_lambda: float, upstream: str) -> Provenance:
     """The rank-k basis of ``source``/rgb over accepted photos -> ``subspace/basis`` (k, H, W, 3)."""
     import dask.array as da
 
@@ -60,7 +61,7 @@ def compute_subspace(runner, coll: Collection, *, source: str, state: str, rank:
     return prov
 
 
-def run_subspace(runner, stage, target: Target) -> None:
+def run_subspace(runner: RunContext, stage: st.Stage, target: Target) -> None:
     """``subspace``: the rank-k appearance basis of the collection's screened frontalized faces."""
     config = runner.align_params()
     coll = Collection(runner.root, target.path)
@@ -69,16 +70,16 @@ def run_subspace(runner, stage, target: Target) -> None:
         upstream=coll.provenance("status/screen/state").key)
 
 
-def run_alignment(runner, stage, target: Target) -> None:
+def run_alignment(runner: RunContext, stage: st.Stage, target: Target) -> None:
     """``align``: collection flow of every photo to its projection on the subspace (Dask tasks over shards)."""
     coll = Collection(runner.root, target.path)
     align = runner.prepare_stage(coll, st.ALIGN, {"screen": coll.provenance("status/screen/state").key,
                                                   "subspace": target.made["subspace"].key})
-    runner.run_stage_tasks(coll, [("align", align.backend, align.params)])
+    runner.tasks.run_stage_tasks(coll, [("align", align.backend, align.params)])
     target.made[stage.name] = align
 
 
-def run_shape(runner, stage, target: Target) -> None:
+def run_shape(runner: RunContext, stage: st.Stage, target: Target) -> None:
     """Photometric stereo over the aligned collection -> normals, albedo, lighting, depth;
     the textured mesh (PLY, OBJ) and shaded previews into the output folder (their paths into
     ``target.pictures``). The collection's
@@ -100,7 +101,7 @@ def run_shape(runner, stage, target: Target) -> None:
             export(coll, runner.wf.output, *(coll.array(name)[...] for name in ("shape/depth", "shape/mask", "shape/texture")))
         return
     ok = coll.state("align") == OK
-    sums = runner.fold_shards(coll, "mean", st.aligned_sum, st.add_sums, "collection", "align")
+    sums = runner.tasks.fold_shards(coll, "mean", st.aligned_sum, st.add_sums, "collection", "align")
     count = sums["count"]
     texture = (sums["sum"] / np.maximum(count, 1)[..., None]).clip(0, 255).astype(np.uint8)
     (depth, mask), = runner.executor.run(photometric_stereo, [(runner.wf.store, coll.path, count >= 0.3 * ok.sum(),

@@ -37,6 +37,7 @@ from persona.stores.layout import OK, Collection, open_store
 from persona.stores.provenance import Provenance
 
 from . import stages as st
+from .context import RunContext
 from .graph import Target
 
 log = logging.getLogger(__name__)
@@ -57,7 +58,7 @@ def texture_photos(coll: Collection, rows: np.ndarray) -> TexturePhotos:
     return TexturePhotos(tuple(photos), np.stack(maps), np.stack(visible), fiducials[rows].astype(np.float64))
 
 
-def texture_backend(runner):
+def texture_backend(runner: RunContext):
     name, params = runner.wf.stage("texture")
     return name, params, st.default_registry().get("texture", name)(params)
 
@@ -78,7 +79,7 @@ def collection_aligned(coll: Collection, rows: np.ndarray) -> Aligned:
     return Aligned(coll.rows("collection/rgb", rows).astype(np.float32), coll.rows("collection/mask", rows))
 
 
-def run_texture(runner, stage, target: Target) -> None:
+def run_texture(runner: RunContext, stage: st.Stage, target: Target) -> None:
     """The video-mode cache of the aligned collection (:func:`build_cache`) and its neutral texture
     (``texture/neutral``, written last: it marks the step done); the picture it writes goes into
     ``target.pictures`` (``texture_neutral``).
@@ -112,7 +113,7 @@ def run_texture(runner, stage, target: Target) -> None:
     target.pictures["texture_neutral"] = str(out)
 
 
-def build_cache(runner, coll: Collection, cache: Provenance, chosen: tuple) -> None:
+def build_cache(runner: RunContext, coll: Collection, cache: Provenance, chosen: tuple) -> None:
     """The video-mode cache of the aligned collection, made with the run's texture backend
     ``chosen`` = (name, params, backend) (:func:`texture_backend`), its arrays given the provenance ``cache``.
 
@@ -133,7 +134,7 @@ def build_cache(runner, coll: Collection, cache: Provenance, chosen: tuple) -> N
     if own:  # the TPS-warped photos, for the basis: removed again below
         coll.create("texture/warped_grey", (H, W), np.float32, ("photo", "y", "x"), cache)
         coll.create("texture/warped_valid", (H, W), bool, ("photo", "y", "x"), cache)
-    fill = seen_mean(*runner.fold_shards(coll, "tex. warp", warp_shard, lambda a, b: (a[0] + b[0], a[1] + b[1]),
+    fill = seen_mean(*runner.tasks.fold_shards(coll, "tex. warp", warp_shard, lambda a, b: (a[0] + b[0], a[1] + b[1]),
                                          name, params))
     basis = None
     if own:
@@ -147,7 +148,7 @@ def build_cache(runner, coll: Collection, cache: Provenance, chosen: tuple) -> N
                     cache, pending=True)
         coll.create(f"texture/detail_{k}", (*level.shape, 1), np.float32, ("photo", *_level_dims(k), "weight"),
                     cache, pending=True)
-    totals = runner.fold_shards(coll, "tex. cache", cache_shard, operator.add, name, params, fill, basis)
+    totals = runner.tasks.fold_shards(coll, "tex. cache", cache_shard, operator.add, name, params, fill, basis)
     coll.remove("texture/warped_grey", "texture/warped_valid")
     for k in range(levels):  # what every target's blend takes of all photos (small)
         coll.create_single(f"texture/total_weighted_{k}", totals.weighted[k], (*_level_dims(k), "channel"), cache)
@@ -284,7 +285,7 @@ def _read_shard(coll: Collection, key: str, start: int, stop: int, rows: np.ndar
     return _shards[(key, start)]
 
 
-def run_frame_textures(runner, stage, target: Target) -> None:
+def run_frame_textures(runner: RunContext, stage: st.Stage, target: Target) -> None:
     """B's texture for every driver frame: ``drive/texture/rgb`` (frame, H, W, 3) uint8, from the
     video-mode cache, the frame's target fiducials and the driver's gaze (``eyes/gaze``), or B's static
     mean face when the texture backend has no video mode."""
@@ -309,7 +310,7 @@ def run_frame_textures(runner, stage, target: Target) -> None:
             array[start:stop] = np.broadcast_to(mean, (stop - start, *mean.shape))
         drive.mark_done("texture/rgb", prov)
         return
-    runner.map_shards(drive, "texture", frame_textures, puppet.path, share, *runner.wf.stage("texture"))
+    runner.tasks.map_shards(drive, "texture", frame_textures, puppet.path, share, *runner.wf.stage("texture"))
     drive.mark_done("texture/rgb", prov)  # after the last frame: a killed run leaves no key to trust
 
 
@@ -351,7 +352,7 @@ def stored_textures(url: str, path: str, name: str, params: dict, targets, start
     return backend.finish(sums, totals, fiducials, around[keep], gaze=gaze)
 
 
-def run_mouth(runner, stage, target: Target) -> None:
+def run_mouth(runner: RunContext, stage: st.Stage, target: Target) -> None:
     """The inside of B's mouth for the renderer (``mouth``, ``mouth_photos``, ``mouth_min_gap`` and
     ``mouth_choice`` of its params): the median of ``mouth_photos`` of B's open accepted photos between
     their inner lips, the widest (``texture/mouth``) or the darkest there, or both (``driver``: the
