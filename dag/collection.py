@@ -25,25 +25,35 @@ from .report import collection_pictures
 def run_chain_stages(runner: RunContext, stage: st.Stage, target: Target) -> None:
     """``ingest`` and the per-photo chain after it (landmarks, pose, frontalize), fused per shard: the
     collection is opened, or created anew when its photos or ingest params changed."""
-    coll, video = open_collection(runner, target.path, target.sources)
-    steps = runner.steps(coll)
-    if video:  # frames come from one sequential decoding pass, then the chain without ingest
-        runner.tasks.run_tasks(coll, steps[:1], [(runner.wf.store, coll.path, steps[0][2])], st.ingest_video)
-        steps = steps[1:]
-    runner.tasks.run_stage_tasks(coll, steps)
-    coll.group.attrs["stages"] = list(st.COLLECTION_STAGES)  # stores made before the screen existed
+    photo_chain(runner, *open_collection(runner, target.path, target.sources))
 
 
 def run_screen(runner: RunContext, stage: st.Stage, target: Target) -> None:
     """``screen``: photos far from the collection's median shape, and copies, rejected. A collection
     none of whose photos got through ends the build here."""
     coll = Collection(runner.root, target.path)
-    screen = runner.prepare_stage(coll, st.SCREEN, {"frontalize": coll.provenance("status/frontalize/state").key})
-    runner.tasks.run_stage_tasks(coll, [("screen", screen.backend, screen.params)])
-    target.made[stage.name] = screen
+    target.made[stage.name] = screen(runner, coll)
     if not st.accepted(coll).any():
         raise RunError(f"{target.path}: no photo of the {coll.n} got through to an aligned face; "
                        f"see `persona inspect {runner.wf.store}` for each photo's reason")
+
+
+def photo_chain(runner: RunContext, coll: Collection, video: bool) -> None:
+    """The per-photo chain on every shard of ``coll`` not finished yet; a video's frames are decoded in one
+    sequential pass first, then go through the chain without ingest."""
+    steps = runner.steps(coll)
+    if video:
+        runner.tasks.run_tasks(coll, steps[:1], [(runner.wf.store, coll.path, steps[0][2])], st.ingest_video)
+        steps = steps[1:]
+    runner.tasks.run_stage_tasks(coll, steps)
+    coll.group.attrs["stages"] = list(st.COLLECTION_STAGES)  # stores made before the screen existed
+
+
+def screen(runner: RunContext, coll: Collection) -> Provenance:
+    """The screen on every shard of ``coll`` not screened yet (it needs every photo's fiducials first)."""
+    prov = runner.prepare_stage(coll, st.SCREEN, {"frontalize": coll.provenance("status/frontalize/state").key})
+    runner.tasks.run_stage_tasks(coll, [("screen", prov.backend, prov.params)])
+    return prov
 
 
 def run_mean(runner: RunContext, stage: st.Stage, target: Target) -> None:

@@ -23,7 +23,7 @@ from persona.stores.provenance import Provenance
 
 from . import graph as dag_graph
 from . import stages as st
-from .collection import create_outputs, open_collection
+from .collection import create_outputs, open_collection, photo_chain, screen
 from .evaluate import evaluate
 from .executor import Executor, executor_for
 from .graph import Target
@@ -48,6 +48,10 @@ def persona_version() -> str:
 
 @dataclass
 class Runner:
+    """One run of a workflow on an executor: each collection's and each drive's stages in the order of
+    the run's graph (:attr:`graph`), its tasks through :attr:`tasks`; the :class:`~persona.dag.context.RunContext` every
+    stage's ``run`` gets."""
+
     wf: Workflow
     executor: Executor
     progress: bool = True
@@ -114,16 +118,9 @@ class Runner:
         return prov
 
     def run_photo_stages(self, coll: Collection, video: bool) -> None:
-        """Every per-photo stage over every shard not finished yet, with hooks and progress bars;
-        then the screen, which needs every photo's fiducials."""
-        steps = self.steps(coll)
-        if video:  # frames come from one sequential decoding pass, then the chain without ingest
-            self.tasks.run_tasks(coll, steps[:1], [(self.wf.store, coll.path, steps[0][2])], st.ingest_video)
-            steps = steps[1:]
-        self.tasks.run_stage_tasks(coll, steps)
-        coll.group.attrs["stages"] = list(st.COLLECTION_STAGES)  # stores made before the screen existed
-        screen = self.prepare_stage(coll, st.SCREEN, {"frontalize": coll.provenance("status/frontalize/state").key})
-        self.tasks.run_stage_tasks(coll, [("screen", screen.backend, screen.params)])
+        """Every per-photo stage and the screen on a collection :meth:`collection` opened."""
+        photo_chain(self, coll, video)
+        screen(self, coll)
 
     def run(self, inputs: dict[str, list[media.Source]]) -> dict:
         """Every stage of the workflow on its resolved ``inputs`` (:func:`resolve_inputs`).
@@ -201,7 +198,7 @@ class Runner:
 
     def run_stage(self, stage: st.Stage, target: Target) -> None:
         """One stage on one collection or drive: its ``run``; a stage over a whole collection or drive
-        as one step of the hooks and the progress lines (:meth:`step`), the per-photo and per-frame ones
+        as one step of the hooks and the progress lines (:meth:`Tasks.step`), the per-photo and per-frame ones
         timed by their tasks. The per-photo stages of the chain run inside ``ingest``'s."""
         run = stage.function()
         if run is None:
@@ -220,7 +217,7 @@ class Runner:
         """One drive: its stages in the graph's order, its videos and its evaluation (``videos``,
         ``speed``, ``evaluation`` and the per-frame ``series`` of the report's plots). The videos and the
         evaluation are kept from the last run when nothing they are made from changed
-        (:meth:`kept_outputs`); the drive's speed is this run's whenever it rendered every frame, the last
+        (:func:`persona.dag.outputs.kept_outputs`); the drive's speed is this run's whenever it rendered every frame, the last
         run's otherwise."""
         t0 = time.perf_counter()
         target = Target(plan.cast.drive, cast=plan.cast, output=plan.output)

@@ -108,7 +108,7 @@ def _run_drives(runner: RunContext, report: dict, builds: dict[str, Future]) -> 
 
 
 class _OneByOne:
-    """The builds of :meth:`Runner.run_batch` one after another in this thread, as a pool of one
+    """The builds of :func:`run_batch` one after another in this thread, as a pool of one
     thread would run them (the scheduler "sync", or ``cluster.builds`` 1)."""
 
     @staticmethod
@@ -127,7 +127,7 @@ class _OneByOne:
 
 
 def built(build: Future) -> str | None:
-    """Waits for a collection's build (:meth:`Runner._build`): None when it is built, else why not. A
+    """Waits for a collection's build (:func:`_build`): None when it is built, else why not. A
     damaged chunk met there is raised, for :meth:`Runner.run` to recover, and so are a full disk and a lost
     cluster (:func:`stops_the_run`)."""
     exc = build.exception()
