@@ -94,9 +94,12 @@ def build(wf: Workflow) -> Graph:
 
     nodes, edges, roles = [], [], {}
     collections, drives = wf.collections(), wf.drive_plans()
+    puppets = {plan.cast.puppet for plan in drives}
     for plan in collections:
         roles[plan.path] = role(plan)
         for stage in stages(roles[plan.path]):
+            if stage.mesh and plan.path not in puppets:  # what only a 3D drive of this puppet reads
+                continue
             node = Node(stage.name, plan.path)
             nodes.append(node)
             edges += [(Node(need, plan.path), node) for need in stage.needs]

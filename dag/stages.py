@@ -363,14 +363,16 @@ class Stage:
     the same collection or drive, or, for a drive's stage, ``puppet:NAME``, ``driver:NAME`` or
     ``video:NAME`` (that stage of the drive's collection): the edges of the graph
     (:mod:`persona.dag.graph`). ``done``: the arrays whose provenance says the stage is done (the
-    last it writes). ``version``: the version in its cache key (raised when what it computes changes;
-    a stage with a backend takes its backend's version instead). ``key``: the stage name its
+    last it writes). ``version``: the version in its cache key, raised when what it computes changes,
+    for a stage without a backend (a stage with a backend takes its backend's version, and a stage that
+    maps a :class:`PhotoStage` keeps it there, as the screen's and the composite's). ``key``: the stage name its
     provenance records, when that differs from ``name``. ``run``: the function that runs it,
     ``"module:function"``, called as ``function(runner, stage, target)`` (:mod:`persona.dag.runner`);
     None for the per-photo stages that run inside ``ingest``'s chain, and for the drive's videos and
     evaluation, which the drive's outputs step makes. ``settings``: the workflow's stage settings it
     reads (``stages.<kind>``); ``makes`` and ``runs`` describe it in the plan; ``mesh``: only
-    renderers of the 3D puppet need it; ``photo``: the :class:`PhotoStage` it maps over photos or
+    renderers of the 3D puppet need it (a puppet's such stage runs only when a drive uses the puppet);
+    ``photo``: the :class:`PhotoStage` it maps over photos or
     frames (two for the render: 2D and 3D)."""
 
     name: str
