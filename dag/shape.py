@@ -95,10 +95,10 @@ def run_shape(runner: RunContext, stage: st.Stage, target: Target) -> None:
                          inputs={"align": aligned.key}, persona_version=runner.version)
     files = mesh_files(runner.wf.output, coll)
     target.made[stage.name] = prov
-    target.pictures.update({k: str(v) for k, v in files.items()})
     if st.is_done(coll, prov, *stage.done):  # done: only the files, should they be missing
         if not all(storage.isfile(f) for f in files.values()):  # e.g. a new output folder
             export(coll, runner.wf.output, *(coll.array(name)[...] for name in ("shape/depth", "shape/mask", "shape/texture")))
+        target.pictures.update({k: str(v) for k, v in files.items()})
         return
     ok = coll.state("align") == OK
     sums = runner.tasks.fold_shards(coll, "mean", st.aligned_sum, st.add_sums, "collection", "align")
@@ -118,6 +118,7 @@ def run_shape(runner: RunContext, stage: st.Stage, target: Target) -> None:
     coll.create_single("shape/texture", texture, ("y", "x", "channel"), prov)
     # shape/depth last: its provenance marks the step done (files above, arrays it depends on before it)
     coll.create_single("shape/depth", depth, ("y", "x"), prov)
+    target.pictures.update({k: str(v) for k, v in files.items()})
 
 
 def photometric_stereo(url: str, path: str, seen: np.ndarray, prov: Provenance,
