@@ -45,7 +45,8 @@ def main() -> None:
     ap.add_argument("--metrics", type=Path, help="the drive's metrics.json (default: in the workflow's output)")
     args = ap.parse_args()
 
-    from persona.dag.runner import Runner, executor_for
+    from persona.dag.executor import executor_for
+    from persona.dag.runner import Runner
     from persona.dag.workflow import load_workflow
 
     wf = load_workflow(args.workflow, args.set)

@@ -89,7 +89,9 @@ def warm_up() -> None:
 def pipeline(photos, workers: int, folder: Path) -> tuple[float, float, dict]:
     """Seconds of ingest -> frontalize on warm workers, seconds including the cluster's
     start and warm-up, and the stage records."""
-    from persona.dag.runner import Runner, executor_for, resolve_inputs
+    from persona.dag.executor import executor_for
+    from persona.dag.inputs import resolve_inputs
+    from persona.dag.runner import Runner
     from persona.dag.stages import accepted
     from persona.dag.workflow import load_workflow
 

@@ -79,9 +79,13 @@ def distinct_photos(size: int, folder: Path) -> Path:
 def build(photos: Path, workers: int, tmp: Path) -> tuple[dict, dict, int]:
     """Build the person of the folder ``photos`` as a run builds a puppet, its store in ``tmp``; returns each
     step's seconds, each step's peaks (client, largest worker; bytes) and the number of accepted photos."""
-    from persona.dag.runner import Runner, executor_for, resolve_inputs
-    from persona.dag.shape import compute_subspace, run_alignment, run_shape
-    from persona.dag.stages import accepted
+    from persona.dag.collection import mean_face
+    from persona.dag.executor import executor_for
+    from persona.dag.graph import Target
+    from persona.dag.inputs import resolve_inputs
+    from persona.dag.runner import Runner
+    from persona.dag.shape import run_alignment, run_shape, run_subspace
+    from persona.dag.stages import STAGES, accepted
     from persona.dag.texture import run_texture
     from persona.dag.workflow import load_workflow
 
@@ -93,21 +97,20 @@ def build(photos: Path, workers: int, tmp: Path) -> tuple[dict, dict, int]:
     times = {}
     with executor_for(workflow) as ex, Sampler() as memory:
         runner = Runner(workflow, ex, progress=False)
-        align = runner.align_params()
+        target = Target("puppet")
         with memory.during("photos", times):
             coll, video = runner.collection("puppet", resolve_inputs(workflow)["puppet"])
             runner.run_photo_stages(coll, video)
         with memory.during("mean face", times):
-            runner.mean_face(coll)
+            mean_face(runner, coll)
         with memory.during("subspace", times):
-            compute_subspace(runner, coll, source="aligned", state="screen", rank=align["rank"],
-                             tps_lambda=align["tps_lambda"], upstream=coll.provenance("status/screen/state").key)
+            run_subspace(runner, STAGES["subspace"], target)
         with memory.during("align", times):
-            aligned = run_alignment(runner, coll)
+            run_alignment(runner, STAGES["align"], target)
         with memory.during("shape", times):
-            run_shape(runner, coll, aligned)
+            run_shape(runner, STAGES["shape"], target)
         with memory.during("texture", times):
-            run_texture(runner, coll, aligned)
+            run_texture(runner, STAGES["texture"], target)
         return times, memory.peaks, int(accepted(coll).sum())
 
 

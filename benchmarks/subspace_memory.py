@@ -60,7 +60,10 @@ def main():
         for size in args.sizes:
             random_rows(size, args.shard)
         return
-    from persona.dag.runner import Runner, executor_for, resolve_inputs
+    from persona.dag.collection import mean_face
+    from persona.dag.executor import executor_for
+    from persona.dag.inputs import resolve_inputs
+    from persona.dag.runner import Runner
     from persona.dag.shape import compute_subspace
     from persona.dag.workflow import load_workflow
 
@@ -79,7 +82,7 @@ def main():
                 runner = Runner(workflow, ex, progress=False)
                 coll, video = runner.collection("puppet", resolve_inputs(workflow)["puppet"])
                 runner.run_photo_stages(coll, video)
-                runner.mean_face(coll)
+                mean_face(runner, coll)
                 with PeakMemory(interval=0.05) as before:
                     time.sleep(1.0)
                 t0 = time.perf_counter()

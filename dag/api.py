@@ -63,7 +63,8 @@ def run(source: str | os.PathLike | dict | Workflow, *, overrides: list[str] = (
     ``scheduler``: "local", "sync" (everything in this process) or a Dask scheduler's address, replacing
     the workflow's cluster; ``force``: write into an output folder that holds files Persona did not write.
     A full disk is a :class:`~persona.stores.errors.StorageError` saying where to free space."""
-    from .runner import disk_full, run_workflow
+    from .executor import disk_full
+    from .runner import run_workflow
 
     wf = workflow(source, overrides)
     try:

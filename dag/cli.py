@@ -39,32 +39,33 @@ def _cmd_run(args) -> int:
     return 0
 
 
-def _plan(wf) -> str:
+def _plan(wf, statuses: dict | None = None) -> str:
     """Every stage the workflow runs, in order, with its settings: each collection's, then each
-    drive's (:data:`persona.dag.stages.STAGES`)."""
-    from persona.plugins.manager import default_registry
-
+    drive's, as the run's graph has them (:func:`persona.dag.graph.build`); with ``statuses``
+    (:func:`persona.dag.graph.status`), each stage's status in the store too."""
+    from .graph import build
     from .stages import STAGES
 
-    uses_mesh = default_registry().get("render", wf.stage("render")[0]).uses_mesh
+    graph = build(wf)
 
-    def stages(where: str) -> list[str]:
+    def stages(target: str) -> list[str]:
         lines = []
-        for stage in STAGES.values():
-            if where in stage.where and (uses_mesh or not stage.mesh):
-                lines.append(f"    {stage.name:<14} {stage.makes} ({stage.runs})")
-                lines += [f"      {_setting(wf, kind)}" for kind in stage.settings]
+        for node in graph.of(target):
+            stage = STAGES[node.stage]
+            state = f" [{statuses[node]}]" if statuses is not None else ""
+            lines.append(f"    {stage.name:<14} {stage.makes} ({stage.runs}){state}")
+            lines += [f"      {_setting(wf, kind)}" for kind in stage.settings]
         return lines
 
     lines = [f"workflow {wf.name}: store {wf.store}, output {wf.output}"]
-    for plan in wf.collections():  # a video gives frames, not a 3D shape; a puppet's stages include the driver's
+    for plan in graph.collections:  # a video gives frames, not a 3D shape; a puppet's stages include the driver's
         lines.append(f"  {plan.path}: {plan.photos}")
-        lines += stages("video" if plan.video else "puppet" if plan.texture else "driver")
-    for drive in wf.drive_plans():
+        lines += stages(plan.path)
+    for drive in graph.drives:
         c = drive.cast
         lines.append(f"  {c.drive}: {c.puppet} performing {c.frames} (driver model {c.driver}), frame by frame, "
                      f"into {drive.output}")
-        lines += stages("drive")
+        lines += stages(c.drive)
     c = wf.cluster
     if c.kind == "local":
         lines.append(f"  cluster: {c.scheduler} (workers: {c.workers or 'one per core'})")
@@ -72,6 +73,35 @@ def _plan(wf) -> str:
         lines.append(f"  cluster: {c.kind}, {c.jobs} job(s) of {c.cores} core(s) and {c.memory}, "
                      f"queue {c.queue or '(default)'}, walltime {c.walltime}")
     return "\n".join(lines)
+
+
+def _cmd_plan(args) -> int:
+    """The run's graph with each stage's status in the store: as text, JSON, or a picture (SVG, HTML)."""
+    from persona.stores import media
+    from persona.stores.layout import StoreError, open_store
+
+    from . import api
+    from .graph import build, status
+    from .plan_view import page, svg
+
+    wf = api.workflow(args.workflow, args.set)
+    try:
+        root = open_store(wf.store, mode="r")
+    except StoreError:  # no store yet: every stage is to run
+        root = None
+    graph = build(wf)
+    statuses = status(graph, root, wf)
+    title = f"{wf.name}: {wf.store}"
+    for file, text in ((args.html, page), (args.svg, svg)):
+        if file:
+            media.write_bytes(file, text(graph, statuses, title).encode())
+            print(f"plan: {file}", file=sys.stderr)
+    if args.json:
+        print(json.dumps({"nodes": [{"stage": n.stage, "target": n.target, "status": statuses[n]} for n in graph.nodes],
+                          "edges": [[str(a), str(b)] for a, b in graph.edges]}, indent=2))
+    elif not (args.html or args.svg):
+        print(_plan(wf, statuses))
+    return 0
 
 
 def _setting(wf, kind: str) -> str:
@@ -161,7 +191,9 @@ def _cmd_demo(args) -> int:
 def _cmd_evaluate(args) -> int:
     from persona.stores.layout import open_store
 
-    from .runner import RunError, executor_for, Runner
+    from .errors import RunError
+    from .executor import executor_for
+    from .runner import Runner
     from .workflow import load_workflow
 
     wf = load_workflow(args.workflow, args.set)
@@ -230,7 +262,9 @@ def _texture_methods(value: str) -> tuple[str, ...]:
 def _evaluate_texture(wf, args) -> int:
     from persona.stores.layout import Collection, open_store
 
-    from .runner import RunError, executor_for, Runner
+    from .errors import RunError
+    from .executor import executor_for
+    from .runner import Runner
     from .texture_eval import LABELS, evaluate_texture
 
     if not Collection(open_store(wf.store, mode="r"), args.collection).has("aligned/fiducials"):
@@ -268,7 +302,7 @@ def _evaluate_texture(wf, args) -> int:
 def _cmd_validate(args) -> int:
     from .workflow import load_workflow
 
-    from .runner import resolve_inputs
+    from .inputs import resolve_inputs
 
     wf = load_workflow(args.workflow, args.set)
     counts = {path: len(sources) for path, sources in resolve_inputs(wf).items()}
@@ -484,6 +518,16 @@ def build_parser() -> argparse.ArgumentParser:
                    "did not write (a run replaces metrics.json, report.html and the videos it makes)")
     common_run(p)
     p.set_defaults(func=_cmd_run)
+
+    p = command("plan", "show the run's graph, every stage of every collection and drive and what each reads, "
+                "with its status in the store (done, to run, failed); as a picture with --html or --svg",
+                "persona plan workflows/fig8.yaml --html plan.html")
+    workflow(p)
+    overrides(p)
+    p.add_argument("--html", metavar="FILE", help="write the graph as a self-contained HTML page")
+    p.add_argument("--svg", metavar="FILE", help="write the graph as an SVG picture")
+    p.add_argument("--json", action="store_true", help="print the nodes, their statuses and the edges as JSON")
+    p.set_defaults(func=_cmd_plan)
 
     p = command("demo", "make synthetic faces and run every stage on them", "persona demo demo --photos 24")
     p.add_argument("folder", nargs="?", default="demo", help="where the demo data and results go")

@@ -22,18 +22,18 @@ from persona.plugins.face.tracks import bridge, steadied
 from persona.plugins.face.warp import retarget
 from persona.stores import media, storage
 from persona.stores.layout import OK, PENDING, Cast, Collection
-from persona.stores.provenance import Provenance
 
 from . import stages as st
-from .motion import export_meshes, run_motion
-from .texture import run_frame_textures, run_mouth
+from .context import RunContext
+from .graph import Target
 
 log = logging.getLogger(__name__)
 
 
-def run_drive(runner, cast: Cast, output: str) -> Collection:
-    """Retarget and render every frame of ``cast.frames`` with ``cast.puppet``'s face; returns the
-    drive's collection (``cast.drive``). Meshes the workflow asks for are exported into ``output``."""
+def run_retarget(runner: RunContext, stage: st.Stage, target: Target) -> None:
+    """``retarget``: the driver's smoothed poses and pose-corrected fiducials, frames without a face bridged,
+    and B's target fiducials; creates the drive's collection (``target.path``, one item per frame)."""
+    cast = target.cast
     frames = Collection(runner.root, cast.frames)
     puppet = Collection(runner.root, cast.puppet)
     found = st.accepted(frames)
@@ -46,66 +46,69 @@ def run_drive(runner, cast: Cast, output: str) -> Collection:
         inputs["driver"] = Collection(runner.root, cast.driver).provenance("aligned/mean").key
     # lips at the paper's 'mean', steady off, widen at 'opening' and the clip's neutral are left out of the
     # key: stores made before the switches existed stay valid
-    prov = Provenance.make(stage="retarget", backend="-", backend_version="2",
-                           params={"pose_sigma": sigma, **({"lips": lips} if lips != "mean" else {}),
-                                   **({"steady": steady} if steady else {}),
-                                   **({"widen": widen} if widen != "opening" else {}),
-                                   **({"neutral": neutral} if neutral != "clip" else {}),
-                                   **({"neutral_share": share} if share != 1 else {})},
-                           inputs=inputs, persona_version=runner.version)
+    prov = st.provenance(stage.name, params={"pose_sigma": sigma, **({"lips": lips} if lips != "mean" else {}),
+                                             **({"steady": steady} if steady else {}),
+                                             **({"widen": widen} if widen != "opening" else {}),
+                                             **({"neutral": neutral} if neutral != "clip" else {}),
+                                             **({"neutral_share": share} if share != 1 else {})},
+                         inputs=inputs, persona_version=runner.version)
     drive = Collection(runner.root, cast.drive)
     # the status is created before the targets and written after them: done only when no frame is pending
-    if not (drive.exists() and drive.made_by("status/retarget/state", prov)) or (drive.state("retarget") == PENDING).any():
+    if not st.is_done(drive, prov, *stage.done) or (drive.state("retarget") == PENDING).any():
         _retarget(runner, cast, drive, frames, puppet, found, prov, sigma, lips, steady, widen, neutral, share)
-    with runner.step("gaze", cast.drive):
-        looks = _gaze(runner, drive, frames, found)
-    with runner.step("frame textures", cast.drive):
-        textures = run_frame_textures(runner, drive, puppet, prov, looks)
-    inputs = {"retarget": prov.key, "texture": textures.key}
-    stage = st.RENDER
-    if st.default_registry().get("render", runner.wf.stage("render")[0]).uses_mesh:
-        with runner.step("motion", cast.drive):
-            inputs["mesh"] = run_motion(runner, cast, prov).key
-        with runner.step("mouth", cast.puppet):
-            inputs["mouth"] = run_mouth(runner, puppet).key
-        with runner.step("teeth", cast.drive):
-            inputs["teeth"] = _teeth(runner, drive, frames, puppet, inputs["mouth"]).key
-        stage = st.RENDER_3D
-    drive.group.attrs["stages"] = ["retarget", *(["dynamics"] if stage is st.RENDER_3D else []), stage.name,
+    target.made[stage.name] = prov
+
+
+def run_render(runner: RunContext, stage: st.Stage, target: Target) -> None:
+    """``render``: the render backend draws every frame (Dask tasks over shards of frames); a renderer of
+    the 3D puppet takes B's meshes, mouth and teeth too (:data:`persona.dag.stages.RENDER_3D`)."""
+    drive, made = Collection(runner.root, target.path), target.made
+    inputs = {"retarget": made["retarget"].key, "texture": made["frame textures"].key}
+    photo = st.RENDER
+    if runner.uses_mesh():
+        inputs["mesh"] = made["motion"].key
+        inputs["mouth"] = Collection(runner.root, target.cast.puppet).provenance("texture/lips").key
+        inputs["teeth"] = made["teeth"].key
+        photo = st.RENDER_3D
+    drive.group.attrs["stages"] = ["retarget", *(["dynamics"] if photo is st.RENDER_3D else []), photo.name,
                                    "composite"]
-    render = runner.prepare_stage(drive, stage, inputs)
-    runner.run_stage_tasks(drive, [(stage.name, render.backend, render.params)])
-    with runner.step("light", cast.drive):
-        light = _steady_light(runner, drive, render)
-    composite = runner.prepare_stage(drive, st.COMPOSITE, {"render": render.key, "light": light.key})
-    runner.run_stage_tasks(drive, [("composite", composite.backend, composite.params)])
-    every = runner.motion_params()["export_every"]
-    if stage is st.RENDER_3D and every:
-        export_meshes(runner, cast, output, every)
-    return drive
+    render = runner.prepare_stage(drive, photo, inputs)
+    runner.tasks.run_stage_tasks(drive, [(photo.name, render.backend, render.params)])
+    made[stage.name] = render
 
 
-def _steady_light(runner, drive: Collection, render: Provenance) -> Provenance:
+def run_composite(runner: RunContext, stage: st.Stage, target: Target) -> None:
+    """``composite``: B's rendered face blended into each of the driver's frames (Dask tasks over shards)."""
+    drive = Collection(runner.root, target.path)
+    composite = runner.prepare_stage(drive, st.COMPOSITE, {"render": target.made["render"].key,
+                                                           "light": target.made["light"].key})
+    runner.tasks.run_stage_tasks(drive, [("composite", composite.backend, composite.params)])
+    target.made[stage.name] = composite
+
+
+def run_light(runner: RunContext, stage: st.Stage, target: Target) -> None:
     """``composite/light``: the light planes the render fitted on each frame (``render/light``), made
     steady in time (``stages.composite.params.light_sigma``; composite.steady_light)."""
+    drive = Collection(runner.root, target.path)
     sigma = runner.wf.backendless("composite")["light_sigma"]
-    prov = Provenance.make(stage="light", backend="-", backend_version="1", params={"sigma": sigma},
-                           inputs={"render": render.key}, persona_version=runner.version)
-    if not drive.made_by("composite/light", prov):
+    prov = st.provenance(stage.name, params={"sigma": sigma}, inputs={"render": target.made["render"].key},
+                         persona_version=runner.version)
+    if not st.is_done(drive, prov, *stage.done):
         planes = steady_light(drive.array("render/light")[:], sigma)
         drive.create("composite/light", (4, 3), "float32", ("frame", "term", "channel"), prov, pending=True)[:] = planes
         drive.mark_done("composite/light", prov)  # after the data: a run killed before this does it again
-    return prov
+    target.made[stage.name] = prov
 
 
-def _gaze(runner, drive: Collection, frames: Collection, found: np.ndarray) -> Provenance:
+def run_gaze(runner: RunContext, stage: st.Stage, target: Target) -> None:
     """``eyes/gaze`` (frame, eye, along / across): how far the driver's irises sit from where they usually do
     in the clip, in eye widths (gaze.iris_offsets on each frame and its landmarks, gaze.gaze_shift); frames
     without a face look where they usually do."""
-    prov = Provenance.make(stage="gaze", backend="-", backend_version="1", params={},
-                           inputs={"frames": frames.provenance("status/screen/state").key},
-                           persona_version=runner.version)
-    if not drive.made_by("eyes/gaze", prov):
+    drive, frames = Collection(runner.root, target.path), Collection(runner.root, target.cast.frames)
+    found = st.accepted(frames)
+    prov = st.provenance(stage.name, params={}, inputs={"frames": frames.provenance("status/screen/state").key},
+                         persona_version=runner.version)
+    if not st.is_done(drive, prov, *stage.done):
         offsets = np.full((drive.n, 2, 2), np.nan)
         rgb, size, points = (frames.array(array) for array in ("photos/rgb", "photos/size", "landmarks/points"))
         for start, stop in drive.shard_ranges():
@@ -115,20 +118,23 @@ def _gaze(runner, drive: Collection, frames: Collection, found: np.ndarray) -> P
         drive.create("eyes/gaze", (2, 2), "float32", ("frame", "eye", "axis"), prov,
                      pending=True)[:] = gaze.gaze_shift(offsets)
         drive.mark_done("eyes/gaze", prov)  # after the data: a run killed before this does it again
-    return prov
+    target.made[stage.name] = prov
 
 
-def _teeth(runner, drive: Collection, frames: Collection, puppet: Collection, mouth_key: str) -> Provenance:
+def run_teeth(runner: RunContext, stage: st.Stage, target: Target) -> None:
     """``mouth/teeth``: how much of B's teeth (rather than B's cavity) each frame's mouth shows, as the
     driver's own mouth shows them there (mouth.teeth_share), made steady in time (the render's
     ``mouth_sigma``); 1 in every frame unless the render draws it and the puppet has both interiors
     (``mouth_choice: driver``)."""
+    drive = Collection(runner.root, target.path)
+    frames, puppet = Collection(runner.root, target.cast.frames), Collection(runner.root, target.cast.puppet)
     params = runner.render_params()
     sigma, both = params.mouth_sigma, params.mouth and puppet.has("texture/mouth_cavity")
-    prov = Provenance.make(stage="teeth", backend="-", backend_version="1", params={"sigma": sigma} if both else {},
-                           inputs={"mouth": mouth_key, "frames": frames.provenance("status/screen/state").key},
-                           persona_version=runner.version)
-    if not drive.made_by("mouth/teeth", prov):
+    prov = st.provenance(stage.name, params={"sigma": sigma} if both else {},
+                         inputs={"mouth": puppet.provenance("texture/lips").key,
+                                 "frames": frames.provenance("status/screen/state").key},
+                         persona_version=runner.version)
+    if not st.is_done(drive, prov, *stage.done):
         share = np.ones(drive.n)
         if both:
             rgb, size, points = (frames.array(array) for array in ("photos/rgb", "photos/size", "landmarks/points"))
@@ -138,7 +144,7 @@ def _teeth(runner, drive: Collection, frames: Collection, puppet: Collection, mo
             share = smooth_in_time(share, sigma)
         drive.create("mouth/teeth", (), "float32", ("frame",), prov, pending=True)[:] = share
         drive.mark_done("mouth/teeth", prov)  # after the data: a run killed before this does it again
-    return prov
+    target.made[stage.name] = prov
 
 
 def driver_neutral(choice: str, cast: Cast) -> str:
@@ -149,8 +155,8 @@ def driver_neutral(choice: str, cast: Cast) -> str:
     return "collection" if cast.driver == cast.puppet else "clip"
 
 
-def _retarget(runner, cast, drive, frames, puppet, found, prov, sigma: float, lips: str, steady: int,
-              widen: str, neutral: str, share: float) -> None:
+def _retarget(runner: RunContext, cast, drive, frames, puppet, found, prov, sigma: float, lips: str,
+              steady: int, widen: str, neutral: str, share: float) -> None:
     n = frames.n
     group = runner.root.require_group(cast.drive)
     cast.record(group)

@@ -29,14 +29,17 @@ from persona.plugins.face.transfer import (DeformationTransfer, FiducialFollow, 
                                           lower_lip, unfolded)
 from persona.plugins.kinds import Pose
 from persona.stores.layout import OK, Cast, Collection, open_store
-from persona.stores.provenance import Provenance, cache_key
+from persona.stores.provenance import cache_key
 
 from . import stages as st
+from .context import RunContext
+from .graph import Target
 
 
-def run_motion(runner, cast: Cast, retargeted: Provenance) -> Provenance:
-    """Steps 1-4 (see the module's docstring) for the drive of ``cast``; returns the provenance of ``mesh``."""
-    root = runner.root
+def run_dynamics(runner: RunContext, stage: st.Stage, target: Target) -> None:
+    """``dynamics``: the driver's per-frame 3D flow (Dask tasks over shards of frames); the drive's
+    motion params are recorded on its group, where the tasks read them."""
+    root, cast = runner.root, target.cast
     drive, driver, puppet = (Collection(root, path) for path in (cast.drive, cast.driver, cast.puppet))
     for coll in (driver, puppet):
         problem = runner.shape_problems.get(coll.path) or (None if coll.has("shape/depth") else "not built")
@@ -46,26 +49,38 @@ def run_motion(runner, cast: Cast, retargeted: Provenance) -> Provenance:
     motion = runner.motion_params()
     drive.group.attrs["motion"] = motion
     dynamics = runner.prepare_stage(drive, st.DYNAMICS, {
-        "retarget": retargeted.key, "driver_shape": driver.provenance("shape/depth").key,
+        "retarget": target.made["retarget"].key, "driver_shape": driver.provenance("shape/depth").key,
         "params": cache_key(**motion["dynamics"])}, (motion["flow"]["backend"], motion["flow"]["params"]))
-    runner.run_stage_tasks(drive, [("dynamics", dynamics.backend, dynamics.params)])
+    runner.tasks.run_stage_tasks(drive, [("dynamics", dynamics.backend, dynamics.params)])
+    target.made[stage.name] = dynamics
 
+
+def run_motion(runner: RunContext, stage: st.Stage, target: Target) -> None:
+    """Steps 2-4 (see the module's docstring) for the drive ``target``: ``mesh``, B's mesh of each frame;
+    then the meshes the workflow exports (``stages.motion.params.export_every``) into the drive's output."""
+    _meshes(runner, stage, target)
+    every = runner.motion_params()["export_every"]
+    if every:
+        export_meshes(runner, target.cast, target.output, every)
+
+
+def _meshes(runner: RunContext, stage: st.Stage, target: Target) -> None:
+    root, cast, dynamics = runner.root, target.cast, target.made["dynamics"]
+    drive, driver, puppet = (Collection(root, path) for path in (cast.drive, cast.driver, cast.puppet))
+    motion = runner.motion_params()
     # the workflow's denoiser when it names one, else the transfer's own default (huber_rof, off-mask excluded)
     denoise = runner.wf.stage("denoise") if "denoise" in runner.wf.stages else None
-    # version 2: ``mesh`` marks the step complete (1: the correspondence, written after the meshes); 3: with
-    # ``unfold``, the lower lip's body is squeezed over its outer edge rather than pushing it off its target; 4:
-    # ``corner_reach`` only ever carries skin further the corner's way (and is on by default)
-    prov = Provenance.make(stage="motion", backend="-", backend_version="4",
-                           params={"transfer": motion["transfer"], "dynamics": motion["dynamics"], "denoise": denoise,
-                                   "correspondence": motion["correspondence"]},
-                           inputs={"dynamics": dynamics.key, "puppet_shape": puppet.provenance("shape/depth").key,
-                                   "puppet_texture": puppet.provenance("shape/texture").key},
-                           persona_version=runner.version)
-    if drive.made_by("mesh", prov):
-        return prov
+    prov = st.provenance(stage.name, params={"transfer": motion["transfer"], "dynamics": motion["dynamics"],
+                                             "denoise": denoise, "correspondence": motion["correspondence"]},
+                         inputs={"dynamics": dynamics.key, "puppet_shape": puppet.provenance("shape/depth").key,
+                                 "puppet_texture": puppet.provenance("shape/texture").key},
+                         persona_version=runner.version)
+    target.made[stage.name] = prov
+    if st.is_done(drive, prov, *stage.done):
+        return
     shape = driver.array("shape/mask").shape
     drive.create("motion/driver_mesh", (*shape, 3), np.float32, ("frame", "y", "x", "xyz"), prov)
-    sums = runner.map_shards(drive, "meshes", driver_meshes, dynamics.key)
+    sums = runner.tasks.map_shards(drive, "meshes", driver_meshes, dynamics.key)
     mean = (sum(sums[start] for start in sorted(sums)) / drive.n).astype(np.float32)  # in frame order
     drive.create_single("motion/driver_mean", mean, ("y", "x", "xyz"), prov)
 
@@ -78,9 +93,8 @@ def run_motion(runner, cast: Cast, retargeted: Provenance) -> Provenance:
         **{k: corr[k] for k in ("landmark_guide", "guide_lambda", "pin_fiducials", "pin_lambda")})
     drive.create_single("motion/correspondence", phi.astype(np.float32), ("y", "x", "xy"), prov)
     drive.create("mesh", (*puppet_mask.shape, 3), np.float32, ("frame", "y", "x", "xyz"), prov, pending=True)
-    runner.map_shards(drive, "transfer", transfer_meshes, prov.key, puppet.path, denoise)
+    runner.tasks.map_shards(drive, "transfer", transfer_meshes, prov.key, puppet.path, denoise)
     drive.mark_done("mesh", prov)  # after the last frame: a killed run leaves no key to trust
-    return prov
 
 
 def driver_meshes(url: str, path: str, start: int, stop: int, key: str) -> np.ndarray:
@@ -149,7 +163,7 @@ def _transfer(root, drive: Collection, puppet: Collection, denoise) -> tuple:
     return transfer, follow, targets, mask, fold
 
 
-def export_meshes(runner, cast: Cast, output: str, every: int) -> list[str]:
+def export_meshes(runner: RunContext, cast: Cast, output: str, every: int) -> list[str]:
     """B's textured mesh of every ``every``-th frame of the drive: ``<output>/meshes/frame_<t>.ply`` and ``.obj``."""
     import open3d as o3d
 
@@ -164,7 +178,7 @@ def export_meshes(runner, cast: Cast, output: str, every: int) -> list[str]:
                                  puppet.array("shape/mask")[...])
     written = []
     frames = range(0, drive.n, every)
-    with runner.progress_bar(f"{cast.drive:>13} export    ", len(frames)) as bar:
+    with runner.tasks.progress_bar(f"{cast.drive:>13} export    ", len(frames)) as bar:
         for t in frames:
             mesh, texture = drive.array("mesh")[t], drive.array("texture/rgb")[t]
             face = np.isfinite(mesh).all(axis=-1)

@@ -23,19 +23,21 @@ from persona.stores.layout import OK, Collection, open_store
 from persona.stores.provenance import Provenance
 
 from . import stages as st
+from .context import RunContext
+from .graph import Target
 
 log = logging.getLogger(__name__)
 
 
-def compute_subspace(runner, coll: Collection, *, source: str, state: str, rank: int, tps_lambda: float,
-                     upstream: str) -> Provenance:
+def compute_subspace(runner: RunContext, coll: Collection, *, source: str, state: str, rank: int,
+                     tps_lambda: float, upstream: str) -> Provenance:
     """The rank-k basis of ``source``/rgb over accepted photos -> ``subspace/basis`` (k, H, W, 3)."""
     import dask.array as da
 
-    prov = Provenance.make(stage="subspace", backend="svd_compressed", backend_version="1",
-                           params={"rank": rank, "source": source, "tps_lambda": tps_lambda},
-                           inputs={"photos": upstream}, persona_version=runner.version)
-    if coll.made_by("subspace/basis", prov):
+    prov = st.provenance("subspace", backend="svd_compressed",
+                         params={"rank": rank, "source": source, "tps_lambda": tps_lambda},
+                         inputs={"photos": upstream}, persona_version=runner.version)
+    if st.is_done(coll, prov, *st.STAGES["subspace"].done):
         return prov
     keep = coll.state(state) == OK
     if keep.sum() <= rank:
@@ -59,36 +61,47 @@ def compute_subspace(runner, coll: Collection, *, source: str, state: str, rank:
     return prov
 
 
-def run_alignment(runner, coll: Collection) -> Provenance:
-    """Subspace of the frontalized faces, then collection flow of every photo."""
+def run_subspace(runner: RunContext, stage: st.Stage, target: Target) -> None:
+    """``subspace``: the rank-k appearance basis of the collection's screened frontalized faces."""
     config = runner.align_params()
-    screened = coll.provenance("status/screen/state")
-    sub = compute_subspace(runner, coll, source="aligned", state="screen", rank=config["rank"],
-                           tps_lambda=config["tps_lambda"], upstream=screened.key)
-    align = runner.prepare_stage(coll, st.ALIGN, {"screen": screened.key, "subspace": sub.key})
-    runner.run_stage_tasks(coll, [("align", align.backend, align.params)])
-    return align
+    coll = Collection(runner.root, target.path)
+    target.made[stage.name] = compute_subspace(
+        runner, coll, source="aligned", state="screen", rank=config["rank"], tps_lambda=config["tps_lambda"],
+        upstream=coll.provenance("status/screen/state").key)
 
 
-def run_shape(runner, coll: Collection, aligned: Provenance) -> dict[str, str]:
+def run_alignment(runner: RunContext, stage: st.Stage, target: Target) -> None:
+    """``align``: collection flow of every photo to its projection on the subspace (Dask tasks over shards)."""
+    coll = Collection(runner.root, target.path)
+    align = runner.prepare_stage(coll, st.ALIGN, {"screen": coll.provenance("status/screen/state").key,
+                                                  "subspace": target.made["subspace"].key})
+    runner.tasks.run_stage_tasks(coll, [("align", align.backend, align.params)])
+    target.made[stage.name] = align
+
+
+def run_shape(runner: RunContext, stage: st.Stage, target: Target) -> None:
     """Photometric stereo over the aligned collection -> normals, albedo, lighting, depth;
-    the textured mesh (PLY, OBJ) and shaded previews into the output folder. The collection's
+    the textured mesh (PLY, OBJ) and shaded previews into the output folder (their paths into
+    ``target.pictures``). The collection's
     mean (the mesh's texture) is a sum over shards; the rest is one task on a worker
     (:func:`photometric_stereo`), which streams the collection's grey faces through the backend."""
+    coll, aligned = Collection(runner.root, target.path), target.made["align"]
     shape_name, shape_params = runner.wf.stage("shape")
     integrate_name, integrate_params = runner.wf.stage("integrate")
     registry = st.default_registry()
-    prov = Provenance.make(stage="shape", backend=f"{shape_name}+{integrate_name}",
-                           backend_version=registry.get("shape", shape_name).version,
-                           params={"shape": shape_params, "integrate": integrate_params},
-                           inputs={"align": aligned.key}, persona_version=runner.version)
+    prov = st.provenance(stage.name, backend=f"{shape_name}+{integrate_name}",
+                         backend_version=registry.get("shape", shape_name).version,
+                         params={"shape": shape_params, "integrate": integrate_params},
+                         inputs={"align": aligned.key}, persona_version=runner.version)
     files = mesh_files(runner.wf.output, coll)
-    if coll.made_by("shape/depth", prov):  # done: only the files, should they be missing
+    target.made[stage.name] = prov
+    if st.is_done(coll, prov, *stage.done):  # done: only the files, should they be missing
         if not all(storage.isfile(f) for f in files.values()):  # e.g. a new output folder
             export(coll, runner.wf.output, *(coll.array(name)[...] for name in ("shape/depth", "shape/mask", "shape/texture")))
-        return {k: str(v) for k, v in files.items()}
+        target.pictures.update({k: str(v) for k, v in files.items()})
+        return
     ok = coll.state("align") == OK
-    sums = runner.fold_shards(coll, "mean", st.aligned_sum, st.add_sums, "collection", "align")
+    sums = runner.tasks.fold_shards(coll, "mean", st.aligned_sum, st.add_sums, "collection", "align")
     count = sums["count"]
     texture = (sums["sum"] / np.maximum(count, 1)[..., None]).clip(0, 255).astype(np.uint8)
     (depth, mask), = runner.executor.run(photometric_stereo, [(runner.wf.store, coll.path, count >= 0.3 * ok.sum(),
@@ -105,7 +118,7 @@ def run_shape(runner, coll: Collection, aligned: Provenance) -> dict[str, str]:
     coll.create_single("shape/texture", texture, ("y", "x", "channel"), prov)
     # shape/depth last: its provenance marks the step done (files above, arrays it depends on before it)
     coll.create_single("shape/depth", depth, ("y", "x"), prov)
-    return {k: str(v) for k, v in files.items()}
+    target.pictures.update({k: str(v) for k, v in files.items()})
 
 
 def photometric_stereo(url: str, path: str, seen: np.ndarray, prov: Provenance,

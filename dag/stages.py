@@ -14,6 +14,7 @@ a local process or on another machine.
 
 from __future__ import annotations
 
+import importlib
 import logging
 import time
 from dataclasses import dataclass, field
@@ -33,6 +34,7 @@ from persona.plugins.manager import default_registry
 from persona.stores import media
 from persona.stores.errors import InputError
 from persona.stores.layout import OK, PENDING, REJECTED, UPSTREAM, Cast, Collection, open_store
+from persona.stores.provenance import Provenance
 
 log = logging.getLogger(__name__)
 
@@ -347,67 +349,148 @@ DYNAMICS = PhotoStage(
     ), _dynamics, driver_model)
 
 
+#: how a stage runs: on each photo of a collection on its own, on each frame of a drive, once over a
+#: whole collection, or once for a drive
+PER = ("photo", "frame", "collection", "drive")
+
+
 @dataclass(frozen=True)
 class Stage:
-    """One stage of a run, as everything that lists stages reads it: where it runs (``puppet``,
-    ``driver``, ``video`` (the driver's frames) or ``drive``), the workflow's stage settings it reads
-    (``stages.<kind>``), what it makes, how it runs (Dask tasks over shards, or one piece of work in
-    the client), whether only renderers of the 3D puppet need it (``mesh``), and, for a stage that
-    works photo by photo (or frame by frame), its :class:`PhotoStage` (two for the render: 2D and
-    3D). :data:`STAGES` lists them in the order a run takes them; the plan (``persona run
-    --dry-run``, ``persona validate``), the progress lines and the lifecycle hooks
-    (:meth:`persona.dag.runner.Runner.step`) and the per-photo tasks (:func:`run_chain`) read it."""
+    """One stage of a run, declared once; everything that runs, lists, draws or times stages reads it.
+
+    ``where`` it runs: ``puppet``, ``driver``, ``video`` (the driver's frames) or ``drive``.
+    ``per``: how it runs (:data:`PER`). ``needs``: the stages it reads, each the name of a stage of
+    the same collection or drive, or, for a drive's stage, ``puppet:NAME``, ``driver:NAME`` or
+    ``video:NAME`` (that stage of the drive's collection): the edges of the graph
+    (:mod:`persona.dag.graph`). ``done``: the arrays whose provenance says the stage is done (the
+    last it writes). ``version``: the version in its cache key, raised when what it computes changes,
+    for a stage without a backend (a stage with a backend takes its backend's version, and a stage that
+    maps a :class:`PhotoStage` keeps it there, as the screen's and the composite's). ``key``: the stage name its
+    provenance records, when that differs from ``name``. ``run``: the function that runs it,
+    ``"module:function"``, called as ``function(runner, stage, target)`` (:mod:`persona.dag.runner`);
+    None for the per-photo stages that run inside ``ingest``'s chain, and for the drive's videos and
+    evaluation, which the drive's outputs step makes. ``settings``: the workflow's stage settings it
+    reads (``stages.<kind>``); ``makes`` and ``runs`` describe it in the plan; ``mesh``: only
+    renderers of the 3D puppet need it (a puppet's such stage runs only when a drive uses the puppet);
+    ``photo``: the :class:`PhotoStage` it maps over photos or
+    frames (two for the render: 2D and 3D)."""
 
     name: str
     where: tuple[str, ...]
     settings: tuple[str, ...]
     makes: str
+    per: str
+    needs: tuple[str, ...] = ()
+    done: tuple[str, ...] = ()
+    version: str | None = None
+    run: str | None = None
     runs: str = "tasks over shards"
     mesh: bool = False
     photo: tuple[PhotoStage, ...] = ()
+    key: str = ""
+
+    @property
+    def provenance_name(self) -> str:
+        """The stage name its provenance (and so its cache key) records."""
+        return self.key or self.name
+
+    def function(self) -> Callable | None:
+        """The function :attr:`run` names, imported on first use (stage modules import this one)."""
+        if self.run is None:
+            return None
+        module, name = self.run.split(":")
+        return getattr(importlib.import_module(module), name)
 
 
 _COLLECTION = ("puppet", "driver", "video")
+_PERSON = ("puppet", "driver")
 _CHAIN_RUNS = "the per-photo chain: one task per shard, ingest to frontalize"
 STAGES = {stage.name: stage for stage in (
     Stage("ingest", _COLLECTION, ("ingest",), "each photo (or video frame) decoded onto the collection's canvas",
-          _CHAIN_RUNS + "; a video's frames decoded in one pass first", photo=(INGEST,)),
-    Stage("landmarks", _COLLECTION, ("landmarks",), "the face's 68 landmarks and its box", _CHAIN_RUNS,
-          photo=(LANDMARKS,)),
-    Stage("pose", _COLLECTION, ("pose",), "the head's pose and the camera", _CHAIN_RUNS, photo=(POSE,)),
-    Stage("frontalize", _COLLECTION, ("frontalize",), "the face warped to the canonical frontal view",
-          _CHAIN_RUNS, photo=(FRONTALIZE,)),
+          "photo", done=("status/ingest/state",), version="1", run="persona.dag.collection:run_chain_stages",
+          runs=_CHAIN_RUNS + "; a video's frames decoded in one pass first", photo=(INGEST,)),
+    Stage("landmarks", _COLLECTION, ("landmarks",), "the face's 68 landmarks and its box", "photo",
+          ("ingest",), ("status/landmarks/state",), runs=_CHAIN_RUNS, photo=(LANDMARKS,)),
+    Stage("pose", _COLLECTION, ("pose",), "the head's pose and the camera", "photo", ("landmarks",),
+          ("status/pose/state",), runs=_CHAIN_RUNS, photo=(POSE,)),
+    Stage("frontalize", _COLLECTION, ("frontalize",), "the face warped to the canonical frontal view", "photo",
+          ("pose",), ("status/frontalize/state",), runs=_CHAIN_RUNS, photo=(FRONTALIZE,)),
     Stage("screen", _COLLECTION, ("screen",), "photos far from the collection's median shape, and copies, "
-          "rejected", photo=(SCREEN,)),
-    Stage("align", ("puppet", "driver"), ("align", "flow"), "the appearance subspace, then each photo's flow to the "
-          "mean face", "the client (subspace), then tasks over shards", photo=(ALIGN,)),
-    Stage("shape", ("puppet", "driver"), ("shape", "integrate"), "depth, albedo and meshes by photometric stereo",
-          "tasks over shards (the mean), then one task (photometric stereo over the whole collection)"),
+          "rejected", "photo", ("frontalize",), ("status/screen/state",), run="persona.dag.collection:run_screen",
+          photo=(SCREEN,)),
+    Stage("mean", _COLLECTION, (), "the mean face of the accepted photos, its coverage and mean fiducials",
+          "collection", ("screen",), ("aligned/mean_fiducials",), "1", run="persona.dag.collection:run_mean",
+          runs="tasks over shards (a sum each), then the client"),
+    Stage("subspace", _PERSON, ("align",), "the rank-k appearance subspace of the frontalized faces", "collection",
+          ("mean",), ("subspace/basis",), "1", run="persona.dag.shape:run_subspace",
+          runs="a randomised SVD over shards (dask.array)"),
+    Stage("align", _PERSON, ("align", "flow"), "each photo's collection flow to the mean face", "photo",
+          ("subspace",), ("status/align/state",), run="persona.dag.shape:run_alignment", photo=(ALIGN,)),
+    Stage("shape", _PERSON, ("shape", "integrate"), "depth, albedo and meshes by photometric stereo", "collection",
+          ("align",), ("shape/depth",), run="persona.dag.shape:run_shape",
+          runs="tasks over shards (the mean), then one task (photometric stereo over the whole collection)"),
     Stage("texture", ("puppet",), ("texture",), "the expression-dependent texture's cache of aligned photos",
-          "tasks over shards (warp, basis by products over them, cache), then one task (the neutral texture)"),
-    Stage("retarget", ("drive",), ("motion",), "the driver's smoothed poses and B's target fiducials", "the client"),
+          "collection", ("align",), ("texture/neutral",), run="persona.dag.texture:run_texture",
+          runs="tasks over shards (warp, basis by products over them, cache), then one task (the neutral texture)"),
+    Stage("mouth", ("puppet",), ("render",), "the inside of B's mouth from its open photos", "collection",
+          ("screen",), ("texture/lips",), "2", run="persona.dag.texture:run_mouth", runs="the client", mesh=True),
+    Stage("retarget", ("drive",), ("motion",), "the driver's smoothed poses and B's target fiducials", "drive",
+          ("video:screen", "puppet:mean", "driver:mean"), ("status/retarget/state",), "2",
+          run="persona.dag.drive:run_retarget", runs="the client"),
     Stage("gaze", ("drive",), ("texture",), "where the driver's irises sit in their eyes in each frame, from the "
-          "clip's usual gaze", "the client"),
-    Stage("frame textures", ("drive",), ("texture",), "B's face for each frame's expression and gaze"),
-    Stage("dynamics", ("drive",), ("flow", "motion"), "the driver's per-frame 3D flow", mesh=True, photo=(DYNAMICS,)),
-    Stage("motion", ("drive",), ("motion", "denoise"), "A's meshes, then B's by deformation transfer", mesh=True),
-    Stage("mouth", ("puppet",), ("render",), "the inside of B's mouth from its open photos", "the client",
-          mesh=True),
+          "clip's usual gaze", "drive", ("retarget", "video:screen"), ("eyes/gaze",), "1",
+          run="persona.dag.drive:run_gaze", runs="the client"),
+    Stage("frame textures", ("drive",), ("texture",), "B's face for each frame's expression and gaze", "drive",
+          ("retarget", "gaze", "puppet:texture"), ("texture/rgb",), run="persona.dag.texture:run_frame_textures",
+          key="frame_texture"),
+    Stage("dynamics", ("drive",), ("flow", "motion"), "the driver's per-frame 3D flow", "frame",
+          ("retarget", "driver:shape"), ("status/dynamics/state",), run="persona.dag.motion:run_dynamics",
+          mesh=True, photo=(DYNAMICS,)),
+    Stage("motion", ("drive",), ("motion", "denoise"), "A's meshes, then B's by deformation transfer (and the "
+          "meshes the workflow exports)", "drive", ("dynamics", "puppet:shape"), ("mesh",), "4",
+          run="persona.dag.motion:run_motion", mesh=True),
     Stage("teeth", ("drive",), ("render",), "how much of B's teeth each frame shows, as the driver's mouth "
-          "shows them (mouth_choice: driver)", "the client", mesh=True),
-    Stage("render", ("drive",), ("render",), "the puppet's frames", photo=(RENDER, RENDER_3D)),
+          "shows them (mouth_choice: driver)", "drive", ("retarget", "puppet:mouth", "video:screen"),
+          ("mouth/teeth",), "1", run="persona.dag.drive:run_teeth", runs="the client", mesh=True),
+    Stage("render", ("drive",), ("render",), "the puppet's frames", "frame",
+          ("retarget", "frame textures", "motion", "teeth"), ("status/render/state",),
+          run="persona.dag.drive:run_render", photo=(RENDER, RENDER_3D)),
     Stage("light", ("drive",), ("composite",), "A's light at B's edge (fitted with the render), made "
-          "steady over the frames around", "the client"),
-    Stage("composite", ("drive",), ("composite",), "B's face blended into each of the driver's frames",
+          "steady over the frames around", "drive", ("render",), ("composite/light",), "1",
+          run="persona.dag.drive:run_light", runs="the client"),
+    Stage("composite", ("drive",), ("composite",), "B's face blended into each of the driver's frames", "frame",
+          ("render", "light"), ("status/composite/state",), run="persona.dag.drive:run_composite",
           photo=(COMPOSITE,)),
-    Stage("videos", ("drive",), (), "puppet.mp4, side_by_side.mp4, composite.mp4 (encoded)", "the client"),
-    Stage("evaluate", ("drive",), ("identity",), "metrics.json and report.html", "tasks over shards, then the client"),
+    Stage("videos", ("drive",), (), "puppet.mp4, side_by_side.mp4, composite.mp4 (encoded)", "drive",
+          ("composite",), runs="the client"),
+    Stage("evaluate", ("drive",), ("identity",), "metrics.json and report.html", "drive", ("composite",),
+          runs="tasks over shards, then the client"),
 )}
 
 #: what each per-photo stage computes, by the name its status and provenance carry
 PHOTO_STAGES = {photo.name: photo for stage in STAGES.values() for photo in stage.photo}
 #: the stages every collection's photos go through, in order: the ``stages`` a collection records
-COLLECTION_STAGES = tuple(name for name, stage in STAGES.items() if stage.where == _COLLECTION)
+COLLECTION_STAGES = tuple(name for name, stage in STAGES.items() if stage.where == _COLLECTION and stage.photo)
+
+
+def provenance(name: str, *, params: dict, inputs: dict[str, str], persona_version: str, backend: str = "-",
+               backend_version: str | None = None) -> Provenance:
+    """The provenance of the next run of the stage ``name`` (of :data:`STAGES`): its cache key from the
+    stage's own version (or ``backend_version``, a backend's), ``params`` and ``inputs`` (name -> the
+    cache key of what it reads)."""
+    stage = STAGES[name]
+    version = stage.version if backend_version is None else backend_version
+    if version is None:
+        raise ValueError(f"stage {name!r} declares no version and has no backend's to take")
+    return Provenance.make(stage=stage.provenance_name, backend=backend, backend_version=version,
+                           params=params, inputs=inputs, persona_version=persona_version)
+
+
+def is_done(coll: Collection, prov: Provenance, *names: str) -> bool:
+    """Whether the arrays ``names`` of ``coll`` are done and were made with ``prov`` (the same cache key):
+    the one test of "nothing to recompute"; a stage left unfinished (an array created pending, its
+    provenance written after the data: :meth:`Collection.mark_done`) is not done."""
+    return coll.exists() and all(coll.made_by(name, prov) for name in names)
 
 
 def output_tail(output: Output, canvas) -> tuple[int, ...]:

@@ -37,6 +37,8 @@ from persona.stores.layout import OK, Collection, open_store
 from persona.stores.provenance import Provenance
 
 from . import stages as st
+from .context import RunContext
+from .graph import Target
 
 log = logging.getLogger(__name__)
 
@@ -56,7 +58,7 @@ def texture_photos(coll: Collection, rows: np.ndarray) -> TexturePhotos:
     return TexturePhotos(tuple(photos), np.stack(maps), np.stack(visible), fiducials[rows].astype(np.float64))
 
 
-def texture_backend(runner):
+def texture_backend(runner: RunContext):
     name, params = runner.wf.stage("texture")
     return name, params, st.default_registry().get("texture", name)(params)
 
@@ -77,39 +79,41 @@ def collection_aligned(coll: Collection, rows: np.ndarray) -> Aligned:
     return Aligned(coll.rows("collection/rgb", rows).astype(np.float32), coll.rows("collection/mask", rows))
 
 
-def run_texture(runner, coll: Collection, aligned: Provenance) -> dict[str, str]:
+def run_texture(runner: RunContext, stage: st.Stage, target: Target) -> None:
     """The video-mode cache of the aligned collection (:func:`build_cache`) and its neutral texture
-    (``texture/neutral``, written last: it marks the step done); returns the picture written
-    (``texture_neutral``).
+    (``texture/neutral``, written last: it marks the step done); the picture it writes goes into
+    ``target.pictures`` (``texture_neutral``).
 
     The cache is keyed by the texture backend's params but its ``frame_params``, the neutral texture
     by all of them and the cache's key: when only frame params changed, the cache stays and only the
     neutral texture is made again from it (one task)."""
+    coll, aligned = Collection(runner.root, target.path), target.made["align"]
     name, params, backend = texture_backend(runner)
-    cache = Provenance.make(stage="texture", backend=name, backend_version=backend.version,
-                            params={k: v for k, v in params.items() if k not in backend.frame_params},
-                            inputs={"align": aligned.key}, persona_version=runner.version)
-    prov = Provenance.make(stage="texture", backend=name, backend_version=backend.version, params=params,
-                           inputs={"align": aligned.key, "cache": cache.key}, persona_version=runner.version)
+    cache = st.provenance(stage.name, backend=name, backend_version=backend.version,
+                          params={k: v for k, v in params.items() if k not in backend.frame_params},
+                          inputs={"align": aligned.key}, persona_version=runner.version)
+    prov = st.provenance(stage.name, backend=name, backend_version=backend.version, params=params,
+                         inputs={"align": aligned.key, "cache": cache.key}, persona_version=runner.version)
     out = storage.join(runner.wf.output, f"{coll.path.replace('/', '_')}_texture_neutral.png")
-    if coll.made_by("texture/neutral", prov) and coll.made_by(CACHE_DONE, cache) and storage.isfile(out):
-        return {"texture_neutral": str(out)}
+    if st.is_done(coll, prov, *stage.done) and st.is_done(coll, cache, CACHE_DONE) and storage.isfile(out):
+        target.pictures["texture_neutral"] = str(out)
+        return
     if type(backend).cache is TextureBackend.cache:
         log.warning("texture backend %s has no video mode: the drive shows the static average", name)
         coll.remove("texture/neutral")  # another backend's, from an earlier run
-        return {}
-    if not coll.made_by(CACHE_DONE, cache):
+        return
+    if not st.is_done(coll, cache, CACHE_DONE):
         build_cache(runner, coll, cache, (name, params, backend))
-    target = coll.array("aligned/mean_fiducials")[...].astype(np.float64)
-    (neutral,) = runner.executor.run(stored_textures, [(runner.wf.store, coll.path, name, params, target[None])])
+    fiducials = coll.array("aligned/mean_fiducials")[...].astype(np.float64)
+    (neutral,) = runner.executor.run(stored_textures, [(runner.wf.store, coll.path, name, params, fiducials[None])])
     neutral = neutral[0].round().astype(np.uint8)
     # the neutral texture last: its provenance marks the step done
     coll.create_single("texture/neutral", neutral, ("y", "x", "channel"), prov)
     media.write_png(out, np.kron(neutral, np.ones((2, 2, 1), np.uint8)))
-    return {"texture_neutral": str(out)}
+    target.pictures["texture_neutral"] = str(out)
 
 
-def build_cache(runner, coll: Collection, cache: Provenance, chosen: tuple) -> None:
+def build_cache(runner: RunContext, coll: Collection, cache: Provenance, chosen: tuple) -> None:
     """The video-mode cache of the aligned collection, made with the run's texture backend
     ``chosen`` = (name, params, backend) (:func:`texture_backend`), its arrays given the provenance ``cache``.
 
@@ -130,7 +134,7 @@ def build_cache(runner, coll: Collection, cache: Provenance, chosen: tuple) -> N
     if own:  # the TPS-warped photos, for the basis: removed again below
         coll.create("texture/warped_grey", (H, W), np.float32, ("photo", "y", "x"), cache)
         coll.create("texture/warped_valid", (H, W), bool, ("photo", "y", "x"), cache)
-    fill = seen_mean(*runner.fold_shards(coll, "tex. warp", warp_shard, lambda a, b: (a[0] + b[0], a[1] + b[1]),
+    fill = seen_mean(*runner.tasks.fold_shards(coll, "tex. warp", warp_shard, lambda a, b: (a[0] + b[0], a[1] + b[1]),
                                          name, params))
     basis = None
     if own:
@@ -144,7 +148,7 @@ def build_cache(runner, coll: Collection, cache: Provenance, chosen: tuple) -> N
                     cache, pending=True)
         coll.create(f"texture/detail_{k}", (*level.shape, 1), np.float32, ("photo", *_level_dims(k), "weight"),
                     cache, pending=True)
-    totals = runner.fold_shards(coll, "tex. cache", cache_shard, operator.add, name, params, fill, basis)
+    totals = runner.tasks.fold_shards(coll, "tex. cache", cache_shard, operator.add, name, params, fill, basis)
     coll.remove("texture/warped_grey", "texture/warped_valid")
     for k in range(levels):  # what every target's blend takes of all photos (small)
         coll.create_single(f"texture/total_weighted_{k}", totals.weighted[k], (*_level_dims(k), "channel"), cache)
@@ -281,21 +285,23 @@ def _read_shard(coll: Collection, key: str, start: int, stop: int, rows: np.ndar
     return _shards[(key, start)]
 
 
-def run_frame_textures(runner, drive: Collection, puppet: Collection, retargeted: Provenance,
-                       gaze: Provenance) -> Provenance:
+def run_frame_textures(runner: RunContext, stage: st.Stage, target: Target) -> None:
     """B's texture for every driver frame: ``drive/texture/rgb`` (frame, H, W, 3) uint8, from the
     video-mode cache, the frame's target fiducials and the driver's gaze (``eyes/gaze``), or B's static
     mean face when the texture backend has no video mode."""
+    drive, puppet = Collection(runner.root, target.path), Collection(runner.root, target.cast.puppet)
+    retargeted, gaze = target.made["retarget"], target.made["gaze"]
     texture = puppet.provenance("texture/neutral")
     source = texture if texture is not None else puppet.provenance("aligned/mean")
     share = runner.motion_params()["neutral_share"]  # B at rest as the retargeting takes it
-    prov = Provenance.make(stage="frame_texture", backend=source.backend, backend_version=source.backend_version,
-                           params={**source.params, "look": LOOK_VERSION,
-                                   **({"neutral_share": share} if share != 1 else {})},
-                           inputs={"texture": source.key, "retarget": retargeted.key, "gaze": gaze.key},
-                           persona_version=runner.version)
-    if drive.made_by("texture/rgb", prov):
-        return prov
+    prov = st.provenance(stage.name, backend=source.backend, backend_version=source.backend_version,
+                         params={**source.params, "look": LOOK_VERSION,
+                                 **({"neutral_share": share} if share != 1 else {})},
+                         inputs={"texture": source.key, "retarget": retargeted.key, "gaze": gaze.key},
+                         persona_version=runner.version)
+    target.made[stage.name] = prov
+    if st.is_done(drive, prov, *stage.done):
+        return
     array = drive.create("texture/rgb", puppet.array("aligned/mean").shape, np.uint8, ("frame", "y", "x", "channel"),
                          prov, pending=True)
     if texture is None:
@@ -303,10 +309,9 @@ def run_frame_textures(runner, drive: Collection, puppet: Collection, retargeted
         for start, stop in drive.shard_ranges():
             array[start:stop] = np.broadcast_to(mean, (stop - start, *mean.shape))
         drive.mark_done("texture/rgb", prov)
-        return prov
-    runner.map_shards(drive, "texture", frame_textures, puppet.path, share, *runner.wf.stage("texture"))
+        return
+    runner.tasks.map_shards(drive, "texture", frame_textures, puppet.path, share, *runner.wf.stage("texture"))
     drive.mark_done("texture/rgb", prov)  # after the last frame: a killed run leaves no key to trust
-    return prov
 
 
 def frame_textures(url: str, path: str, start: int, stop: int, puppet: str, neutral_share: float, name: str,
@@ -347,21 +352,22 @@ def stored_textures(url: str, path: str, name: str, params: dict, targets, start
     return backend.finish(sums, totals, fiducials, around[keep], gaze=gaze)
 
 
-def run_mouth(runner, coll: Collection) -> Provenance:
+def run_mouth(runner: RunContext, stage: st.Stage, target: Target) -> None:
     """The inside of B's mouth for the renderer (``mouth``, ``mouth_photos``, ``mouth_min_gap`` and
     ``mouth_choice`` of its params): the median of ``mouth_photos`` of B's open accepted photos between
     their inner lips, the widest (``texture/mouth``) or the darkest there, or both (``driver``: the
     darkest as ``texture/mouth_cavity``), how far apart their lips are (the median, canonical px), and
     B's mean inner-lip curves in the canonical frame."""
+    coll = Collection(runner.root, target.path)
     chosen = runner.render_params()
     # mouth_choice frame draws the driver's own interior, B's only where the driver's lips are closed: the widest
     choice = "widest" if chosen.mouth_choice == "frame" else chosen.mouth_choice
     settings = {"photos": chosen.mouth_photos, "min_gap": chosen.mouth_min_gap, "choice": choice}
-    prov = Provenance.make(stage="mouth", backend="-", backend_version="2", params=settings,
-                           inputs={"screen": coll.provenance("status/screen/state").key},
-                           persona_version=runner.version)
-    if coll.made_by("texture/lips", prov):
-        return prov
+    prov = st.provenance(stage.name, params=settings, inputs={"screen": coll.provenance("status/screen/state").key},
+                         persona_version=runner.version)
+    target.made[stage.name] = prov
+    if st.is_done(coll, prov, *stage.done):
+        return
     ok = np.flatnonzero(st.accepted(coll))
     points = coll.array("landmarks/points").oindex[ok].astype(np.float64)
     sizes = coll.array("photos/size").oindex[ok]
@@ -390,4 +396,3 @@ def run_mouth(runner, coll: Collection) -> Provenance:
             coll.create_single(f"{array}_gap", np.array([gap]), ("one",), prov)
     lips = mouth.lip_curves(np.nanmean(landmarks, axis=0))
     coll.create_single("texture/lips", lips, ("lip", "lip_node", "xy"), prov)
-    return prov

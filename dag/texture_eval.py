@@ -35,7 +35,7 @@ from persona.stores import media, storage
 from persona.stores.layout import Collection, open_store
 
 from . import stages as st
-from .runner import write_json
+from .outputs import write_json
 from .texture import texture_photos
 
 #: the paper's Fig. 5 columns: (ii) static, (iii) weighted, (iv) prewarped, ours
@@ -192,7 +192,7 @@ def evaluate_texture(runner, path: str = "puppet", *, references: int = 40, seed
     tasks = [(runner.wf.store, path, rows, [int(i) for i in part], params, shown, mode == "reference")
              for part in parts]
     results = []
-    with runner.progress_bar(f"{path:>13} texture evaluation", len(chosen), unit="reference") as bar:
+    with runner.tasks.progress_bar(f"{path:>13} texture evaluation", len(chosen), unit="reference") as bar:
         for part in runner.executor.run(evaluate_references, tasks):
             results += part
             bar.update(len(part))

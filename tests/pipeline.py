@@ -19,7 +19,7 @@ from persona.dag.demo import write_collection
 from persona.stores.layout import open_store
 
 PERSONA = str(Path(sys.executable).with_name("persona"))
-#: a progress line (runner._Lines): "12:00:01 people/bea landmarks: started: 8 photos"; two build threads can
+#: a progress line (persona.dag.progress._Lines): "12:00:01 people/bea landmarks: started: 8 photos"; two build threads can
 #: print on one line, so they are found anywhere in it
 EVENT = re.compile(r"\d\d:\d\d:\d\d (\S+) ([a-z0-9. ]+?): (started|done|stopped)\b")
 
@@ -97,7 +97,7 @@ def local_cluster(folder: Path, protocol: str = "tcp", tls: list[str] = (), secu
     port = free_port()
     address = f"{protocol}://127.0.0.1:{port}"
     dask = str(Path(sys.executable).with_name("dask"))
-    # the workers sample no profile, as a run's do (runner.no_profile: CPython 3.11.7 can deadlock in
+    # the workers sample no profile, as a run's do (persona.dag.executor.no_profile: CPython 3.11.7 can deadlock in
     # it); and a busy machine gets two minutes to answer, not one (a CI run once timed out here)
     env = {**os.environ, "PERSONA_PLUGINS": "", "DASK_DISTRIBUTED__WORKER__PROFILE__ENABLED": "False"}
     procs = [subprocess.Popen([dask, "scheduler", "--protocol", protocol, "--host", "127.0.0.1", "--port", str(port),

@@ -696,12 +696,12 @@ def test_new_figures_evaluate_a_finished_drive_again(drive_run, monkeypatch):
     """A run whose evaluation's figures changed since (dag/evaluate.py's VERSION raised: a figure added,
     as the gains' intervals were) evaluates again, though nothing it is made from changed; it kept the
     old metrics.json before, without the new figure."""
-    from persona.dag import runner
+    from persona.dag import evaluate
 
     folder, path, _ = drive_run
     metrics = folder / "output" / "metrics.json"
     first = metrics.read_text()
-    monkeypatch.setattr(runner, "EVALUATION_VERSION", runner.EVALUATION_VERSION + 1)
+    monkeypatch.setattr(evaluate, "VERSION", evaluate.VERSION + 1)
     try:
         assert cli(["run", str(path), "--scheduler", "sync", "--quiet"]) == 0
         after = json.loads(metrics.read_text())

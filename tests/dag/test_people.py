@@ -169,7 +169,7 @@ def test_a_drive_that_fails_fails_alone(people_run):
     """A driver with too few photos for a 3D shape, and a video that is not one: their drives fail
     and say why, the run ends with an error naming them, and the other drives are done, their
     outputs written. (Runs last: it adds to the module's store.)"""
-    from persona.dag.runner import RunError
+    from persona.dag.errors import RunError
 
     folder, drives, _, _ = people_run
     (folder / "data" / "broken.mp4").write_bytes(b"not a video at all")

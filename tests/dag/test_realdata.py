@@ -11,7 +11,9 @@ import numpy as np
 import pytest
 import yaml
 
-from persona.dag.runner import Runner, executor_for, resolve_inputs, run_workflow
+from persona.dag.executor import executor_for
+from persona.dag.inputs import resolve_inputs
+from persona.dag.runner import Runner, run_workflow
 from persona.dag.workflow import load_workflow
 from persona.plugins.builtin.landmarks import DlibLandmarks
 from persona.plugins.face.template import generic_template

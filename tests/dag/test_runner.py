@@ -274,7 +274,7 @@ def test_a_collection_mixes_videos_video_ranges_and_photos(tmp_path, synthetic_p
 def test_progress_in_a_log_file_is_one_timestamped_line_per_start_and_end(capsys):
     """stderr is not a terminal under pytest's capture, as in a log file or a batch job: no carriage
     returns, a line when the step starts and one when it ends, in the step's own unit."""
-    from persona.dag.runner import progress
+    from persona.dag.progress import progress
 
     with progress("drive render3d", 12, "frame") as bar:
         for _ in range(3):
@@ -299,7 +299,7 @@ def test_progress_in_a_log_file_is_one_timestamped_line_per_start_and_end(capsys
 def test_the_local_cluster_listens_on_loopback_only():
     """The scheduler and its dashboard run whatever code reaches them: the local cluster binds
     them to 127.0.0.1, never to every interface."""
-    from persona.dag.runner import Executor
+    from persona.dag.executor import Executor
 
     ex = Executor("local", 1)
     try:
@@ -319,7 +319,7 @@ def test_the_workers_sample_no_profile():
     inside the sampling waits for the GIL while holding the runtime lock; python/cpython#106883,
     dask/distributed#8616): a run of benchmarks/kill_resume.py hung so in a worker's mean-face
     task (zarr starting a decoder thread). Persona's workers sample nothing."""
-    from persona.dag.runner import Executor
+    from persona.dag.executor import Executor
 
     ex = Executor("local", 1)
     try:
@@ -373,7 +373,7 @@ def installed_plugin(tmp_path, monkeypatch):
 def test_the_workers_load_the_plugins_the_run_chose(installed_plugin, dask_cluster, monkeypatch):
     """Workers started with PERSONA_PLUGINS empty (as tests/pipeline.py starts them; on a cluster, whatever
     their machine's environment says) load the plugins the run's own process chose."""
-    from persona.dag.runner import Executor
+    from persona.dag.executor import Executor
     from persona.plugins import manager
 
     from persona_elsewhere import landmark_backends
@@ -402,7 +402,7 @@ def test_an_array_every_task_takes_is_sent_once_and_each_task_let_go_when_taken(
     """An array that every task takes goes to the cluster as one task (sent with each, the client
     held a copy per task: 1.1 MB each); a task whose result was taken is let go (its result no longer
     held by a worker), so neither side grows with the number of tasks. The results are unchanged."""
-    from persona.dag.runner import Executor
+    from persona.dag.executor import Executor
 
     big = np.arange(100_000, dtype=np.float64) + 0.5  # 800 kB, above shared_bytes
     small = np.arange(4.0)
@@ -432,7 +432,8 @@ def test_a_connection_closed_while_a_result_comes_back_is_a_lost_scheduler():
     lost its scheduler. A task's own OSError still passes as it is."""
     from distributed.comm.core import CommClosedError
 
-    from persona.dag.runner import Executor, RunError
+    from persona.dag.errors import RunError
+    from persona.dag.executor import Executor
 
     def closed():
         raise CommClosedError("in <TCP (closed) ConnectionPool.gather>: ConnectionResetError")
@@ -453,7 +454,8 @@ def test_a_connection_closed_while_a_result_comes_back_is_a_lost_scheduler():
 def test_a_run_whose_workers_are_all_gone_stops_with_a_clear_error():
     """With every worker gone the run stops, naming the scheduler and how to resume, instead of
     waiting forever."""
-    from persona.dag.runner import Executor, RunError
+    from persona.dag.errors import RunError
+    from persona.dag.executor import Executor
 
     executor = Executor("local", workers=1)
     try:
@@ -480,7 +482,8 @@ def test_a_task_that_kills_its_workers_stops_the_run_with_a_clear_error():
     not with distributed's KilledWorker traceback."""
     import dask
 
-    from persona.dag.runner import Executor, RunError
+    from persona.dag.errors import RunError
+    from persona.dag.executor import Executor
 
     with dask.config.set({"distributed.scheduler.allowed-failures": 1}):  # the scheduler runs in this process
         executor = Executor("local", workers=1)
@@ -518,7 +521,9 @@ def test_every_decodable_frame_of_a_truncated_video_is_kept(tmp_path):
     """A video cut off part-way through a shard: the frames decoded before the cut are ingested,
     the frames the container promised but did not deliver are rejected with the reason."""
     from persona.dag.demo import driver_identity
-    from persona.dag.runner import Executor, Runner, resolve_inputs
+    from persona.dag.executor import Executor
+    from persona.dag.inputs import resolve_inputs
+    from persona.dag.runner import Runner
     from persona.plugins.face import synthetic
     from persona.stores import media
 
@@ -634,7 +639,9 @@ def test_a_lost_cluster_stops_a_batch_rather_than_failing_its_drives_one_by_one(
     of each later drive failing in turn and the run ending "the others are done" with nothing done."""
     from concurrent.futures import Future
 
-    from persona.dag.runner import ClusterLost, Executor, RunError, _built
+    from persona.dag.errors import ClusterLost, RunError
+    from persona.dag.executor import Executor
+    from persona.dag.schedule import built as _built
 
     def failed(exc):
         future = Future()
@@ -691,7 +698,9 @@ def test_a_lost_scheduler_stops_the_run_clearly_and_a_new_one_resumes_it(tmp_pat
 def test_a_1080p_clip_keeps_its_size(tmp_path):
     """The frames of a 1920 x 1080 video are stored at that size (the output videos are the driver's;
     ingest's ``max_side`` was 1600, which made them 1600 x 900), and a larger one is brought down to it."""
-    from persona.dag.runner import Executor, Runner, resolve_inputs
+    from persona.dag.executor import Executor
+    from persona.dag.inputs import resolve_inputs
+    from persona.dag.runner import Runner
     from persona.stores import media
 
     for name, (h, w) in (("hd.mp4", (1080, 1920)), ("qhd.mp4", (1440, 2560))):

@@ -13,7 +13,11 @@ import sys
 import pytest
 
 from persona.dag.batch import scheduler_host
-from persona.dag.runner import Runner, RunError, executor_for, resolve_inputs, run_workflow
+from persona.dag.collection import mean_face
+from persona.dag.errors import RunError
+from persona.dag.executor import executor_for
+from persona.dag.inputs import resolve_inputs
+from persona.dag.runner import Runner, run_workflow
 from persona.dag.workflow import Cluster, WorkflowError, load_workflow, parse_workflow
 
 from pipeline import assert_same_store, write_photos, write_workflow
@@ -109,7 +113,7 @@ def test_slurm_workers_give_the_same_store_as_a_local_run(tmp_path, synthetic_ph
             runner = Runner(wf, ex, progress=False)
             coll, video = runner.collection("puppet", resolve_inputs(wf)["puppet"])
             runner.run_photo_stages(coll, video)
-            runner.mean_face(coll)
+            mean_face(runner, coll)
             if folder == batch:
                 scheduler = ex._cluster.scheduler  # on the hostname's address; the dashboard on loopback
                 assert scheduler.address.startswith(f"tcp://{scheduler_host()}:")

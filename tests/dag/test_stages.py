@@ -13,7 +13,7 @@ from persona.plugins.manager import default_registry
 
 
 def test_every_stage_is_one_record_in_run_order_with_its_per_photo_work_and_its_settings():
-    assert list(st.STAGES)[:6] == ["ingest", "landmarks", "pose", "frontalize", "screen", "align"]
+    assert list(st.STAGES)[:8] == ["ingest", "landmarks", "pose", "frontalize", "screen", "mean", "subspace", "align"]
     assert st.COLLECTION_STAGES == ("ingest", "landmarks", "pose", "frontalize", "screen")
     assert [s.name for s in st.CHAIN] == ["landmarks", "pose", "frontalize"]
     assert list(st.STAGES)[-2:] == ["videos", "evaluate"]
@@ -25,6 +25,18 @@ def test_every_stage_is_one_record_in_run_order_with_its_per_photo_work_and_its_
     for stage in st.STAGES.values():
         assert stage.where and set(stage.where) <= {"puppet", "driver", "video", "drive"}, stage.name
         assert set(stage.settings) <= kinds, (stage.name, stage.settings)
+
+
+def test_every_stage_declares_how_it_runs_what_it_reads_and_what_marks_it_done():
+    order = list(st.STAGES)
+    for stage in st.STAGES.values():
+        assert stage.per in st.PER, stage.name
+        for need in stage.needs:  # a stage of its own collection or drive before it, or one of a drive's collections
+            of, _, name = need.rpartition(":")
+            assert name in st.STAGES and of in ("", "puppet", "driver", "video"), (stage.name, need)
+            assert of or order.index(name) < order.index(stage.name), (stage.name, need)
+        assert stage.run is None or callable(stage.function()), stage.name
+        assert stage.done or stage.name in ("videos", "evaluate"), stage.name  # those two: the drive's outputs key
 
 
 def test_the_render_draws_the_drivers_own_mouth_interior_into_the_puppets_gap():

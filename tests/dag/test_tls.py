@@ -5,7 +5,8 @@ import pytest
 import yaml
 
 from persona.dag.cli import main as cli
-from persona.dag.runner import RunError, run_workflow
+from persona.dag.errors import RunError
+from persona.dag.runner import run_workflow
 from persona.dag.workflow import WorkflowError, load_workflow
 from pipeline import assert_same_store, make_certificates, write_photos, write_workflow
 

@@ -1,0 +1,77 @@
+"""What a run writes into its output folder besides the pictures its stages make: each drive's videos and
+evaluation (kept when nothing they are made from changed), metrics.json, series.json and the report.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+
+import numpy as np
+
+from persona.stores import media, storage
+from persona.stores.layout import Cast, Collection
+
+from .context import RunContext
+from .drive import write_videos
+from .export import write_drive_glb
+from .graph import outputs_key
+from .report import write_run_report
+
+log = logging.getLogger(__name__)
+
+
+def drive_outputs(runner: RunContext, plan, speed: dict) -> dict:
+    """A drive's videos (and a 3D drive's puppet.glb) and its evaluation, kept from the last run when nothing
+    they are made from changed (:func:`kept_outputs`): ``outputs_key``, ``videos``, ``speed``,
+    ``evaluation`` and the per-frame ``series`` of the report's plots."""
+    drive = Collection(runner.root, plan.cast.drive)
+    key = outputs_key(runner.wf, drive.provenance("composite/rgb"))
+    kept = kept_outputs(plan.output, key)
+    if kept is not None:
+        log.info("%s: nothing new since its videos and evaluation were made: kept", plan.cast.drive)
+        kept["speed"].update(speed)  # a drive made again (the same bytes) was timed again
+        return kept
+    out = {"outputs_key": key, "speed": speed}
+    with runner.tasks.step("videos", plan.cast.drive):  # and a 3D drive's puppet.glb (about 4 s for 269 frames)
+        out["videos"] = write_videos(drive, Collection(runner.root, plan.cast.frames), plan.output)
+        if drive.has("mesh"):
+            glb = write_drive_glb(runner.root, plan.cast, storage.join(plan.output, "puppet.glb"))
+            out["videos"]["glb"] = glb["path"]
+    t0 = time.perf_counter()
+    with runner.tasks.step("evaluate", plan.cast.drive), \
+            runner.tasks.progress_bar(f"{plan.cast.drive:>13} {'analyse':<10}", drive.n) as bar:
+        evaluation = runner.evaluate(plan.cast, progress=bar.update)
+    out["speed"]["evaluate_seconds"] = time.perf_counter() - t0
+    out["series"] = evaluation.pop("series")
+    out["evaluation"] = evaluation
+    return out
+
+
+def kept_outputs(output: str, key: str) -> dict | None:
+    """The videos, speed, evaluation and series a drive's last run left in ``output``, when they
+    were made from the same frames and evaluation settings (its metrics.json, written last,
+    records ``outputs_key``) and every video is still there; else None."""
+    metrics, series = storage.join(output, "metrics.json"), storage.join(output, "series.json")
+    if not (storage.isfile(metrics) and storage.isfile(series)):
+        return None
+    last = json.loads(storage.read_text(metrics))
+    if last.get("outputs_key") != key or not all(storage.isfile(v) for v in last.get("videos", {}).values()):
+        return None
+    return {**{k: last[k] for k in ("outputs_key", "videos", "speed", "evaluation")},
+            "series": json.loads(storage.read_text(series))}
+
+
+def write_outputs(runner: RunContext, output: str, report: dict, series: dict | None,
+                  cast: Cast | None) -> None:
+    """metrics.json, series.json (the report's plots, should it be made again) and report.html in ``output``."""
+    if series is not None:
+        write_json(storage.join(output, "series.json"), {k: np.asarray(v, float).tolist() for k, v in series.items()})
+    write_json(storage.join(output, "metrics.json"), report)
+    write_run_report(runner.wf, runner.root, report, series, cast=cast, output=output)
+
+
+def write_json(path, data: dict) -> None:
+    """A JSON file (a local path or a URL), written atomically."""
+    media.write_bytes(path, json.dumps(data, indent=2, default=str).encode())
