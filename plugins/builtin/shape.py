@@ -385,9 +385,9 @@ class TemplatePhotometricStereo(ShapeBackend):
         of them at a time."""
         with tempfile.TemporaryDirectory(prefix="persona-shape-") as folder:
             faces, use, tn = self._inputs(chunks, folder, mask, template_normals, template_depth)
-            L, S = self._template_fit(faces, tn)
+            L, S = _template_fit(faces, tn, self.params)
             if self.params.regularised:
-                L, S = self._als(faces, tn, L, S)
+                L, S = _als(faces, tn, L, S, self.params)
         rho = np.linalg.norm(S[1:4], axis=0)
         normals = (S[1:4] / np.maximum(rho, 1e-300)).T
         if np.mean(normals[:, 2]) > 0:  # global sign only, never per pixel
@@ -468,101 +468,107 @@ class TemplatePhotometricStereo(ShapeBackend):
         pixels = mask & np.isfinite(tnorm) & (tnorm > 0)
         return tn[pixels] / tnorm[pixels][:, None], pixels
 
-    # ------------------------------------------------------------------ fits
-    # Each fit is a few passes over the faces (:meth:`_Faces.chunks`): a least-squares step for the lights L
-    # is each chunk's own (one light per image); one for S sums every chunk's normal equations, pixel by
-    # pixel, and solves once they are all in.
 
-    def _fill(self, faces: _Faces, tn: np.ndarray):
-        """The rank-r model (L, S) whose products fill the missing entries, or None when every entry is seen:
-        masked alternating least squares of ``W ⊙ (M - L S)``, started from the template's ``S_t = [1; n_t]``
-        (plus, for r > 4, the next components of the pixel-mean-filled matrix), until the filled entries move
-        by less than ``fill_tolerance`` (RMS) from one round to the next. Each round is one pass, which also
-        measures the last round's move: the rounds stop where the whole-batch fit's did."""
-        if faces.all_seen:
-            return None
-        S = np.vstack([np.ones(len(tn)), tn.T])
-        if self.params.rank > 4:
-            col_mean = faces.total / np.maximum(faces.count, 1)
-            extra = _top_singular(faces, self.params.rank, lambda rows, M, W: np.where(W, M, col_mean))[2][4:]
-            S = np.vstack([S, extra])
-        missing = faces.n * len(faces.count) - int(faces.count.sum())
-        last = before = None  # (L, S) of the last round and of the one before it
-        for _ in range(self.params.fill_iterations):
-            L = np.empty((faces.n, len(S)))
-            G = rhs = 0.0
-            moved = 0.0
-            SS = _outer_rows(S.T)
-            for rows, M, W in faces.chunks():
-                L[rows], g, r = _chunk_step(M, W.astype(np.float64), S, SS)
-                G, rhs = G + g, rhs + r
-                if last is not None:  # the last round's filled entries against those of the round before
-                    step = last[0][rows] @ last[1]
-                    if before is not None:
-                        step -= before[0][rows] @ before[1]
-                    moved += float(np.sum(step[~W] ** 2))
-            if last is not None and np.sqrt(moved / missing) < self.params.fill_tolerance:
-                return last
-            before, last = last, (L, _solve_normal(G, rhs))
-            S = last[1]
-        return last
+# ------------------------------------------------------------------ the fits of TemplatePhotometricStereo
+# Each fit is a few passes over the faces (:meth:`_Faces.chunks`), with the backend's params ``p``: a
+# least-squares step for the lights L is each chunk's own (one light per image); one for S sums every
+# chunk's normal equations, pixel by pixel, and solves once they are all in.
 
-    def _template_fit(self, faces: _Faces, tn: np.ndarray):
-        filled = self._fill(faces, tn)
 
-        def F(rows, M, W):  # the filled matrix, a chunk of it
-            return M if filled is None else np.where(W, M, filled[0][rows] @ filled[1])
+def _fill(faces: _Faces, tn: np.ndarray, p):
+    """The rank-r model (L, S) whose products fill the missing entries, or None when every entry is seen:
+    masked alternating least squares of ``W ⊙ (M - L S)``, started from the template's ``S_t = [1; n_t]``
+    (plus, for r > 4, the next components of the pixel-mean-filled matrix), until the filled entries move
+    by less than ``fill_tolerance`` (RMS) from one round to the next. Each round is one pass, which also
+    measures the last round's move: the rounds stop where the whole-batch fit's did."""
+    if faces.all_seen:
+        return None
+    S = np.vstack([np.ones(len(tn)), tn.T])
+    if p.rank > 4:
+        col_mean = faces.total / np.maximum(faces.count, 1)
+        extra = _top_singular(faces, p.rank, lambda rows, M, W: np.where(W, M, col_mean))[2][4:]
+        S = np.vstack([S, extra])
+    missing = faces.n * len(faces.count) - int(faces.count.sum())
+    last = before = None  # (L, S) of the last round and of the one before it
+    for _ in range(p.fill_iterations):
+        L = np.empty((faces.n, len(S)))
+        G = rhs = 0.0
+        moved = 0.0
+        SS = _outer_rows(S.T)
+        for rows, M, W in faces.chunks():
+            L[rows], g, r = _chunk_step(M, W.astype(np.float64), S, SS)
+            G, rhs = G + g, rhs + r
+            if last is not None:  # the last round's filled entries against those of the round before
+                step = last[0][rows] @ last[1]
+                if before is not None:
+                    step -= before[0][rows] @ before[1]
+                moved += float(np.sum(step[~W] ** 2))
+        if last is not None and np.sqrt(moved / missing) < p.fill_tolerance:
+            return last
+        before, last = last, (L, _solve_normal(G, rhs))
+        S = last[1]
+    return last
 
-        U, s, Vt = _top_singular(faces, 4, F)
-        Lt_ = U * np.sqrt(s)  # L~
-        St_ = np.sqrt(s)[:, None] * Vt  # S~
-        rho_t = np.ones(len(tn))
-        for _ in range(self.params.template_iterations):
-            S_t = rho_t[None, :] * np.vstack([np.ones(len(tn)), tn.T])
-            # L_t = argmin ||F - L S_t|| = F S_tᵀ (S_t S_tᵀ)⁻¹ and A⁻¹ = argmin ||L~ A⁻¹ - L_t||; as U's columns are
-            # orthonormal and Uᵀ F = diag(s) Vt, that is A⁻¹ = S~ S_tᵀ (S_t S_tᵀ)⁻¹: no pass over the images
-            A_inv = np.linalg.solve(S_t @ S_t.T, S_t @ St_.T).T
-            S = np.linalg.solve(A_inv, St_)
-            L = Lt_ @ A_inv
-            rho = np.linalg.norm(S[1:4], axis=0)
-            rho = rho / max(rho.mean(), 1e-12)
-            change = np.sqrt(np.mean((rho - rho_t) ** 2))
-            rho_t = rho
-            if change < self.params.template_tolerance:
-                break
-        return L, S
 
-    def _als(self, faces: _Faces, tn: np.ndarray, L: np.ndarray, S: np.ndarray):
-        """Template-regularised ALS (see the module docstring), optionally robust (``robust``): the weights of
-        each round come from the residuals of the previous one, their scale σ from the median residual over
-        the whole collection (:func:`_median`, a pass of its own)."""
-        sigma = None  # of the last round's residuals; None: every seen entry weighs 1
-        for round_ in range(self.params.als_iterations):
-            new_L = np.empty_like(L)
-            G = rhs = 0.0
-            SS = _outer_rows(S.T)
-            for rows, M, W in faces.chunks():
-                if sigma is None:
-                    Wf = None if faces.all_seen else W.astype(np.float64)
-                else:
-                    Wf = _cauchy(M - L[rows] @ S, max(self.params.robust * sigma, 1e-12))
-                    if not faces.all_seen:
-                        Wf *= W
-                new_L[rows], g, r = _chunk_step(M, Wf, S, SS)
-                G, rhs = G + g, rhs + r
-            L = new_L
-            rho = np.linalg.norm(S[1:4], axis=0)
-            prior = rho[None, :] * np.vstack([np.ones_like(rho), tn.T])
-            g = self.params.regularisation * np.trace(L.T @ L) / 4
-            if self.params.prior == "normal":  # a fixed pull on the direction: g (mean ρ / ρ_j)²
-                g = g * (rho.mean() / np.maximum(rho, 0.05 * rho.mean())) ** 2
-            S = _solve_normal(G, rhs, reg=g, prior=prior)
-            if self.params.robust > 0 and round_ < self.params.als_iterations - 1:
-                def residuals(rows, M, W, L=L, S=S):
-                    r = np.abs(M - L[rows] @ S)
-                    return r.ravel() if faces.all_seen else r[W]
-                sigma = 1.4826 * _median(faces, residuals, near=None if sigma is None else sigma / 1.4826)
-        return L, S
+def _template_fit(faces: _Faces, tn: np.ndarray, p):
+    """The lights and shape (L, S) of the rank-4 factorisation of the filled faces (:func:`_fill`), its 4x4
+    ambiguity fixed with the template (see the module docstring)."""
+    filled = _fill(faces, tn, p)
+
+    def F(rows, M, W):  # the filled matrix, a chunk of it
+        return M if filled is None else np.where(W, M, filled[0][rows] @ filled[1])
+
+    U, s, Vt = _top_singular(faces, 4, F)
+    Lt_ = U * np.sqrt(s)  # L~
+    St_ = np.sqrt(s)[:, None] * Vt  # S~
+    rho_t = np.ones(len(tn))
+    for _ in range(p.template_iterations):
+        S_t = rho_t[None, :] * np.vstack([np.ones(len(tn)), tn.T])
+        # L_t = argmin ||F - L S_t|| = F S_tᵀ (S_t S_tᵀ)⁻¹ and A⁻¹ = argmin ||L~ A⁻¹ - L_t||; as U's columns are
+        # orthonormal and Uᵀ F = diag(s) Vt, that is A⁻¹ = S~ S_tᵀ (S_t S_tᵀ)⁻¹: no pass over the images
+        A_inv = np.linalg.solve(S_t @ S_t.T, S_t @ St_.T).T
+        S = np.linalg.solve(A_inv, St_)
+        L = Lt_ @ A_inv
+        rho = np.linalg.norm(S[1:4], axis=0)
+        rho = rho / max(rho.mean(), 1e-12)
+        change = np.sqrt(np.mean((rho - rho_t) ** 2))
+        rho_t = rho
+        if change < p.template_tolerance:
+            break
+    return L, S
+
+
+def _als(faces: _Faces, tn: np.ndarray, L: np.ndarray, S: np.ndarray, p):
+    """Template-regularised ALS (see the module docstring), optionally robust (``robust``): the weights of
+    each round come from the residuals of the previous one, their scale σ from the median residual over
+    the whole collection (:func:`_median`, a pass of its own)."""
+    sigma = None  # of the last round's residuals; None: every seen entry weighs 1
+    for round_ in range(p.als_iterations):
+        new_L = np.empty_like(L)
+        G = rhs = 0.0
+        SS = _outer_rows(S.T)
+        for rows, M, W in faces.chunks():
+            if sigma is None:
+                Wf = None if faces.all_seen else W.astype(np.float64)
+            else:
+                Wf = _cauchy(M - L[rows] @ S, max(p.robust * sigma, 1e-12))
+                if not faces.all_seen:
+                    Wf *= W
+            new_L[rows], g, r = _chunk_step(M, Wf, S, SS)
+            G, rhs = G + g, rhs + r
+        L = new_L
+        rho = np.linalg.norm(S[1:4], axis=0)
+        prior = rho[None, :] * np.vstack([np.ones_like(rho), tn.T])
+        g = p.regularisation * np.trace(L.T @ L) / 4
+        if p.prior == "normal":  # a fixed pull on the direction: g (mean ρ / ρ_j)²
+            g = g * (rho.mean() / np.maximum(rho, 0.05 * rho.mean())) ** 2
+        S = _solve_normal(G, rhs, reg=g, prior=prior)
+        if p.robust > 0 and round_ < p.als_iterations - 1:
+            def residuals(rows, M, W, L=L, S=S):
+                r = np.abs(M - L[rows] @ S)
+                return r.ravel() if faces.all_seen else r[W]
+            sigma = 1.4826 * _median(faces, residuals, near=None if sigma is None else sigma / 1.4826)
+    return L, S
 
 
 def _cauchy(r: np.ndarray, scale: float) -> np.ndarray:
