@@ -101,18 +101,28 @@ def _expression_mean(aligned: align.Aligned, fiducials: np.ndarray, target: np.n
     return _weighted_mean(aligned.rgb, e[:, None, None] * aligned.valid)
 
 
+def _eyes_moved(textures: np.ndarray, targets: np.ndarray, neutral: np.ndarray, p, gaze: np.ndarray | None,
+                close_eyes: bool) -> np.ndarray:
+    """The textures (f, H, W, 3) of the targets (f, 49, 2), whose geometry is B's ``neutral`` fiducials, in
+    place: with ``gaze`` (f, 2, 2), the irises turned (gaze.look); with ``close_eyes``, the eyes a target
+    shuts drawn shut (eyes.lower, between MultiscaleTexture's ``shut_from`` and ``shut_at`` in ``p``). The
+    eyes turn first, so that a closing lid comes down over them."""
+    if gaze is not None:
+        for texture, shift in zip(textures, gaze):
+            texture[:] = look(texture, neutral, shift)
+    if close_eyes:
+        for texture, target in zip(textures, targets):
+            visible = eyes.lowered(target, neutral, start=p.shut_from, end=p.shut_at)
+            texture[:] = np.clip(eyes.lower(texture, neutral, visible), 0, 255)
+    return textures
+
+
 class MultiscaleTexture(TextureBackend):
     name = "multiscale"
     description = ("expression-dependent texture: photos aligned to the target (TPS + flow), blended in a "
                    "Laplacian pyramid with expression and detail weights (paper §5, Eq. 3)")
     default = True
-    #: 2: the alignment confidence (stretch_scale, residual_scale); 3: its own flow (varref); 4: video mode
-    #: aligns the collection with that flow too (video_alignment); 5: restore_detail, close_eyes; 6: the
-    #: video-mode cache's totals are stored with it (a drive reads the cache a shard at a time); 7: time_sigma;
-    #: 8: close_eyes lowers the upper lid (was: a fade to skin from 65 %); 9: detail_share (replaces
-    #: restore_detail), every frame's fine bands scaled by the factors of B's neutral blend; 10: the lid
-    #: drawn antialiased, its lashes two texels wide (plugins/face/eyes.py); 11: the lashes drawn below the
-    #: lid's edge too; 12: the eyes' region given back its own fine bands, not B's neutral's
+    #: part of the texture stages' cache keys: raised whenever the same params give a different texture
     version = "12"
     #: what :meth:`weights` and :meth:`finish` read and :meth:`cache` does not (``tau`` is read by both)
     frame_params = frozenset({"sigma", "eye_sigma", "min_share", "skip", "time_sigma", "detail_share",
@@ -277,14 +287,8 @@ class MultiscaleTexture(TextureBackend):
             own = np.clip(sums.finish(totals, gains=gains, rows=range(f, 2 * f)), 0, 255)
             where = eyes.region(neutral, textures.shape[1:3])[..., None]
             textures += where * (own - textures)
-        if p.gaze and gaze is not None:  # the eyes turned before a closing lid comes down over them
-            for texture, shift in zip(textures, gaze):
-                texture[:] = look(texture, neutral, shift)
-        if p.close_eyes if close_eyes is None else close_eyes:
-            for texture, target in zip(textures, targets):
-                visible = eyes.lowered(target, neutral, start=p.shut_from, end=p.shut_at)
-                texture[:] = np.clip(eyes.lower(texture, neutral, visible), 0, 255)
-        return textures
+        return _eyes_moved(textures, targets, neutral, p, gaze if p.gaze else None,
+                           p.close_eyes if close_eyes is None else close_eyes)
 
     def blend(self, cache: BlendCache, fiducials: np.ndarray, targets: np.ndarray, *,
               close_eyes: bool | None = None, gaze: np.ndarray | None = None) -> np.ndarray:
