@@ -4,7 +4,8 @@ dataflow's libraries; ``stores/`` (layout and media) uses neither ``dag/`` nor `
 modules import each other, however indirectly: each can be read, and changed, after what it uses.
 
 Read from the source with :mod:`ast`, every import anywhere in a file (inside functions too),
-relative imports resolved against the file's package."""
+relative imports resolved against the file's package. And no class is longer than ``MAX_CLASS_LINES``: a
+class that grows past it is split, its pieces moved into functions or helpers of its own module."""
 
 from __future__ import annotations
 
@@ -74,6 +75,34 @@ def cycles() -> list[str]:
     for name in sorted(uses):
         visit(name, [])
     return found
+
+
+#: the most lines a class of dag/, plugins/ or stores/ may take (docstring and nested classes included)
+MAX_CLASS_LINES = 200
+
+
+def classes(lines: int) -> list[str]:
+    """Every class of the three layers longer than ``lines`` lines, as "path:line Name (n lines)"."""
+    out = []
+    for layer in PACKAGES:
+        for path in sorted((ROOT / layer).rglob("*.py")):
+            for node in ast.walk(ast.parse(path.read_text(), str(path))):
+                if isinstance(node, ast.ClassDef) and node.end_lineno - node.lineno + 1 > lines:
+                    out.append(f"{path.relative_to(ROOT)}:{node.lineno} {node.name} "
+                               f"({node.end_lineno - node.lineno + 1} lines)")
+    return out
+
+
+def test_no_class_is_longer_than_the_limit():
+    assert classes(MAX_CLASS_LINES) == []
+
+
+def test_the_class_check_sees_a_long_class(tmp_path, monkeypatch):
+    fake = tmp_path / "stores"
+    fake.mkdir()
+    (fake / "big.py").write_text("class Big:\n" + "    x = 1\n" * 200)
+    monkeypatch.setattr(sys.modules[__name__], "ROOT", tmp_path)
+    assert classes(MAX_CLASS_LINES) == ["stores/big.py:1 Big (201 lines)"]
 
 
 def test_no_two_modules_import_each_other():
