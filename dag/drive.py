@@ -15,7 +15,7 @@ import logging
 import numpy as np
 
 from persona.plugins.face import gaze, mouth
-from persona.plugins.face.composite import alone, steady_light
+from persona.plugins.face.composite import alone
 from persona.plugins.face.dynamics import smooth_in_time
 from persona.plugins.face.fiducials import rest_shape
 from persona.plugins.face.tracks import bridge, steadied
@@ -78,23 +78,29 @@ def run_render(runner: RunContext, stage: st.Stage, target: Target) -> None:
 
 
 def run_composite(runner: RunContext, stage: st.Stage, target: Target) -> None:
-    """``composite``: B's rendered face blended into each of the driver's frames (Dask tasks over shards)."""
+    """``composite``: B's rendered face blended into each of the driver's frames by the ``composite``
+    backend (Dask tasks over shards). Its cache key takes the light backend's params too, each as
+    ``light_<name>``, as it did when they were ``stages.composite``'s: stores made before stay valid."""
     drive = Collection(runner.root, target.path)
+    backend, params = runner.wf.stage("composite")
+    light = {f"light_{name}": value for name, value in runner.wf.stage("light")[1].items()}
     composite = runner.prepare_stage(drive, st.COMPOSITE, {"render": target.made["render"].key,
-                                                           "light": target.made["light"].key})
-    runner.tasks.run_stage_tasks(drive, [("composite", composite.backend, composite.params)])
+                                                           "light": target.made["light"].key},
+                                     (backend, params), key_params=light)
+    runner.tasks.run_stage_tasks(drive, [("composite", backend, params)])
     target.made[stage.name] = composite
 
 
 def run_light(runner: RunContext, stage: st.Stage, target: Target) -> None:
-    """``composite/light``: the light planes the render fitted on each frame (``render/light``), made
-    steady in time (``stages.composite.params.light_sigma``; composite.steady_light)."""
+    """``composite/light``: the light planes the render fitted on each frame (``render/light``), as the
+    ``light`` backend makes them (the default: steady in time)."""
     drive = Collection(runner.root, target.path)
-    sigma = runner.wf.backendless("composite")["light_sigma"]
-    prov = st.provenance(stage.name, params={"sigma": sigma}, inputs={"render": target.made["render"].key},
-                         persona_version=runner.version)
+    name, params = runner.wf.stage("light")
+    recorded, version = st.backend_key("light", name)
+    prov = st.provenance(stage.name, backend=recorded, backend_version=version, params=params,
+                         inputs={"render": target.made["render"].key}, persona_version=runner.version)
     if not st.is_done(drive, prov, *stage.done):
-        planes = steady_light(drive.array("render/light")[:], sigma)
+        planes = st.default_registry().get("light", name)(params).light(drive.array("render/light")[:])
         drive.create("composite/light", (4, 3), "float32", ("frame", "term", "channel"), prov, pending=True)[:] = planes
         drive.mark_done("composite/light", prov)  # after the data: a run killed before this does it again
     target.made[stage.name] = prov

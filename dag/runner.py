@@ -101,17 +101,18 @@ class Runner:
         return steps
 
     def prepare_stage(self, coll: Collection, stage: st.PhotoStage, inputs: dict[str, str],
-                      choice: tuple[str, dict] | None = None) -> Provenance:
+                      choice: tuple[str, dict] | None = None, key_params: dict | None = None) -> Provenance:
         """The provenance of a stage's next run; its outputs are (re)created when the key
         changed, so that the stage starts over rather than mixing old and new results.
-        ``choice`` = (backend, params) overrides the workflow's backend of the stage's kind."""
+        ``choice`` = (backend, params) overrides the workflow's backend of the stage's kind;
+        ``key_params``: more params the key records besides the backend's."""
         if stage.kind is None:  # a stage without backends: its params are the workflow's stages.<name>
-            backend, params, version = "-", self.wf.backendless(stage.name), stage.version
+            backend, params, version = "-", self.wf.backendless(stage.name), None
         else:
-            backend, params = choice or self.wf.stage(stage.kind)
-            version = st.default_registry().get(stage.kind, backend).version
-        prov = Provenance.make(stage=stage.name, backend=backend, backend_version=version,
-                               params=params, inputs=inputs, persona_version=self.version)
+            name, params = choice or self.wf.stage(stage.kind)
+            backend, version = st.backend_key(stage.kind, name)
+        prov = st.provenance(stage.name, backend=backend, backend_version=version,
+                             params={**params, **(key_params or {})}, inputs=inputs, persona_version=self.version)
         # outputs another stage wrote since (the 2D and 3D renderers share render/*) count as stale
         if not st.is_done(coll, prov, f"status/{stage.name}/state", *(o.name for o in stage.outputs)):
             create_outputs(coll, stage, prov)

@@ -26,7 +26,7 @@ import numpy as np
 from persona.plugins.base import Backend, Rejected
 from persona.plugins.face import mouth
 from persona.plugins.face.collection_flow import collection_flow
-from persona.plugins.face.composite import blend, light_plane
+from persona.plugins.face.composite import light_plane
 from persona.plugins.face.fiducials import median_shape, shape_distance
 from persona.plugins.face.template import CANONICAL_HEIGHT, CANONICAL_WIDTH, IDX49
 from persona.plugins.kinds import POSE_FIELDS, Pose, Puppet
@@ -299,24 +299,20 @@ RENDER_3D = PhotoStage("render3d", "render", "retarget", (*_RENDER_INPUTS, "mesh
 
 def _composite(backend, params, inputs, context):
     h, w = inputs["@frames/photos/size"]
-    return {"composite/rgb": blend(inputs["render/rgb"][:h, :w], inputs["@frames/photos/rgb"][:h, :w],
-                                   render_alpha(inputs["render/mask"][:h, :w]), plane=inputs["composite/light"],
-                                   lighting=params["lighting"], tone=params["tone"], tone_reach=params["tone_reach"],
-                                   hair=params["hair"],
-                                   own=render_alpha(inputs["render/own"][:h, :w]),
-                                   points=inputs.get("@frames/landmarks/points"))}
+    return {"composite/rgb": backend.composite(inputs["render/rgb"][:h, :w], inputs["@frames/photos/rgb"][:h, :w],
+                                               render_alpha(inputs["render/mask"][:h, :w]),
+                                               plane=inputs["composite/light"],
+                                               own=render_alpha(inputs["render/own"][:h, :w]),
+                                               points=inputs.get("@frames/landmarks/points"))}
 
 
-#: B's rendered face blended into each driver frame (composite.mp4's frames; params: the workflow's
-#: stages.composite), in the light made steady in time (``composite/light``: drive._steady_light); a frame
+#: B's rendered face blended into each driver frame by the ``composite`` backend (composite.mp4's frames), in
+#: the light the ``light`` backend made of the render's fits (``composite/light``: drive.run_light); a frame
 #: without a render is the driver's own
-COMPOSITE = PhotoStage("composite", None, None, ("render/rgb", "render/mask", "render/own", "composite/light",
-                                                 "@frames/photos/rgb", "@frames/photos/size",
-                                                 "@frames/landmarks/points"),
-                       (Output("composite/rgb", (), "uint8", ("frame", "y", "x", "channel")),), _composite,
-                       version="5")  # 2: the hair in front fades out about half the face's height; 3: it reaches
-                       # down the sides to the jaw, all but the chin's sector; 4: the driver's own pixels not relit;
-                       # 5: never A's eyes in front
+COMPOSITE = PhotoStage("composite", "composite", None, ("render/rgb", "render/mask", "render/own", "composite/light",
+                                                        "@frames/photos/rgb", "@frames/photos/size",
+                                                        "@frames/landmarks/points"),
+                       (Output("composite/rgb", (), "uint8", ("frame", "y", "x", "channel")),), _composite)
 
 
 def driver_model(root, path) -> dict:
@@ -455,8 +451,8 @@ STAGES = {stage.name: stage for stage in (
     Stage("render", ("drive",), ("render",), "the puppet's frames", "frame",
           ("retarget", "frame textures", "motion", "teeth"), ("status/render/state",),
           run="persona.dag.drive:run_render", photo=(RENDER, RENDER_3D)),
-    Stage("light", ("drive",), ("composite",), "A's light at B's edge (fitted with the render), made "
-          "steady over the frames around", "drive", ("render",), ("composite/light",), "1",
+    Stage("light", ("drive",), ("light",), "A's light at B's edge (fitted with the render), made "
+          "steady over the frames around", "drive", ("render",), ("composite/light",),
           run="persona.dag.drive:run_light", runs="the client"),
     Stage("composite", ("drive",), ("composite",), "B's face blended into each of the driver's frames", "frame",
           ("render", "light"), ("status/composite/state",), run="persona.dag.drive:run_composite",
@@ -475,15 +471,26 @@ COLLECTION_STAGES = tuple(name for name, stage in STAGES.items() if stage.where 
 
 def provenance(name: str, *, params: dict, inputs: dict[str, str], persona_version: str, backend: str = "-",
                backend_version: str | None = None) -> Provenance:
-    """The provenance of the next run of the stage ``name`` (of :data:`STAGES`): its cache key from the
-    stage's own version (or ``backend_version``, a backend's), ``params`` and ``inputs`` (name -> the
-    cache key of what it reads)."""
-    stage = STAGES[name]
-    version = stage.version if backend_version is None else backend_version
+    """The provenance of the next run of the stage ``name`` (of :data:`STAGES`, or of
+    :data:`PHOTO_STAGES`, whose name it records as it is): its cache key from the stage's own version (or
+    ``backend_version``, a backend's: :func:`backend_key`), ``params`` and ``inputs`` (name -> the cache
+    key of what it reads)."""
+    if name in PHOTO_STAGES:
+        recorded, version = name, PHOTO_STAGES[name].version
+    else:
+        recorded, version = STAGES[name].provenance_name, STAGES[name].version
+    version = version if backend_version is None else backend_version
     if version is None:
         raise ValueError(f"stage {name!r} declares no version and has no backend's to take")
-    return Provenance.make(stage=stage.provenance_name, backend=backend, backend_version=version,
+    return Provenance.make(stage=recorded, backend=backend, backend_version=version,
                            params=params, inputs=inputs, persona_version=persona_version)
+
+
+def backend_key(kind: str, name: str) -> tuple[str, str]:
+    """(backend name, version) that cache keys record for the backend ``name`` of ``kind``: its
+    ``key_name`` ("-" for a built-in backend of a stage that had none to choose before) or its name."""
+    cls = default_registry().get(kind, name)
+    return cls.key_name or name, cls.version
 
 
 def is_done(coll: Collection, prov: Provenance, *names: str) -> bool:

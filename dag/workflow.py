@@ -431,30 +431,7 @@ class MotionParams(Strict):
                               "n-th driver frame (PLY and OBJ + texture) into <output>/meshes/; 0 = none")
 
 
-class CompositeParams(Strict):
-    lighting: float = Field(1.0, ge=0, le=1, description="how far B's face takes A's colour and light at its "
-                            "edge before the multi-band blend into A's frame (composite.mp4; not in the paper, "
-                            "which shows the puppet alone): 1 = matched at the edge and carried smoothly inward, "
-                            "0 = B's render as it is (docs/composite.md)")
-    tone: float = Field(1.0, ge=0, le=1, description="how much of A's mean skin tone B's face takes with the light: "
-                        "1 = all (no colour step at the edge), 0 = B's own mean tone kept, only the way A's light "
-                        "varies along the edge matched (the blend spreads the rest; docs/composite.md)")
-    tone_reach: float = Field(0.5, ge=0, le=0.5, description="how deep inside B's face (a fraction of its smaller "
-                              "side) its middle's tone is reached: at the edge B's face takes all of A's tone, so no "
-                              "step, and within the reach it passes smoothly to `tone`; 0 = `tone` up to the edge "
-                              "(docs/composite.md)")
-    hair: float = Field(1.0, ge=0, le=1, description="how much of what is not A's skin inside B's edge stays in "
-                        "front of B's face: A's hair (a fringe, strands at the temples) and the background beside a "
-                        "turned head, all round but the chin: 1 = all, 0 = B's face covers it (docs/composite.md)")
-    light_sigma: float = Field(3.0, ge=0, le=25, description="σ (frames) over which the light B's face takes is made "
-                               "steady in time (a median over the frames within 2σ, then a Gaussian): fitted on "
-                               "each frame alone it jumps where hair, glasses or a turned head pass under B's edge "
-                               "(the face's colour from frame to frame on a driver with glasses: 1.8 -> 0.8 grey "
-                               "levels, median; docs/composite.md). 0 = each frame's own")
-
-
-BACKENDLESS = {"ingest": IngestParams, "screen": ScreenParams, "align": AlignParams, "motion": MotionParams,
-               "composite": CompositeParams}
+BACKENDLESS = {"ingest": IngestParams, "screen": ScreenParams, "align": AlignParams, "motion": MotionParams}
 
 
 def _resolve(path: str, base: Path) -> str:

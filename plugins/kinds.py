@@ -342,3 +342,43 @@ class TextureBackend(Backend):
         (f, 2, 2), where the driver looks in each frame (persona.plugins.face.gaze.gaze_shift), for a
         backend that moves the irises."""
         raise NotImplementedError
+
+
+class LightBackend(Backend):
+    """Kind ``light``: the light B's face takes in each frame of a drive, from A's light at B's edge as the
+    render found it in each frame alone (docs/composite.md).
+
+    The render fits, on each frame, A's light at the edge of B's face
+    (:func:`persona.plugins.face.composite.light_plane`): a plane per colour channel of the log gain that
+    takes B's render to A's frame there. A light backend turns those fits into the planes the composite
+    applies, e.g. steady in time, so that hair or glasses passing under B's edge do not flicker B's face."""
+
+    kind = "light"
+
+    def light(self, planes: np.ndarray) -> np.ndarray:
+        """planes: (T, 4, 3) float, one per frame of the drive in order, columns the R, G, B channels: the log
+        gain's value at the top left corner of the mask's bounding box, its change across the box's width and
+        down its height, and its mean along the edge it was fitted on; all NaN for a frame with no fit (no
+        face, nothing like skin under B's edge).
+
+        Returns (T, 4, 3) float64 in the same units: the planes each frame's composite applies (NaN: the
+        frame's face keeps its own light). Malformed inputs raise ValueError."""
+        raise NotImplementedError
+
+
+class CompositeBackend(Backend):
+    """Kind ``composite``: B's rendered face blended into one of A's frames (``composite.mp4``'s frames)."""
+
+    kind = "composite"
+
+    def composite(self, face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, plane: np.ndarray,
+                  own: np.ndarray | None = None, points: np.ndarray | None = None) -> np.ndarray:
+        """face: (h, w, 3) uint8, B's render, its own colour across its soft edge (:class:`Rendered`);
+        frame: (h, w, 3) uint8, A's frame; alpha: (h, w) float32 in [0, 1], the render's mask; plane:
+        (4, 3), the light B's face takes in this frame (a :class:`LightBackend`'s; all NaN: none); own:
+        (h, w) float32 in [0, 1], the share of each pixel that is A's own already (Rendered.own, e.g. A's
+        mouth interior drawn into B's gap), or None; points: A's 68 landmarks (68, 2) in the frame (x, y
+        px), or None.
+
+        Returns the composite (h, w, 3) uint8: A's frame where alpha is 0."""
+        raise NotImplementedError

@@ -38,6 +38,7 @@ DEFAULT_PLUGINS = (
     "persona.plugins.builtin.integrate",
     "persona.plugins.builtin.denoise",
     "persona.plugins.builtin.texture",
+    "persona.plugins.builtin.composite",
 )
 
 ENTRY_POINT_GROUP = "persona"

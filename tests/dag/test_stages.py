@@ -79,3 +79,23 @@ def test_the_render_draws_the_drivers_own_mouth_interior_into_the_puppets_gap():
     closed[[61, 62, 63, 65, 66, 67], 1] = 120
     assert colours("frame", closed) == (0, 0, 0)
     assert colours("widest", closed)[1] > 300
+
+
+def test_the_composite_and_the_light_record_the_keys_they_had_without_backends():
+    """Made with the default composite and light backends, their provenance is what it was when the two were
+    backendless settings of stages.composite: a store made before resumes with nothing recomputed."""
+    from persona.dag.workflow import parse_workflow
+
+    wf = parse_workflow({"name": "k", "store": "s.zarr", "output": "o", "puppet": {"photos": "p"}})
+    name, params = wf.stage("composite")
+    light = {f"light_{k}": v for k, v in wf.stage("light")[1].items()}
+    before = {"lighting": 1.0, "tone": 1.0, "tone_reach": 0.5, "hair": 1.0, "light_sigma": 3.0}
+    assert {**params, **light} == before
+    assert st.backend_key("composite", name) == ("-", "5") and st.backend_key("light", "steady") == ("-", "1")
+    made = st.provenance("composite", backend="-", backend_version="5", params={**params, **light},
+                         inputs={"render": "r", "light": "l"}, persona_version="x")
+    from persona.stores.provenance import Provenance
+
+    old = Provenance.make(stage="composite", backend="-", backend_version="5", params=before,
+                          inputs={"render": "r", "light": "l"}, persona_version="x")
+    assert made.key == old.key

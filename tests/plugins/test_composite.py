@@ -254,3 +254,30 @@ def test_steady_light_outvotes_a_frames_odd_fit_and_follows_a_slow_change():
     assert np.abs(steady[5:35] - truth[5:35]).max() < 0.01
     assert np.abs(steady[25] - truth[25]).max() < 0.005
     np.testing.assert_array_equal(composite.steady_light(planes, 0), planes)
+
+
+def test_the_built_in_composite_and_light_backends_are_the_blend_and_the_steady_light():
+    """The kinds' defaults (plugins/builtin/composite.py) call the maths here unchanged, with their params."""
+    from persona.plugins.builtin.composite import MultibandComposite, SteadyLight
+    from persona.plugins.manager import default_registry
+
+    registry = default_registry()
+    assert registry.default("composite") == "multiband" and registry.default("light") == "steady"
+    face, frame, alpha, disk = scene()
+    plane = composite.light_plane(face, frame, alpha)
+    settings = {"lighting": 0.8, "tone": 0.5, "tone_reach": 0.2, "hair": 0.5}
+    made = MultibandComposite(settings).composite(face, frame, alpha, plane=plane)
+    assert made.dtype == np.uint8 and made.shape == frame.shape
+    assert np.array_equal(made, composite.blend(face, frame, alpha, plane=plane, **settings))
+    planes = np.random.default_rng(1).normal(0, 0.1, (9, 4, 3)).astype(np.float32)
+    planes[4] = np.nan
+    assert np.array_equal(SteadyLight({"sigma": 2}).light(planes), composite.steady_light(planes, 2), equal_nan=True)
+    # their cache keys are those of the stages before they had backends: "-" and those stages' versions
+    assert (MultibandComposite.key_name, MultibandComposite.version) == ("-", "5")
+    assert (SteadyLight.key_name, SteadyLight.version) == ("-", "1")
+    try:
+        SteadyLight().light(planes[0])
+    except ValueError:
+        pass
+    else:
+        raise AssertionError("planes of one frame, not (T, 4, 3), must raise ValueError")
