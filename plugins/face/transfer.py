@@ -439,14 +439,44 @@ def fold_depths(mesh: np.ndarray, below: np.ndarray, step: float = 0.0) -> np.nd
 
 
 def lower_lip(below: np.ndarray, fiducials: np.ndarray) -> np.ndarray:
-    """(H, W) bool: the texels of ``below`` (:func:`below_mouth`) down to B's outer lower lip, the line
-    through its mean ``fiducials`` iBUG 48, 59-55, 54 (the nearest row in each column between the mouth's
-    corners): the lower lip's body, from the mouth's middle to its lower edge."""
-    outer = np.asarray(fiducials, np.float64)[[IDX49.index(i) for i in (48, 59, 58, 57, 56, 55, 54)]]
-    outer = outer[np.argsort(outer[:, 0], kind="stable")]  # np.interp needs them left to right
+    """(2, W): the row (canonical px, fractional) of B's inner and of its outer lower lip in each column of
+    ``below`` (:func:`below_mouth`), the lines through its mean ``fiducials`` iBUG 48, 67-65, 54 and 48, 59-55, 54;
+    NaN beside the mouth. The rows between them are the lower lip's body."""
     cols = np.arange(below.shape[1], dtype=np.float64)
-    edge = np.interp(cols, outer[:, 0], outer[:, 1], left=-1, right=-1)  # -1: beside the mouth, no lip
-    return np.asarray(below, bool) & (np.arange(below.shape[0])[:, None] <= np.round(edge)[None, :])
+    out = np.full((2, below.shape[1]), np.nan)
+    for k, line in enumerate(((48, 67, 66, 65, 54), (48, 59, 58, 57, 56, 55, 54))):
+        points = np.asarray(fiducials, np.float64)[[IDX49.index(i) for i in line]]
+        points = points[np.argsort(points[:, 0], kind="stable")]  # np.interp needs them left to right
+        out[k] = np.interp(cols, points[:, 0], points[:, 1], left=np.nan, right=np.nan)
+    return out
+
+
+def _lip_rows(below: np.ndarray, lip: np.ndarray) -> np.ndarray:
+    """(H, W) bool: the texels of ``below`` between the lower lip's inner and outer rows ``lip`` (:func:`lower_lip`)."""
+    rows = np.arange(below.shape[0], dtype=np.float64)[:, None]
+    with np.errstate(invalid="ignore"):
+        return np.asarray(below, bool) & (rows >= lip[0]) & (rows <= lip[1])
+
+
+def _row_at(column: np.ndarray, row: float) -> float:
+    """A column's value at a fractional ``row``, linear between its two rows."""
+    low = int(np.floor(row))
+    return float(column[low] + (row - low) * (column[min(low + 1, len(column) - 1)] - column[low]))
+
+
+def _evened(y: np.ndarray, below: np.ndarray, lip: np.ndarray, step: float) -> np.ndarray:
+    """The rows' heights ``y`` (H, W) with, in each column, the rows of ``below`` between the lower lip's inner
+    and outer rows ``lip`` (2, W) spread evenly between where those two lines lie (read between rows, so that
+    neighbouring columns agree); as they were in a column whose lines lie closer than ``step`` px a row."""
+    out = np.array(y, np.float64, copy=True)
+    inside = _lip_rows(below, lip)
+    for c in np.flatnonzero(inside.sum(axis=0) > 1):
+        top, edge = lip[:, c]
+        ends = _row_at(y[:, c], top), _row_at(y[:, c], edge)
+        if ends[1] - ends[0] >= step * (edge - top):
+            rows = np.flatnonzero(inside[:, c])
+            out[rows, c] = ends[0] + (ends[1] - ends[0]) * (rows - top) / (edge - top)
+    return out
 
 
 def unfolded(mesh: np.ndarray, below: np.ndarray, step: float = 0.3, lip: np.ndarray | None = None) -> np.ndarray:
@@ -459,20 +489,25 @@ def unfolded(mesh: np.ndarray, below: np.ndarray, step: float = 0.3, lip: np.nda
     chin's, and the renderer draws the overlap as a ragged edge under the lip and along the chin (on
     Powell <- woman up to 13 canonical px deep; docs/expression.md). A jaw does not fold.
 
-    First, with ``lip`` (H, W) bool, the lower lip's body (:func:`lower_lip`): the follower puts the lip's
+    First, with ``lip`` (2, W), the rows of the lower lip's inner and outer edges (:func:`lower_lip`): the follower puts the lip's
     inner and outer edges on their targets, but its smooth correction added to the transfer's uneven drop
-    inside the lip can carry the lip's middle rows below its outer edge; there they are squeezed into a
-    band ``step`` px a row over that edge, which stays where the follower put it (pushed down with the
-    chin instead, the edge left its target by up to 5 px on Bush <- man with glasses and the lip was drawn
-    half as tall again). Then, in a column that still folds, the lip keeps its drop and the skin that was
+    inside the lip can carry the lip's middle rows below its outer edge. The lip's rows are spread evenly
+    between its two edges, which stay where the follower put them, so the lip is drawn as the texture has it. Squeezed instead into a band ``step`` px a row over the edge, the lip was drawn as its
+    top rows (the wet inside of the lip) stretched into pale streaks over most of its height and the rest
+    pressed into a line (a self-reenactment's "O", docs/expression.md); pushed down with the chin, the edge
+    left its target by up to 5 px on Bush <- man with glasses and the lip was drawn half as tall again. The
+    band is kept for a column whose edges lie too close to spread the lip between them. Then, in a column that still folds, the lip keeps its drop and the skin that was
     under it is squeezed into a band ``step`` px a row below it (:func:`fold_depths`), down to where the
     column's own rows run lower again; laid on a line of no area (``step`` 0), it met the chin under it
     with a hard, stepped edge. A column folded by d px takes min(d, 1) of the band and the rest of that
     line, so the band fades out beside a fold; a column that does not fold, however squeezed, is not
     touched, nor are texels above the mouth or outside ``below`` (:func:`below_mouth`)."""
     out = np.array(mesh, np.float64, copy=True)
-    if lip is not None:  # the same rule read from the bottom up: each lip texel at least step a row over those below
-        out[..., 1] -= fold_depths(-out[::-1], np.asarray(lip, bool)[::-1], step)[::-1]
+    if lip is not None:
+        out[..., 1] = _evened(out[..., 1], below, lip, step)
+        # where that cannot be, the same rule as below read from the bottom up: each lip texel at least step a
+        # row over those below
+        out[..., 1] -= fold_depths(-out[::-1], _lip_rows(below, lip)[::-1], step)[::-1]
     flat = fold_depths(out, below)
     share = np.clip(flat.max(axis=0), 0, 1)  # per column: how far it folds, up to a pixel
     if share.any():  # most frames do not fold: nothing to move
