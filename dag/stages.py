@@ -443,7 +443,7 @@ STAGES = {stage.name: stage for stage in (
           ("retarget", "driver:shape"), ("status/dynamics/state",), run="persona.dag.motion:run_dynamics",
           mesh=True, photo=(DYNAMICS,)),
     Stage("motion", ("drive",), ("motion", "denoise"), "A's meshes, then B's by deformation transfer (and the "
-          "meshes the workflow exports)", "drive", ("dynamics", "puppet:shape"), ("mesh",), "7",
+          "meshes the workflow exports)", "drive", ("dynamics", "puppet:shape"), ("mesh",), "5",
           run="persona.dag.motion:run_motion", mesh=True),
     Stage("teeth", ("drive",), ("render",), "how much of B's teeth each frame shows, as the driver's mouth "
           "shows them (mouth_choice: driver)", "drive", ("retarget", "puppet:mouth", "video:screen"),

@@ -489,19 +489,21 @@ def unfolded(mesh: np.ndarray, below: np.ndarray, step: float = 0.3, lip: np.nda
     chin's, and the renderer draws the overlap as a ragged edge under the lip and along the chin (on
     Powell <- woman up to 13 canonical px deep; docs/expression.md). A jaw does not fold.
 
-    First, with ``lip`` (2, W), the rows of the lower lip's inner and outer edges (:func:`lower_lip`): the follower puts the lip's
-    inner and outer edges on their targets, but its smooth correction added to the transfer's uneven drop
+    First, with ``lip`` (2, W), the rows of the lower lip's inner and outer edges (:func:`lower_lip`): the
+    follower puts those edges on their targets, but its smooth correction added to the transfer's uneven drop
     inside the lip can carry the lip's middle rows below its outer edge. The lip's rows are spread evenly
-    between its two edges, which stay where the follower put them, so the lip is drawn as the texture has it. Squeezed instead into a band ``step`` px a row over the edge, the lip was drawn as its
-    top rows (the wet inside of the lip) stretched into pale streaks over most of its height and the rest
-    pressed into a line (a self-reenactment's "O", docs/expression.md); pushed down with the chin, the edge
-    left its target by up to 5 px on Bush <- man with glasses and the lip was drawn half as tall again. The
-    band is kept for a column whose edges lie too close to spread the lip between them. Then, in a column that still folds, the lip keeps its drop and the skin that was
-    under it is squeezed into a band ``step`` px a row below it (:func:`fold_depths`), down to where the
-    column's own rows run lower again; laid on a line of no area (``step`` 0), it met the chin under it
-    with a hard, stepped edge. A column folded by d px takes min(d, 1) of the band and the rest of that
-    line, so the band fades out beside a fold; a column that does not fold, however squeezed, is not
-    touched, nor are texels above the mouth or outside ``below`` (:func:`below_mouth`)."""
+    between its two edges, which stay where the follower put them, so the lip is drawn as the texture has
+    it. Squeezed instead into a band ``step`` px a row over the edge, the lip was drawn as its top rows (the
+    wet inside of the lip) stretched into pale streaks over most of its height and the rest pressed into a
+    line (a self-reenactment's "O", docs/expression.md); pushed down with the chin, the edge left its
+    target by up to 5 px on Bush <- man with glasses and the lip was drawn half as tall again. The band is
+    kept for a column whose edges lie too close to spread the lip between them. Then, in a column that
+    still folds, the lip keeps its drop and the skin that was under it is squeezed into a band ``step`` px
+    a row below it (:func:`fold_depths`), down to where the column's own rows run lower again; laid on a
+    line of no area (``step`` 0), it met the chin under it with a hard, stepped edge. A column folded by
+    d px takes min(d, 1) of the band and the rest of that line, so the band fades out beside a fold; a
+    column that does not fold, however squeezed, is not touched, nor are texels above the mouth or outside
+    ``below`` (:func:`below_mouth`)."""
     out = np.array(mesh, np.float64, copy=True)
     if lip is not None:
         out[..., 1] = _evened(out[..., 1], below, lip, step)

@@ -438,7 +438,8 @@ def test_a_lower_lip_hanging_below_its_own_edge_is_spread_between_its_edges():
     inner, outer = lip[:, col]
     assert fiducials[IDX49.index(66), 1] - 1 < inner < outer <= y + 1
     corners = fiducials[[IDX49.index(48), IDX49.index(54)], 0]
-    assert np.isnan(lip[:, :int(np.floor(corners.min()))]).all() and np.isnan(lip[:, int(np.ceil(corners.max())) + 1:]).all()
+    left, right = int(np.floor(corners.min())), int(np.ceil(corners.max()))
+    assert np.isnan(lip[:, :left]).all() and np.isnan(lip[:, right + 1:]).all()
     np.testing.assert_allclose(transfer_module.unfolded(mesh, below, lip=lip), mesh, atol=1e-9)  # at rest: as it was
 
     top, edge = int(np.ceil(inner)), int(np.floor(outer))
