@@ -33,7 +33,7 @@ def drive_outputs(runner: RunContext, plan, speed: dict) -> dict:
         log.info("%s: nothing new since its videos and evaluation were made: kept", plan.cast.drive)
         kept["speed"].update(speed)  # a drive made again (the same bytes) was timed again
         return kept
-    out = {"outputs_key": key, "speed": speed}
+    out = {"outputs_key": key, "speed": {**last_speed(plan.output), **speed}}  # a drive not made again: its last timing
     with runner.tasks.step("videos", plan.cast.drive):  # and a 3D drive's puppet.glb (about 4 s for 269 frames)
         out["videos"] = write_videos(drive, Collection(runner.root, plan.cast.frames), plan.output)
         if drive.has("mesh"):
@@ -61,6 +61,13 @@ def kept_outputs(output: str, key: str) -> dict | None:
         return None
     return {**{k: last[k] for k in ("outputs_key", "videos", "speed", "evaluation")},
             "series": json.loads(storage.read_text(series))}
+
+
+def last_speed(output: str) -> dict:
+    """The drive's timings its last run left in ``output`` (its metrics.json's ``speed``; {} when there is
+    none), which a run that evaluates again without making the drive's frames again keeps."""
+    metrics = storage.join(output, "metrics.json")
+    return json.loads(storage.read_text(metrics)).get("speed", {}) if storage.isfile(metrics) else {}
 
 
 def write_outputs(runner: RunContext, output: str, report: dict, series: dict | None,

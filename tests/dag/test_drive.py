@@ -709,3 +709,5 @@ def test_new_figures_evaluate_a_finished_drive_again(drive_run, monkeypatch):
         metrics.write_text(first)  # as the other tests of the module know it
     assert after["outputs_key"] != json.loads(first)["outputs_key"]
     assert "evaluate" in {r["stage"] for r in after["stages"]}
+    # the drive was not made again: its speed is the last run's, not lost
+    assert after["speed"]["ms_per_driver_frame"] == json.loads(first)["speed"]["ms_per_driver_frame"]
