@@ -223,9 +223,9 @@ FRAMES = "@frames/"
 
 def _puppet(root, path) -> dict:
     """The context of the render stages: the drive's puppet's average face, fiducials and mouth (each
-    interior of B's mouth as its image and its photos' gap, or None), and the neutral insets of B's and
+    interior of B's mouth as its image and its photos' gap, or None), the neutral insets of B's and
     A's inner-lip corners that each frame's are drawn from (mouth.frame_insets; None without B's lips or
-    A's landmarks)."""
+    A's landmarks), and B's jaw line (the median of B's aligned photos' iBUG 0-16)."""
     cast = Cast.of(root, path)
     puppet, driver = Collection(root, cast.puppet), Collection(root, cast.driver)
     group = puppet.group["aligned"]
@@ -242,8 +242,12 @@ def _puppet(root, path) -> dict:
         theirs = mouth.landmark_inset(driver.array("landmarks/points")[:][found].astype(np.float64))
         ours = mouth.corner_inset(mouth.outer_corners(fiducials), lips[0, [0, -1]])
         insets = (ours, np.nanmedian(theirs, axis=0)) if len(theirs) else None
+    jaw = group["landmarks"][:, :17][puppet.state("align") == OK].astype(np.float64)
+    seen = np.isfinite(jaw).all(axis=2).sum(axis=0)  # a point a photo does not see (the far jaw) is NaN there
+    jaw = np.nanmedian(jaw, axis=0) if (seen > 0).all() else None
     return {"coverage": group["coverage"][...], "fiducials": fiducials, "lips": lips, "insets": insets,
-            "mouth": interior("texture/mouth"), "mouth_cavity": interior("texture/mouth_cavity")}
+            "mouth": interior("texture/mouth"), "mouth_cavity": interior("texture/mouth_cavity"),
+            "jaw": jaw}
 
 
 def _render(backend, params, inputs, context):
@@ -265,7 +269,8 @@ def _render(backend, params, inputs, context):
         insets = mouth.frame_insets(*context["insets"], inputs["@frames/landmarks/points"])
     puppet = Puppet(appearance=inputs["texture/rgb"].astype(np.float32), coverage=context["coverage"],
                     fiducials=context["fiducials"], mesh=inputs.get("mesh"), mouth=interior,
-                    lips=context["lips"], mouth_gap=gap, mouth_own=drivers is not None, lip_insets=insets)
+                    lips=context["lips"], mouth_gap=gap, mouth_own=drivers is not None, lip_insets=insets,
+                    jaw=context["jaw"])
     out = backend.render(puppet, inputs["target"].astype(np.float64), pose, frame)
     mask = np.round(out.mask * 255).astype(np.uint8)
     own = np.zeros_like(mask) if out.own is None else np.round(out.own * 255).astype(np.uint8)

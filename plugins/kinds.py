@@ -130,6 +130,8 @@ class Puppet:
     lip_insets : ndarray, shape (2,), or None — where this frame's inner-lip corners lie, as fractions of
         the mouth's width in from its outer corners (:func:`persona.plugins.face.mouth.frame_insets`,
         from the driver's); None: where the mesh puts them
+    jaw : ndarray, shape (17, 2), or None — B's jaw line (iBUG 0-16, canonical x, y), the median of B's
+        aligned photos'; None when not known
     """
 
     appearance: np.ndarray
@@ -141,6 +143,7 @@ class Puppet:
     mouth_gap: float = np.inf
     mouth_own: bool = False
     lip_insets: np.ndarray | None = None
+    jaw: np.ndarray | None = None
 
 
 @dataclass(frozen=True)

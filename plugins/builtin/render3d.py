@@ -31,7 +31,7 @@ from ..base import Params
 from ..face import mouth
 from ..face.blend import gaussian_pyramid
 from ..face.composite import GREY
-from ..face.mesh import grid_triangles
+from ..face.mesh import above_jaw, grid_triangles
 from ..face.warp import compose
 from ..hookspecs import hookimpl
 from ..kinds import Pose, Puppet, RenderBackend, Rendered
@@ -186,6 +186,11 @@ class RaycastRender(RenderBackend):
                                      "paper, and off: on Bush <- Obama (1.4 texels a pixel) the shut lids' lash line "
                                      "is whole, but the face is softer and the composite's eye gain falls 0.54 -> "
                                      "0.51 (docs/composite.md)")
+        jaw_margin: float | None = Field(2.0, ge=0, description="draw B's face only above B's jaw line (the "
+                                         "median of B's aligned photos' iBUG 0-16) moved this many canonical px "
+                                         "outwards: below and beside B's jaw the canonical frame holds B's neck, "
+                                         "ears and background, which were drawn as face. Not in the paper; None: "
+                                         "the whole face mask, as the paper draws it (docs/composite.md)")
         mouth: bool = Field(True, description="draw the inside of B's mouth (from B's open-mouth "
                             "photos) between B's inner lips where the mesh parts them, instead of the "
                             "stretched skin of a surface that cannot open (not in the paper; "
@@ -243,6 +248,8 @@ class RaycastRender(RenderBackend):
         texture = np.asarray(puppet.appearance, np.float32)
         finite = np.isfinite(texture).all(axis=2)
         seen = ((puppet.coverage >= self.params.min_coverage) & finite).astype(np.float32)
+        if self.params.jaw_margin is not None and puppet.jaw is not None:
+            seen *= above_jaw(puppet.jaw, seen.shape, self.params.jaw_margin)
         texture = np.where(finite[..., None], texture, 0).astype(np.float32)
         u, v = hit_uv[..., 0], hit_uv[..., 1]
         on = np.isfinite(depth)

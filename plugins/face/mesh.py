@@ -17,6 +17,23 @@ def rim_points(mask: np.ndarray, spacing: int) -> np.ndarray:
     return max(contours, key=len)[::spacing, 0].astype(np.float64)
 
 
+def above_jaw(jaw: np.ndarray, shape: tuple[int, int], margin: float) -> np.ndarray:
+    """(H, W) float32 in [0, 1]: how much of each canonical texel of a face whose jaw line (iBUG 0-16, (17, 2)
+    canonical x, y) is ``jaw`` lies above that line moved ``margin`` px outwards (each point along its normal,
+    away from the jaw's middle) and between its two ends' columns, antialiased: the face, without the neck,
+    the ears and the background a canonical frame holds below and beside a jaw narrower than its oval."""
+    jaw = np.asarray(jaw, np.float64)
+    tangent = np.gradient(jaw, axis=0)
+    normal = np.stack([tangent[:, 1], -tangent[:, 0]], axis=1)
+    normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-9)
+    normal *= np.sign(np.sum((jaw - jaw.mean(axis=0)) * normal, axis=1, keepdims=True))  # outwards
+    line = jaw + margin * normal
+    outline = np.vstack([[line[0, 0], -1.0], line, [line[-1, 0], -1.0]])
+    fine = np.zeros((shape[0] * 4, shape[1] * 4), np.uint8)  # drawn 4 times finer, averaged down
+    cv2.fillPoly(fine, [np.round(((outline + 0.5) * 4 - 0.5) * 16).astype(np.int32)], 255, cv2.LINE_8, shift=4)
+    return cv2.resize(fine, shape[::-1], interpolation=cv2.INTER_AREA).astype(np.float32) / 255
+
+
 #: iBUG indices of the middle of the outer lower lip
 LOWER_LIP = (56, 57, 58)
 

@@ -250,3 +250,24 @@ def test_the_render_filters_a_texture_it_draws_smaller():
     grey = lambda out: out.rgb[inner].mean(axis=-1)  # noqa: E731
     assert np.abs(np.percentile(grey(filtered), [10, 90]) - 125).max() < 20
     assert np.percentile(grey(points), 90) - np.percentile(grey(points), 10) > 60
+
+
+def test_the_face_is_drawn_only_above_bs_jaw_line_with_a_jaw_margin():
+    """With ``jaw_margin`` (2 px, the default), B's face ends at B's jaw line moved that far outwards
+    (mesh.above_jaw): no pixel whose texel lies well outside it is drawn, every one well inside is; without it
+    (None, the paper's), the whole face is."""
+    from persona.plugins.face.mesh import above_jaw
+
+    face, pose = make_face(), posed(10)
+    gt = truth(face, pose)
+    jaw = face.landmarks3d[:17, :2] - [0.0, 12.0]  # a jaw line 12 px over the mesh's chin: a face with a neck below
+    puppet = Puppet(**{**puppet_of(face).__dict__, "jaw": jaw})
+    out = render(puppet, pose, jaw_margin=2.0)
+    inside = gt.face_mask & np.isfinite(gt.uv).all(axis=-1)
+    u, v = (np.clip(np.round(np.nan_to_num(gt.uv[..., k])), 0, n - 1).astype(int) for k, n in ((0, 194), (1, 244)))
+    kept, ring = (above_jaw(jaw, (244, 194), 2.0) > 0.5).astype(np.uint8), np.ones((5, 5), np.uint8)
+    well_outside, well_inside = cv2.dilate(kept, ring)[v, u] == 0, cv2.erode(kept, ring)[v, u] > 0
+    assert (inside & well_outside).sum() > 1000  # the mesh reaches below that line: the test can fail
+    assert np.all(out.mask[inside & well_outside] == 0)
+    assert np.all(out.mask[inside & well_inside] == 1)
+    assert iou(render(puppet, pose, jaw_margin=None).mask > 0.5, gt.face_mask) > 0.995
