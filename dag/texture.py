@@ -28,7 +28,7 @@ from persona.plugins.face import mouth
 from persona.plugins.face.blend import (BlendCache, BlendTotals, gaussian_pyramid, level_bias, seen_mean,
                                         seen_sums)
 from persona.plugins.face.fiducials import rest_shape
-from persona.plugins.face.gaze import LOOK_VERSION
+from persona.plugins.face.gaze import LOOK_VERSION, photo_gazes
 from persona.plugins.face.template import CANONICAL_HEIGHT as H, CANONICAL_WIDTH as W
 from persona.plugins.face.texture import Aligned, to_grey, warped_basis
 from persona.plugins.kinds import Pose, TextureBackend, TexturePhotos
@@ -341,9 +341,11 @@ def stored_textures(url: str, path: str, name: str, params: dict, targets, start
     ok = np.flatnonzero(source.state("align") == OK)
     totals, fiducials = st.per_process(key, lambda: (_totals(source, backend.params),
                                                      source.array("aligned/fiducials")[:][ok].astype(np.float64)))
+    looking = backend.looking(st.per_process(f"{key}/gazes", lambda: photo_gazes(
+        source.array("aligned/rgb")[:][ok], source.array("aligned/mean_fiducials")[...])))
     keep = slice(start - first, stop - first)
     rest = rest_shape(fiducials, neutral_share)
-    weights = backend.weights(fiducials, around, keep, rest)  # (targets and the backend's own rows, accepted photos)
+    weights = backend.weights(fiducials, around, keep, rest, looking)  # (targets and the backend's own rows, photos)
     sums = backend.sums(fiducials, stop - start, totals)
     for begin, end in source.shard_ranges():
         a, b = np.searchsorted(ok, [begin, end])

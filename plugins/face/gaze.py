@@ -109,6 +109,17 @@ def iris_offsets(image: np.ndarray, landmarks: np.ndarray) -> np.ndarray:
     return np.stack([iris_offset(image, landmarks[list(eye)]) for eye in EYES68])
 
 
+def photo_gazes(images: np.ndarray, neutral: np.ndarray) -> np.ndarray:
+    """(n, 2) where each of B's photos ``images`` (n, H, W, 3), aligned to the fiducials ``neutral`` (49, 2),
+    looks: the mean of its two irises' offsets (:func:`iris_offset`, along and across, eye widths), the one
+    found where only one is; NaN where neither is (eyes shut or too narrow)."""
+    points = [np.asarray(neutral, np.float64)[list(eye)] for eye in EYES49]
+    offsets = np.array([[iris_offset(image, eye) for eye in points] for image in images]).reshape(-1, 2, 2)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # a photo with neither eye found: NaN
+        return np.nanmean(offsets, axis=1)
+
+
 def gaze_shift(offsets: np.ndarray) -> np.ndarray:
     """(T, 2, 2) a clip's iris offsets (:func:`iris_offsets` of every frame) from its own usual gaze (their
     median over the clip), both eyes moved together by the mean of the two (an eye that was not measured

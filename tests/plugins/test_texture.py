@@ -257,7 +257,7 @@ def test_weights_smoothed_in_time_change_gradually_and_a_shard_with_its_margin_g
 #: a value other than the default for each of MultiscaleTexture's frame_params
 FRAME_PARAMS = {"sigma": 3.0, "eye_sigma": 0.0, "min_share": 0.5, "skip": 0.1, "time_sigma": 2.0, "detail_share": 1.0,
                 "finest_share": 0.5, "detail_from": "frame", "close_eyes": False, "shut_from": 0.8, "shut_at": 0.3,
-                "gaze": False}
+                "gaze": False, "eye_gaze": 0.1}
 
 
 def test_the_frame_params_leave_the_video_mode_cache_as_it_is():
@@ -330,6 +330,43 @@ def test_the_eyes_take_the_photos_whose_eyes_are_as_open_as_the_targets():
     texture = MultiscaleTexture({"close_eyes": False}).blend(cache, fiducials, target)
     assert red_over_green(texture, region > 0.95) > 500
     assert red_over_green(texture, region == 0) < 0.2
+
+
+def test_the_eyes_take_the_photos_that_look_ahead():
+    """``eye_gaze``: of 12 photos with both eyes drawn at the generic face's fiducials, 8 look ahead and 4 a
+    quarter of the eye's width aside. Each photo's gaze is found where it was drawn (within 0.04 eye
+    widths); the photos that look aside weigh under 1e-3 of the others where the eyes are blended (σ 0.05),
+    a photo whose irises are not found weighs fully (its lids weigh it), the face's own rows do not change,
+    and with ``eye_gaze`` 0 there is no factor."""
+    from persona.plugins.face import gaze
+    from persona.plugins.face.template import CANONICAL_HEIGHT as H, CANONICAL_WIDTH as W
+
+    neutral = generic_template().fiducials3d[:, :2]
+    photos, drawn = [], []
+    for k in range(12):
+        aside = 0.25 if k % 3 == 2 else 0.0
+        image = np.full((H, W, 3), (190, 150, 130), np.uint8)
+        for eye in gaze.EYES49:
+            points = neutral[list(eye)]
+            origin, axis, width = gaze._frame(points)
+            opening = gaze._coverage((H, W), gaze._almond(points)) > 0.5
+            image[opening] = 235
+            iris = gaze._disc((H, W), origin + aside * width * axis, 0.21 * width) > 0.5
+            image[iris & opening] = (70, 50, 40)
+        photos.append(image)
+        drawn.append(aside)
+    gazes = gaze.photo_gazes(np.stack(photos), neutral)
+    assert np.abs(gazes[:, 0] - drawn).max() < 0.04, gazes
+    backend = MultiscaleTexture()
+    looking = backend.looking(np.vstack([gazes, [[np.nan, np.nan]]]))
+    ahead = np.array(drawn) == 0
+    assert looking[:12][ahead].min() > 0.5 and looking[:12][~ahead].max() < 1e-3 and looking[12] == 1.0
+    fiducials = np.repeat(neutral[None], 12, axis=0)
+    plain = backend.weights(fiducials, neutral[None])
+    weighed = backend.weights(fiducials, neutral[None], looking=looking[:12])
+    assert np.array_equal(plain[[0, 2]], weighed[[0, 2]])  # the face's row and B at rest
+    assert np.allclose(weighed[1], plain[1] * looking[:12])  # the eyes' own
+    assert MultiscaleTexture({"eye_gaze": 0.0}).looking(gazes) is None
 
 
 def test_the_eyes_own_rows_summed_over_their_band_alone_give_the_same_texture():
