@@ -39,6 +39,7 @@ DEFAULT_PLUGINS = (
     "persona.plugins.builtin.denoise",
     "persona.plugins.builtin.texture",
     "persona.plugins.builtin.composite",
+    "persona.plugins.builtin.mouth",
 )
 
 ENTRY_POINT_GROUP = "persona"
