@@ -447,8 +447,8 @@ STAGES = {stage.name: stage for stage in (
     Stage("dynamics", ("drive",), ("flow", "motion"), "the driver's per-frame 3D flow", "frame",
           ("retarget", "driver:shape"), ("status/dynamics/state",), run="persona.dag.motion:run_dynamics",
           mesh=True, photo=(DYNAMICS,)),
-    Stage("motion", ("drive",), ("motion", "denoise"), "A's meshes, then B's by deformation transfer (and the "
-          "meshes the workflow exports)", "drive", ("dynamics", "puppet:shape"), ("mesh",), "5",
+    Stage("motion", ("drive",), ("motion", "transfer", "denoise"), "A's meshes, then B's by the motion transfer "
+          "(and the meshes the workflow exports)", "drive", ("dynamics", "puppet:shape"), ("mesh",),
           run="persona.dag.motion:run_motion", mesh=True),
     Stage("teeth", ("drive",), ("render", "mouth"), "how much of B's teeth each frame shows, as the driver's mouth "
           "shows them (mouth_choice: driver)", "drive", ("retarget", "puppet:mouth", "video:screen"),

@@ -6,7 +6,7 @@ the centre of pixel (row i, col j) at (x=j, y=i) as in OpenCV and dlib.
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from typing import ClassVar
 
@@ -466,3 +466,43 @@ class MouthBackend(Backend):
         interiors made; otherwise every frame takes 1."""
         raise NotImplementedError
 
+
+@dataclass(frozen=True)
+class MotionPair:
+    """What a motion transfer is set up from, once per drive; every array in the canonical frame (px), meshes as
+    the canonical (x, y, Z) of the surface point that carries each texture pixel, Z in canonical px.
+
+    driver_mean : ndarray, shape (H, W, 3) — M̄_D, the driver's mean mesh over the drive
+    correspondence : ndarray, shape (H, W, 2) — φ: for each pixel of B's face, the (x, y) of A's face it stands for
+    puppet : ndarray, shape (H, W, 3) — M_P, B's average mesh
+    puppet_mask, driver_mask : ndarray, shape (H, W), bool — B's face, A's face
+    fiducials : ndarray, shape (49, 2) — B's mean fiducials (x, y)
+    targets : ndarray, shape (T, 49, 2) — B's target fiducials in each frame of the drive (the retarget's)
+    denoiser : DenoiseBackend, or None — the workflow's ``stages.denoise`` when it names one (None: the
+        backend's own choice)
+    """
+
+    driver_mean: np.ndarray
+    correspondence: np.ndarray
+    puppet: np.ndarray
+    puppet_mask: np.ndarray
+    driver_mask: np.ndarray
+    fiducials: np.ndarray
+    targets: np.ndarray
+    denoiser: DenoiseBackend | None = None
+
+
+class TransferBackend(Backend):
+    """Kind ``transfer``: the driver's motion carried onto B's face (paper §4: deformation transfer), the
+    meshes a renderer of the 3D puppet draws. A's meshes move with A's face; the transfer says how the same
+    expression moves B's, whose face has another shape."""
+
+    kind = "transfer"
+
+    def prepare(self, pair: MotionPair) -> Callable[[int, np.ndarray], np.ndarray]:
+        """Set up once per drive (each worker calls it once and keeps the result for its frames).
+
+        Returns a function (t, driver_mesh) -> B's mesh of frame t: driver_mesh (H, W, 3) float32 is M_D^t, A's
+        mesh of frame t; the result (H, W, 3) float is M_P^t, in the units of ``pair.puppet``. Values off
+        ``pair.puppet_mask`` are not kept (the store holds NaN there)."""
+        raise NotImplementedError

@@ -40,6 +40,7 @@ DEFAULT_PLUGINS = (
     "persona.plugins.builtin.texture",
     "persona.plugins.builtin.composite",
     "persona.plugins.builtin.mouth",
+    "persona.plugins.builtin.transfer",
 )
 
 ENTRY_POINT_GROUP = "persona"
