@@ -8,16 +8,15 @@ import numpy as np
 import pytest
 import yaml
 
-from persona.dag.demo import driver_identity, write_collection
 from persona.dag.runner import run_workflow
 from persona.dag.workflow import load_workflow
 from persona.plugins import manager
 from persona.plugins.base import Params
-from persona.plugins.face import mouth, synthetic
+from persona.plugins.face import mouth
 from persona.plugins.hookspecs import hookimpl
 from persona.plugins.kinds import Mouth, MouthBackend, MouthInterior, TransferBackend
-from persona.stores import media
 from persona.stores.layout import Collection, open_store
+from pipeline import write_quick_people
 
 
 class Flat(MouthBackend):
@@ -61,11 +60,7 @@ def persona_register_backends(register):
 def users_run(tmp_path_factory):
     """A small 3D drive of synthetic faces with the two backends above named in its workflow."""
     folder = tmp_path_factory.mktemp("kinds")
-    data, quick = folder / "data", {"supersample": 1}
-    write_collection(data / "puppet", synthetic.make_collection(8, seed=0, **quick))
-    write_collection(data / "driver", synthetic.make_collection(8, seed=1, **quick))
-    video = synthetic.make_driver_video(6, seed=2, identity=driver_identity(0), **quick)
-    media.write_video_mp4(data / "driver.mp4", (frame.image for frame in video), fps=25)
+    write_quick_people(folder / "data", {"puppet": (8, 0), "driver": (8, 1)}, "driver", 6)
     path = folder / "kinds.yaml"
     path.write_text(yaml.safe_dump({
         "name": "kinds", "store": "run.zarr", "output": "output", "photos_per_shard": 4,
