@@ -124,7 +124,7 @@ def gaze_shift(offsets: np.ndarray) -> np.ndarray:
 
 
 #: what :func:`look` draws, as a version: a drive's frame textures record it and are made again when it changes
-LOOK_VERSION = "2"
+LOOK_VERSION = "3"
 
 #: the disc moved as the iris (:func:`look`), over the iris the measure looks for: it takes the iris' dark rim
 #: and the blur around it along, so that none of it is left behind in the white
@@ -184,21 +184,31 @@ def _turned(texture: np.ndarray, opening: np.ndarray, bare: np.ndarray, iris: np
     return texture + inside * (bare * (1 - alpha) + moved * alpha - texture)
 
 
+#: the share of an eye's opening around the iris, its brightest, that :func:`_white_behind` takes as the white:
+#: the rest is lid, lashes, the pink inner corner and the lower lid's shadow
+WHITE_SHARE = 0.5
+
+
 def _white_behind(texture: np.ndarray, hole: np.ndarray, opening: np.ndarray) -> np.ndarray:
     """``texture`` with the texels of ``hole`` (h, w) bool filled, row by row, from the eye's white either side
-    of it in the same row (the ``opening``'s texels outside the hole; linear between the nearest on each side,
-    the nearest one beyond the last): the white the iris leaves behind, without the lids' or lashes' colour
-    that filling from all around would bring into it. A row with no such texel (along a lid) takes the
-    nearest row's that had."""
+    of it in the same row: the ``opening``'s texels outside the hole that are among its brightest
+    (``WHITE_SHARE``), linear between the nearest on each side, the nearest one beyond the last. The white
+    the iris leaves behind, without the lids', lashes' or inner corner's colour that filling from all around
+    would bring into it (on an eye whose white shows only a few texels either side of the iris, a grey band
+    the measure took for the iris). A row with no such texel (along a lid) is filled from the rest of the
+    opening in it, so the lid's line stays; a row with none at all takes the nearest row's that had."""
     out = np.array(texture, np.float32)
+    around = opening & ~hole
+    grey = out.mean(axis=2)
+    white = around & (grey >= np.percentile(grey[around], 100 * (1 - WHITE_SHARE))) if around.any() else around
     rows = np.flatnonzero(hole.any(axis=1))
     filled = []
     for y in rows:
-        white = np.flatnonzero(opening[y] & ~hole[y])
-        if len(white):
+        source = np.flatnonzero(white[y]) if white[y].any() else np.flatnonzero(around[y])
+        if len(source):
             gap = np.flatnonzero(hole[y])
             for c in range(out.shape[2]):
-                out[y, gap, c] = np.interp(gap, white, out[y, white, c])
+                out[y, gap, c] = np.interp(gap, source, out[y, source, c])
             filled.append(y)
     for y in np.setdiff1d(rows, filled) if filled else ():
         gap = np.flatnonzero(hole[y])

@@ -136,9 +136,9 @@ def test_a_batch_killed_at_ten_points_ends_as_an_uninterrupted_run(batch, tmp_pa
 
     store, output = tmp_path / "chaos.zarr", tmp_path / "chaos"
     kills, runs, progress = [], [], Progress(timeline)
-    started = time.monotonic()
+    started, killed = time.monotonic(), True
     try:
-        while not runs or killed:  # a run after each whole-run kill
+        while killed:  # the first run, and a run after each whole-run kill
             runs.append(_run(workflow, store, output, tmp_path / f"chaos_{len(runs) + 1}.log"))
             killed = _kill_on_points(runs[-1], progress, points, kinds, kills, rng)
         rc = runs[-1].wait(TIMEOUT)

@@ -80,6 +80,28 @@ def test_a_texture_eye_turns_by_the_shift_under_its_lids(width):
     assert gaze.look(image, neutral, np.zeros((2, 2))) is image  # nothing to move
 
 
+def test_the_white_behind_a_turned_iris_is_white_beside_a_dark_inner_corner():
+    """An eye whose white shows little either side of its iris, its inner (left) corner a dark pink and its
+    white shaded grey under the upper lid: turned 0.3 of its width right, the place the iris left is filled
+    from the white, not from the corner (its grey within 12 of the white's brightest tenth; filled from all the
+    opening either side it was 50 darker), and the measure finds the iris where it went (within 0.05)."""
+    width = 25
+    image, points = drawn_eye(width, 0.0, 0.0, seed=1)
+    opening = np.zeros(image.shape[:2], np.uint8)
+    cv2.fillPoly(opening, [np.round(points).astype(np.int32)], 1)
+    corner = np.zeros_like(opening)
+    cv2.circle(corner, tuple(np.round(points[0] + (0.12 * width, 0)).astype(int)), round(0.16 * width), 1, -1)
+    image[(corner > 0) & (opening > 0)] = (150, 95, 95)
+    neutral = np.full((49, 2), np.nan)
+    neutral[list(gaze.EYES49[0])] = points
+    far = gaze.look(image.astype(np.float32), neutral, np.array([[0.3, 0.0], [0.3, 0.0]]))
+    x, y = np.round((points[0] + points[3]) / 2).astype(int)
+    white = np.percentile(image[(opening > 0) & (corner == 0)].mean(axis=1), 90)
+    assert far[y, x].mean() > white - 12, (far[y, x], white)
+    found = gaze.iris_offset(np.clip(far, 0, 255).round().astype(np.uint8), points)
+    assert abs(found[0] - 0.3) < 0.05, found
+
+
 def test_a_clips_gaze_is_taken_from_its_usual_one_and_clipped():
     """Offsets (T, 2 eyes, 2) of a clip that looks ahead, at 0.05 eye widths right, in most frames: the shift is the
     mean of the two eyes less the clip's median (0.07 and 0.05: 0.01), clipped to MAX_SHIFT (0.5 and 0.5: 0.45 is
