@@ -14,7 +14,7 @@ import logging
 
 import numpy as np
 
-from persona.plugins.face import gaze, mouth
+from persona.plugins.face import gaze
 from persona.plugins.face.composite import alone
 from persona.plugins.face.dynamics import smooth_in_time
 from persona.plugins.face.fiducials import rest_shape
@@ -129,14 +129,15 @@ def run_gaze(runner: RunContext, stage: st.Stage, target: Target) -> None:
 
 def run_teeth(runner: RunContext, stage: st.Stage, target: Target) -> None:
     """``mouth/teeth``: how much of B's teeth (rather than B's cavity) each frame's mouth shows, as the
-    driver's own mouth shows them there (mouth.teeth_share), made steady in time (the render's
-    ``mouth_sigma``); 1 in every frame unless the render draws it and the puppet has both interiors
-    (``mouth_choice: driver``)."""
+    ``mouth`` backend finds it in the driver's own mouth, made steady in time (the render's ``mouth_sigma``);
+    1 in every frame unless the render draws it and the puppet has both interiors (``mouth_choice: driver``).
+    Its key takes the backend through the mouth stage's, which records it."""
     drive = Collection(runner.root, target.path)
     frames, puppet = Collection(runner.root, target.cast.frames), Collection(runner.root, target.cast.puppet)
     params = runner.render_params()
     sigma, both = params.mouth_sigma, params.mouth and puppet.has("texture/mouth_cavity")
-    prov = st.provenance(stage.name, params={"sigma": sigma} if both else {},
+    name, settings = runner.wf.stage("mouth")
+    prov = st.provenance(stage.name, backend=st.backend_key("mouth", name)[0], params={"sigma": sigma} if both else {},
                          inputs={"mouth": puppet.provenance("texture/lips").key,
                                  "frames": frames.provenance("status/screen/state").key},
                          persona_version=runner.version)
@@ -144,10 +145,9 @@ def run_teeth(runner: RunContext, stage: st.Stage, target: Target) -> None:
         share = np.ones(drive.n)
         if both:
             rgb, size, points = (frames.array(array) for array in ("photos/rgb", "photos/size", "landmarks/points"))
-            for start, stop in drive.shard_ranges():
-                for i, (image, (h, w), lm) in enumerate(zip(rgb[start:stop], size[start:stop], points[start:stop])):
-                    share[start + i] = mouth.teeth_share(image[:h, :w], lm)
-            share = smooth_in_time(share, sigma)
+            share = st.default_registry().get("mouth", name)(settings).teeth(
+                ((image[:h, :w], lm) for start, stop in drive.shard_ranges()
+                 for image, (h, w), lm in zip(rgb[start:stop], size[start:stop], points[start:stop])), sigma)
         drive.create("mouth/teeth", (), "float32", ("frame",), prov, pending=True)[:] = share
         drive.mark_done("mouth/teeth", prov)  # after the data: a run killed before this does it again
     target.made[stage.name] = prov

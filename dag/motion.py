@@ -8,10 +8,10 @@
    onto the driver's rank-4 appearance subspace, then a flow between the two (by default started
    from the TPS of the two faces' mean fiducials, and pinned to them afterwards;
    ``motion.correspondence`` in the workflow);
-4. the magnitude-adjusted deformation transfer of every frame (:mod:`persona.plugins.face.transfer`):
-   B's meshes M_P^t = M_P + Δ̂ f*, then moved so that their fiducials land on the retargeted ones
-   (``drive/target``, smoothed over time; ``transfer.fiducials``, not in the paper); Dask tasks over
-   shards, each worker building the transfer once.
+4. the motion transfer of every frame by the ``transfer`` backend (by default the magnitude-adjusted
+   deformation transfer, :mod:`persona.plugins.builtin.transfer`: B's meshes M_P^t = M_P + Δ̂ f*, then moved
+   so that their fiducials land on the retargeted ones); Dask tasks over shards, each worker preparing the
+   backend once.
 
 Stored in the ``drive`` collection: ``dynamics/flow``, ``dynamics/delta`` (per frame),
 ``motion/driver_mesh`` (M_D^t), ``motion/driver_mean``, ``motion/correspondence`` (φ) and ``mesh``
@@ -24,10 +24,9 @@ from __future__ import annotations
 import numpy as np
 
 from persona.plugins.base import Rejected
-from persona.plugins.face.dynamics import FrameTrack, frame_mesh, smooth_in_time, smooth_tracks
-from persona.plugins.face.transfer import (DeformationTransfer, FiducialFollow, below_mouth, guided_correspondence,
-                                          lower_lip, unfolded)
-from persona.plugins.kinds import Pose
+from persona.plugins.face.dynamics import FrameTrack, frame_mesh, smooth_tracks
+from persona.plugins.face.transfer import guided_correspondence
+from persona.plugins.kinds import MotionPair, Pose
 from persona.stores.layout import OK, Cast, Collection, open_store
 from persona.stores.provenance import cache_key
 
@@ -38,7 +37,8 @@ from .graph import Target
 
 def run_dynamics(runner: RunContext, stage: st.Stage, target: Target) -> None:
     """``dynamics``: the driver's per-frame 3D flow (Dask tasks over shards of frames); the drive's
-    motion params are recorded on its group, where the tasks read them."""
+    motion params are recorded on its group, where the tasks read them (with the transfer backend's params
+    under ``transfer``, where they were before the transfer was a kind)."""
     root, cast = runner.root, target.cast
     drive, driver, puppet = (Collection(root, path) for path in (cast.drive, cast.driver, cast.puppet))
     for coll in (driver, puppet):
@@ -47,7 +47,7 @@ def run_dynamics(runner: RunContext, stage: st.Stage, target: Target) -> None:
             raise Rejected(f"{coll.path} has no 3D shape: {problem}. Without one there is no 3D puppet; "
                            "render in 2D instead with --set stages.render.backend=tps2d")
     motion = runner.motion_params()
-    drive.group.attrs["motion"] = motion
+    drive.group.attrs["motion"] = {**motion, "transfer": runner.wf.stage("transfer")[1]}
     dynamics = runner.prepare_stage(drive, st.DYNAMICS, {
         "retarget": target.made["retarget"].key, "driver_shape": driver.provenance("shape/depth").key,
         "params": cache_key(**motion["dynamics"])}, (motion["flow"]["backend"], motion["flow"]["params"]))
@@ -70,8 +70,11 @@ def _meshes(runner: RunContext, stage: st.Stage, target: Target) -> None:
     motion = runner.motion_params()
     # the workflow's denoiser when it names one, else the transfer's own default (huber_rof, off-mask excluded)
     denoise = runner.wf.stage("denoise") if "denoise" in runner.wf.stages else None
-    prov = st.provenance(stage.name, params={"transfer": motion["transfer"], "dynamics": motion["dynamics"],
-                                             "denoise": denoise, "correspondence": motion["correspondence"]},
+    transfer = runner.wf.stage("transfer")
+    recorded, version = st.backend_key("transfer", transfer[0])
+    prov = st.provenance(stage.name, backend=recorded, backend_version=version,
+                         params={"transfer": transfer[1], "dynamics": motion["dynamics"], "denoise": denoise,
+                                 "correspondence": motion["correspondence"]},
                          inputs={"dynamics": dynamics.key, "puppet_shape": puppet.provenance("shape/depth").key,
                                  "puppet_texture": puppet.provenance("shape/texture").key},
                          persona_version=runner.version)
@@ -93,7 +96,7 @@ def _meshes(runner: RunContext, stage: st.Stage, target: Target) -> None:
         **{k: corr[k] for k in ("landmark_guide", "guide_lambda", "pin_fiducials", "pin_lambda")})
     drive.create_single("motion/correspondence", phi.astype(np.float32), ("y", "x", "xy"), prov)
     drive.create("mesh", (*puppet_mask.shape, 3), np.float32, ("frame", "y", "x", "xyz"), prov, pending=True)
-    runner.tasks.map_shards(drive, "transfer", transfer_meshes, prov.key, puppet.path, denoise)
+    runner.tasks.map_shards(drive, "transfer", transfer_meshes, prov.key, puppet.path, transfer, denoise)
     drive.mark_done("mesh", prov)  # after the last frame: a killed run leaves no key to trust
 
 
@@ -119,48 +122,29 @@ def driver_meshes(url: str, path: str, start: int, stop: int, key: str) -> np.nd
     return block.sum(axis=0, dtype=np.float64)
 
 
-def transfer_meshes(url: str, path: str, start: int, stop: int, key: str, puppet: str, denoise) -> None:
-    """One shard's task: B's meshes M_P^t of frames [start, stop) into ``mesh`` (NaN off B's face): transferred,
-    moved onto the fiducials' targets and kept from folding below the mouth; the transfer and the follower are
-    built once per worker."""
+def transfer_meshes(url: str, path: str, start: int, stop: int, key: str, puppet: str, transfer: tuple[str, dict],
+                    denoise: tuple[str, dict] | None) -> None:
+    """One shard's task: B's meshes M_P^t of frames [start, stop) into ``mesh`` (NaN off B's face), as the
+    ``transfer`` backend (name, params) moves them; each worker prepares it once."""
     root = open_store(url)
     drive = Collection(root, path)
-    transfer, follow, targets, mask, fold = st.per_process(
-        key, lambda: _transfer(root, drive, Collection(root, puppet), denoise))
-    tp = transfer.params
-
-    def mesh(t: int, driver_mesh: np.ndarray) -> np.ndarray:
-        out = transfer(driver_mesh) if follow is None else follow(transfer(driver_mesh), targets[t], tp.fiducials)
-        return out if fold is None else unfolded(out, fold[0], tp.unfold_step, lip=fold[1])
-
+    mesh, mask = st.per_process(key, lambda: _prepared(root, drive, Collection(root, puppet), transfer, denoise))
     block = np.stack([mesh(t, m) for t, m in zip(range(start, stop), drive.array("motion/driver_mesh")[start:stop])])
     block[:, ~mask] = np.nan
     drive.array("mesh")[start:stop] = block.astype(np.float32)
 
 
-def _transfer(root, drive: Collection, puppet: Collection, denoise) -> tuple:
-    """The magnitude-adjusted transfer onto ``puppet``, the fiducial follower (None when
-    ``transfer.fiducials`` is 0), the targets it follows (smoothed over time), B's mask, and the part of it
-    below the mouth that is kept from folding with the lower lip's body in it (None when ``transfer.unfold``
-    is off)."""
-    motion = drive.attrs["motion"]
+def _prepared(root, drive: Collection, puppet: Collection, transfer: tuple[str, dict], denoise) -> tuple:
+    """The transfer backend prepared for this drive (its function of a frame and A's mesh), and B's mask."""
     depth = puppet.array("shape/depth")[...]
     ys, xs = np.mgrid[0:depth.shape[0], 0:depth.shape[1]]
     mask = puppet.array("shape/mask")[...]
-    denoiser = st.default_registry().get("denoise", denoise[0])(denoise[1]) if denoise else None
-    transfer = DeformationTransfer(drive.array("motion/driver_mean")[...], drive.array("motion/correspondence")[...],
-                                   np.stack([xs, ys, depth], axis=-1), mask,
-                                   st.driver_model(root, drive.path)["model"].mask, params=motion["transfer"],
-                                   denoiser=denoiser)
-    tp = transfer.params
-    fiducials = puppet.array("aligned/mean_fiducials")[...]
-    below = below_mouth(mask, fiducials) if tp.unfold else None
-    fold = None if below is None else (below, lower_lip(below, fiducials))
-    if not tp.fiducials:
-        return transfer, None, None, mask, fold
-    follow = FiducialFollow(fiducials, mask, lam=tp.fiducial_lambda, corner_reach=tp.corner_reach)
-    targets = smooth_in_time(drive.array("target")[:].astype(np.float64), tp.fiducial_sigma)
-    return transfer, follow, targets, mask, fold
+    registry = st.default_registry()
+    pair = MotionPair(drive.array("motion/driver_mean")[...], drive.array("motion/correspondence")[...],
+                      np.stack([xs, ys, depth], axis=-1), mask, st.driver_model(root, drive.path)["model"].mask,
+                      puppet.array("aligned/mean_fiducials")[...], drive.array("target")[:],
+                      registry.get("denoise", denoise[0])(denoise[1]) if denoise else None)
+    return registry.get("transfer", transfer[0])(transfer[1]).prepare(pair), mask
 
 
 def export_meshes(runner: RunContext, cast: Cast, output: str, every: int) -> list[str]:

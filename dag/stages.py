@@ -433,8 +433,8 @@ STAGES = {stage.name: stage for stage in (
     Stage("texture", ("puppet",), ("texture",), "the expression-dependent texture's cache of aligned photos",
           "collection", ("align",), ("texture/neutral",), run="persona.dag.texture:run_texture",
           runs="tasks over shards (warp, basis by products over them, cache), then one task (the neutral texture)"),
-    Stage("mouth", ("puppet",), ("render",), "the inside of B's mouth from its open photos", "collection",
-          ("screen",), ("texture/lips",), "2", run="persona.dag.texture:run_mouth", runs="the client", mesh=True),
+    Stage("mouth", ("puppet",), ("render", "mouth"), "the inside of B's mouth from its open photos", "collection",
+          ("screen",), ("texture/lips",), run="persona.dag.texture:run_mouth", runs="the client", mesh=True),
     Stage("retarget", ("drive",), ("motion",), "the driver's smoothed poses and B's target fiducials", "drive",
           ("video:screen", "puppet:mean", "driver:mean"), ("status/retarget/state",), "2",
           run="persona.dag.drive:run_retarget", runs="the client"),
@@ -447,10 +447,10 @@ STAGES = {stage.name: stage for stage in (
     Stage("dynamics", ("drive",), ("flow", "motion"), "the driver's per-frame 3D flow", "frame",
           ("retarget", "driver:shape"), ("status/dynamics/state",), run="persona.dag.motion:run_dynamics",
           mesh=True, photo=(DYNAMICS,)),
-    Stage("motion", ("drive",), ("motion", "denoise"), "A's meshes, then B's by deformation transfer (and the "
-          "meshes the workflow exports)", "drive", ("dynamics", "puppet:shape"), ("mesh",), "5",
+    Stage("motion", ("drive",), ("motion", "transfer", "denoise"), "A's meshes, then B's by the motion transfer "
+          "(and the meshes the workflow exports)", "drive", ("dynamics", "puppet:shape"), ("mesh",),
           run="persona.dag.motion:run_motion", mesh=True),
-    Stage("teeth", ("drive",), ("render",), "how much of B's teeth each frame shows, as the driver's mouth "
+    Stage("teeth", ("drive",), ("render", "mouth"), "how much of B's teeth each frame shows, as the driver's mouth "
           "shows them (mouth_choice: driver)", "drive", ("retarget", "puppet:mouth", "video:screen"),
           ("mouth/teeth",), "1", run="persona.dag.drive:run_teeth", runs="the client", mesh=True),
     Stage("render", ("drive",), ("render",), "the puppet's frames", "frame",

@@ -12,7 +12,7 @@ Stored: ``<puppet>/texture/weighted_<k>``, ``texture/detail_<k>`` (per photo and
 sums over all photos ``texture/total_<weighted|detail|energy>_<k>`` (the cache, whose provenance
 leaves out the texture backend's ``frame_params``), ``texture/neutral`` (the texture at the mean
 fiducials, written last; its provenance has every param) and ``drive/texture/rgb`` (per frame).
-For 3D renderers also the inside of B's mouth (:mod:`persona.plugins.face.mouth`):
+For 3D renderers also the inside of B's mouth (the ``mouth`` backend's, :func:`run_mouth`):
 ``texture/mouth`` (when a photo shows it) and ``texture/lips`` (B's mean inner-lip curves,
 written last).
 """
@@ -24,14 +24,13 @@ import operator
 
 import numpy as np
 
-from persona.plugins.face import mouth
 from persona.plugins.face.blend import (BlendCache, BlendTotals, gaussian_pyramid, level_bias, seen_mean,
                                         seen_sums)
 from persona.plugins.face.fiducials import rest_shape
 from persona.plugins.face.gaze import LOOK_VERSION, photo_gazes
 from persona.plugins.face.template import CANONICAL_HEIGHT as H, CANONICAL_WIDTH as W
 from persona.plugins.face.texture import Aligned, to_grey, warped_basis
-from persona.plugins.kinds import Pose, TextureBackend, TexturePhotos
+from persona.plugins.kinds import MouthPhotos, Pose, TextureBackend, TexturePhotos
 from persona.stores import media, storage
 from persona.stores.layout import OK, Collection, open_store
 from persona.stores.provenance import Provenance
@@ -355,46 +354,48 @@ def stored_textures(url: str, path: str, name: str, params: dict, targets, start
 
 
 def run_mouth(runner: RunContext, stage: st.Stage, target: Target) -> None:
-    """The inside of B's mouth for the renderer (``mouth``, ``mouth_photos``, ``mouth_min_gap`` and
-    ``mouth_choice`` of its params): the median of ``mouth_photos`` of B's open accepted photos between
-    their inner lips, the widest (``texture/mouth``) or the darkest there, or both (``driver``: the
-    darkest as ``texture/mouth_cavity``), how far apart their lips are (the median, canonical px), and
-    B's mean inner-lip curves in the canonical frame."""
+    """The inside of B's mouth for the renderer, as the ``mouth`` backend makes it from B's accepted photos
+    (``mouth``, ``mouth_photos``, ``mouth_min_gap`` and ``mouth_choice`` of the render's params say how):
+    ``texture/mouth`` and, for ``driver``, ``texture/mouth_cavity`` (each when a photo shows it), how far apart
+    their photos' lips are (``_gap``, canonical px), and B's mean inner-lip curves (``texture/lips``, last)."""
     coll = Collection(runner.root, target.path)
     chosen = runner.render_params()
     # mouth_choice frame draws the driver's own interior, B's only where the driver's lips are closed: the widest
     choice = "widest" if chosen.mouth_choice == "frame" else chosen.mouth_choice
     settings = {"photos": chosen.mouth_photos, "min_gap": chosen.mouth_min_gap, "choice": choice}
-    prov = st.provenance(stage.name, params=settings, inputs={"screen": coll.provenance("status/screen/state").key},
-                         persona_version=runner.version)
+    name, params = runner.wf.stage("mouth")
+    recorded, version = st.backend_key("mouth", name)
+    prov = st.provenance(stage.name, backend=recorded, backend_version=version, params=settings,
+                         inputs={"screen": coll.provenance("status/screen/state").key}, persona_version=runner.version)
     target.made[stage.name] = prov
     if st.is_done(coll, prov, *stage.done):
         return
     ok = np.flatnonzero(st.accepted(coll))
-    points = coll.array("landmarks/points").oindex[ok].astype(np.float64)
-    sizes = coll.array("photos/size").oindex[ok]
-    landmarks = coll.array("aligned/landmarks").oindex[ok].astype(np.float64)
-    count = settings["photos"] if settings["choice"] == "widest" else len(ok)
-    open_ = mouth.widest(points, count, settings["min_gap"])  # the open photos, widest first
-    samples = []
-    for i in open_:
-        h, w = sizes[i]
-        samples.append(mouth.sample(coll.array("photos/rgb")[int(ok[i])][:h, :w], points[i]))
-    widest = np.arange(min(len(open_), settings["photos"]))  # open_ is widest first
-    darkest = mouth.darkest(np.stack(samples), settings["photos"]) if samples else widest
-    sets = {"widest": {"texture/mouth": widest},
-            "darkest": {"texture/mouth": darkest},
-            "driver": {"texture/mouth": widest, "texture/mouth_cavity": darkest}}[settings["choice"]]
+    made = st.default_registry().get("mouth", name)(params).interior(
+        MouthPhotos(_Photos(coll, ok), coll.array("landmarks/points").oindex[ok].astype(np.float64),
+                    coll.array("aligned/landmarks").oindex[ok].astype(np.float64)),
+        count=settings["photos"], min_gap=settings["min_gap"], choice=choice)
     for array in ("texture/mouth", "texture/mouth_gap", "texture/mouth_cavity", "texture/mouth_cavity_gap"):
         coll.remove(array)  # an earlier run's
-    if not samples:
+    if made.interior is None:
         log.warning("%s: no photo with the lips %.2f inter-ocular distances apart; the puppet's mouth shows "
                     "no interior when it opens", coll.path, settings["min_gap"])
-    for array, keep in sets.items():
-        if len(keep):
-            interior = mouth.interior(samples[k] for k in keep)
-            coll.create_single(array, interior.round().astype(np.uint8), ("mouth_t", "mouth_s", "channel"), prov)
-            gap = np.nanmedian(mouth.lip_gap(landmarks[open_[keep]], per_iod=False))
-            coll.create_single(f"{array}_gap", np.array([gap]), ("one",), prov)
-    lips = mouth.lip_curves(np.nanmean(landmarks, axis=0))
-    coll.create_single("texture/lips", lips, ("lip", "lip_node", "xy"), prov)
+    for array, interior in (("texture/mouth", made.interior), ("texture/mouth_cavity", made.cavity)):
+        if interior is not None:
+            coll.create_single(array, np.asarray(interior.image, np.uint8), ("mouth_t", "mouth_s", "channel"), prov)
+            coll.create_single(f"{array}_gap", np.array([interior.gap]), ("one",), prov)
+    coll.create_single("texture/lips", np.asarray(made.lips), ("lip", "lip_node", "xy"), prov)
+
+
+class _Photos:
+    """The photos ``rows`` of a collection, each read (and cut to its size) when indexed."""
+
+    def __init__(self, coll: Collection, rows: np.ndarray):
+        self.coll, self.rows, self.sizes = coll, rows, coll.array("photos/size").oindex[rows]
+
+    def __len__(self) -> int:
+        return len(self.rows)
+
+    def __getitem__(self, i: int) -> np.ndarray:
+        h, w = self.sizes[i]
+        return self.coll.array("photos/rgb")[int(self.rows[i])][:h, :w]

@@ -16,7 +16,6 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, SecretStr, ValidationError, field_validator, model_validator
 
 from persona.plugins.face.dynamics import POSE_SIGMA, DynamicsParams
-from persona.plugins.face.transfer import TransferParams
 from persona.plugins.manager import FlowChoice, Registry, default_registry, did_you_mean
 from persona.stores.media import MAX_PIXELS, MAX_SIDE, MIN_SIDE
 from persona.stores import storage
@@ -420,11 +419,6 @@ class MotionParams(Strict):
     flow: FlowChoice = Field(default_factory=FlowChoice, description="the 2D flow of the per-frame 3D flow "
                              "(reference -> frame, after the landmark guide; 'varref' by default, chosen "
                              "in docs/expression.md)")
-    transfer: TransferParams = Field(default_factory=TransferParams, description="deformation transfer "
-                                     "driver -> puppet (paper §4, ALGORITHMS §10), used by 3D renderers; "
-                                     "its denoiser is stages.denoise when the workflow names one (with that "
-                                     "backend's own defaults), else huber_rof with TV weight 0.3 and off-mask "
-                                     "pixels excluded")
     correspondence: CorrespondenceParams = Field(default_factory=CorrespondenceParams, description="the "
                                                  "driver <-> puppet correspondence φ, used by 3D renderers")
     export_every: int = Field(0, ge=0, description="with a 3D renderer, also write B's textured mesh of every "
@@ -582,12 +576,39 @@ def set_override(data: dict, assignment: str) -> None:
     node[parts[-1]] = yaml.safe_load(value)
 
 
+#: params of a stage that became a stage kind of their own, still read where they were:
+#: (stage, key) -> the kind whose ``stages.<kind>.params`` they are now
+MOVED = {("motion", "transfer"): "transfer"}
+
+
+def _moved(data: dict, source: str) -> dict:
+    """``data`` with each :data:`MOVED` key given where it was (``stages.motion.params.transfer``) moved to
+    its kind's params (``stages.transfer.params``); given in both places, it is an error."""
+    stages = data.get("stages")
+    if not isinstance(stages, dict):
+        return data
+    stages = dict(stages)
+    for (stage, key), kind in MOVED.items():
+        config = stages.get(stage)
+        params = config.get("params") if isinstance(config, dict) else None
+        if not isinstance(params, dict) or key not in params:
+            continue
+        mine = stages.get(kind) or {}
+        if not isinstance(mine, dict) or mine.get("params"):
+            raise WorkflowError(source, [(f"stages.{stage}.params.{key}", f"also given as stages.{kind}.params: "
+                                                                          "give it once, there")])
+        stages[stage] = {**config, "params": {k: v for k, v in params.items() if k != key}}
+        stages[kind] = {**mine, "params": params[key]}
+    return {**data, "stages": stages}
+
+
 def parse_workflow(data: Any, *, source: str = "<workflow>", base_dir: str | Path = ".",
                    registry: Registry | None = None) -> Workflow:
     """Validate raw YAML data into a :class:`Workflow`, or raise WorkflowError with every error."""
     registry = registry or default_registry()
     if not isinstance(data, dict):
         raise WorkflowError(source, [("", f"a workflow is a YAML mapping, got {type(data).__name__}")])
+    data = _moved(data, source)
     try:
         wf = Workflow.model_validate({**data, "base_dir": str(base_dir)})
     except ValidationError as exc:

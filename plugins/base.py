@@ -41,8 +41,8 @@ class Backend:
     #: the backend a workflow gets when it names none for this kind
     default: ClassVar[bool] = False
     #: the backend name cache keys record, when not ``name``: "-" for the built-in backend of a stage that
-    #: had no backend choice before its kind existed (the composite, the light), so that what it made
-    #: before stays valid
+    #: had no backend choice before its kind existed (the composite, the light, the mouth, the transfer), so
+    #: that what it made before stays valid
     key_name: ClassVar[str | None] = None
 
     class Params(Params):

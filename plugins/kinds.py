@@ -6,6 +6,7 @@ the centre of pixel (row i, col j) at (x=j, y=i) as in OpenCV and dlib.
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from typing import ClassVar
 
@@ -391,4 +392,124 @@ class CompositeBackend(Backend):
         px), or None.
 
         Returns the composite (h, w, 3) uint8: A's frame where alpha is 0."""
+        raise NotImplementedError
+
+
+@dataclass(frozen=True)
+class MouthPhotos:
+    """B's accepted photos as the mouth interior sees them, in the order of the collection.
+
+    photos : sequence of n photos (h_i, w_i, 3) uint8, each read from the store when indexed (a backend
+        reads only those it uses)
+    points : ndarray, shape (n, 68, 2), float64 — each photo's iBUG 68 landmarks (x, y, the photo's px)
+    landmarks : ndarray, shape (n, 68, 2), float64 — the same landmarks in the canonical frame
+    """
+
+    photos: Sequence
+    points: np.ndarray
+    landmarks: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.points)
+
+
+@dataclass(frozen=True)
+class MouthInterior:
+    """One image of the inside of B's mouth.
+
+    image : ndarray, shape (rows, cols, 3), uint8 — the interior between the inner lips, unrolled: rows run
+        from the upper inner lip down to the lower, columns along the mouth from inner corner iBUG 60 to 64
+        (:mod:`persona.plugins.face.mouth`; the renderer maps it into the gap between B's lips in each frame)
+    gap : float — how far apart the inner lips are in the photos it comes from (canonical px): the interior's
+        own height
+    """
+
+    image: np.ndarray
+    gap: float
+
+
+@dataclass(frozen=True)
+class Mouth:
+    """What a mouth backend makes of B's photos.
+
+    interior : MouthInterior, or None — the inside of B's mouth the renderer draws (None: no photo shows it, the
+        mouth opens onto nothing)
+    cavity : MouthInterior, or None — with ``choice`` ``driver``, B's mouth as it shows no teeth (the darkest),
+        which each frame takes as the driver's own mouth shows no teeth (:meth:`MouthBackend.teeth`); None otherwise
+    lips : ndarray, shape (2, 5, 2), float64 — B's neutral inner-lip curves (upper, lower; canonical x, y), where
+        the mesh's lips are
+    """
+
+    interior: MouthInterior | None
+    cavity: MouthInterior | None
+    lips: np.ndarray
+
+
+class MouthBackend(Backend):
+    """Kind ``mouth``: the inside of B's mouth (teeth, tongue, cavity) that a renderer of the 3D puppet draws
+    where B's lips part, and how much of B's teeth each frame of a drive shows.
+
+    A mesh made from photos has no inside: where the driver opens its mouth, B's lips part over nothing. The
+    render's params say how it is chosen (``stages.render.params``: ``mouth_photos``, ``mouth_min_gap``,
+    ``mouth_choice``, ``mouth_sigma``), and a mouth backend follows them; its own params are
+    ``stages.mouth.params``."""
+
+    kind = "mouth"
+
+    def interior(self, photos: MouthPhotos, *, count: int, min_gap: float, choice: str) -> Mouth:
+        """photos: B's accepted photos; count: how many photos one interior is made of (at most); min_gap: how far
+        apart (inter-ocular distances) a photo's inner lips must be for it to show the interior; choice:
+        ``widest`` (the photos whose lips are furthest apart), ``darkest`` (those darkest between the lips, an
+        open mouth without teeth) or ``driver`` (both: the widest as ``interior``, the darkest as ``cavity``).
+        Malformed inputs raise ValueError."""
+        raise NotImplementedError
+
+    def teeth(self, frames: Iterable[tuple[np.ndarray, np.ndarray]], sigma: float) -> np.ndarray:
+        """frames: each frame of the drive in order, (its image (h, w, 3) uint8, the driver's 68 landmarks in it
+        (68, 2), NaN in a frame without a face); sigma: how steady in time (frames) the result is.
+
+        Returns (T,) float in [0, 1]: how much of B's teeth (1) rather than B's cavity (0) the mouth shows in
+        each frame, as the driver's own mouth shows them there. Called only with ``choice`` ``driver`` and both
+        interiors made; otherwise every frame takes 1."""
+        raise NotImplementedError
+
+
+@dataclass(frozen=True)
+class MotionPair:
+    """What a motion transfer is set up from, once per drive; every array in the canonical frame (px), meshes as
+    the canonical (x, y, Z) of the surface point that carries each texture pixel, Z in canonical px.
+
+    driver_mean : ndarray, shape (H, W, 3) — M̄_D, the driver's mean mesh over the drive
+    correspondence : ndarray, shape (H, W, 2) — φ: for each pixel of B's face, the (x, y) of A's face it stands for
+    puppet : ndarray, shape (H, W, 3) — M_P, B's average mesh
+    puppet_mask, driver_mask : ndarray, shape (H, W), bool — B's face, A's face
+    fiducials : ndarray, shape (49, 2) — B's mean fiducials (x, y)
+    targets : ndarray, shape (T, 49, 2) — B's target fiducials in each frame of the drive (the retarget's)
+    denoiser : DenoiseBackend, or None — the workflow's ``stages.denoise`` when it names one (None: the
+        backend's own choice)
+    """
+
+    driver_mean: np.ndarray
+    correspondence: np.ndarray
+    puppet: np.ndarray
+    puppet_mask: np.ndarray
+    driver_mask: np.ndarray
+    fiducials: np.ndarray
+    targets: np.ndarray
+    denoiser: DenoiseBackend | None = None
+
+
+class TransferBackend(Backend):
+    """Kind ``transfer``: the driver's motion carried onto B's face (paper §4: deformation transfer), the
+    meshes a renderer of the 3D puppet draws. A's meshes move with A's face; the transfer says how the same
+    expression moves B's, whose face has another shape."""
+
+    kind = "transfer"
+
+    def prepare(self, pair: MotionPair) -> Callable[[int, np.ndarray], np.ndarray]:
+        """Set up once per drive (each worker calls it once and keeps the result for its frames).
+
+        Returns a function (t, driver_mesh) -> B's mesh of frame t: driver_mesh (H, W, 3) float32 is M_D^t, A's
+        mesh of frame t; the result (H, W, 3) float is M_P^t, in the units of ``pair.puppet``. Values off
+        ``pair.puppet_mask`` are not kept (the store holds NaN there)."""
         raise NotImplementedError

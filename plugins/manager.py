@@ -39,6 +39,8 @@ DEFAULT_PLUGINS = (
     "persona.plugins.builtin.denoise",
     "persona.plugins.builtin.texture",
     "persona.plugins.builtin.composite",
+    "persona.plugins.builtin.mouth",
+    "persona.plugins.builtin.transfer",
 )
 
 ENTRY_POINT_GROUP = "persona"

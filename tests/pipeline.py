@@ -30,6 +30,20 @@ def write_photos(folder: Path, photos) -> Path:
     return folder
 
 
+def write_quick_people(data: Path, people: dict[str, tuple[int, int]], video: str, frames: int) -> None:
+    """Synthetic photo collections in ``data``, ``people`` by folder name (name -> (photos, seed)), and a driving
+    video ``data/<video>.mp4`` of ``frames`` frames (seed 2, the demo driver's identity), all drawn without
+    antialiasing: 2.5 times faster, and dlib finds them as well."""
+    from persona.dag.demo import driver_identity
+    from persona.plugins.face import synthetic
+    from persona.stores import media
+
+    for name, (n, seed) in people.items():
+        write_collection(data / name, synthetic.make_collection(n, seed=seed, supersample=1))
+    clip = synthetic.make_driver_video(frames, seed=2, identity=driver_identity(0), supersample=1)
+    media.write_video_mp4(data / f"{video}.mp4", (frame.image for frame in clip), fps=25)
+
+
 def write_workflow(folder: Path, photos: str, **extra) -> Path:
     wf = {"version": 1, "name": folder.name, "store": "run.zarr", "output": "out",
           "puppet": {"photos": photos}, "photos_per_shard": 4, **extra}

@@ -41,7 +41,8 @@ def test_schema_is_json_schema(capsys):
     schema = json.loads(capsys.readouterr().out)
     assert {"store", "puppet", "stages", "cluster"} <= set(schema["properties"])
     motion = schema["x-stage-params"]["motion"]  # the params of the stages without backends, documented
-    assert {"dynamics", "flow", "correspondence", "transfer"} <= set(motion["properties"])
+    assert {"dynamics", "flow", "correspondence"} <= set(motion["properties"])
+    assert "transfer" not in motion["properties"]  # the transfer kind's backend's params (persona plugins)
     assert "landmark_guide" in motion["$defs"]["DynamicsParams"]["properties"]
 
 

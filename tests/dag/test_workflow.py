@@ -95,6 +95,21 @@ def test_ingest_takes_params_but_no_backend():
         parse_workflow({**base, "stages": {"ingest": {"params": {"max_sid": 800}}}})
 
 
+def test_the_transfers_params_where_they_were_are_the_transfer_kinds():
+    """``stages.motion.params.transfer`` is still read: as ``stages.transfer.params`` (the transfer kind's, its
+    default backend's), once; given in both places it is an error."""
+    base = {"version": 1, "name": "t", "store": "s", "output": "o", "puppet": {"photos": "p"}}
+    data = {**base, "stages": {"motion": {"params": {"pose_sigma": 1.0, "transfer": {"fiducial_sigma": 2.0}}}}}
+    wf = parse_workflow(data)
+    assert wf.stage("transfer") == parse_workflow({**base, "stages": {"transfer": {"params": {
+        "fiducial_sigma": 2.0}}}}).stage("transfer")
+    assert wf.stage("transfer")[0] == "deformation" and wf.backendless("motion")["pose_sigma"] == 1.0
+    assert "transfer" in data["stages"]["motion"]["params"]  # the caller's data as it was
+    with pytest.raises(WorkflowError, match="give it once"):
+        parse_workflow({**base, "stages": {"transfer": {"params": {"fiducials": 0.5}},
+                                           "motion": {"params": {"transfer": {"fiducials": 0.0}}}}})
+
+
 def test_video_range_and_lists():
     base = {"version": 1, "name": "t", "store": "s", "output": "o"}
     wf = parse_workflow({**base, "puppet": {"photos": {"video": "v.mov", "stop": 900}},

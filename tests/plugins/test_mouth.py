@@ -389,3 +389,42 @@ def test_the_lower_lips_shadow_darkens_a_band_above_it_a_tenth_of_the_gap():
     thin = column(30.0, 31.0, 0.5)
     assert abs(thin[30] - column(30.0, 31.0, 0.0)[30]) <= 1
     assert np.allclose(mouth.lower_lip_shadow(4, 0.0), 1)
+
+
+def test_the_built_in_mouth_backend_is_the_median_of_the_widest_and_darkest_and_the_teeth_share():
+    """The ``mouth`` kind's default (plugins/builtin/mouth.py) makes the interiors, their gaps and B's lips with
+    the functions here, as the render's mouth settings say, reading only the open photos; its cache key is the
+    mouth stage's before the kind existed: "-" and version 2."""
+    from persona.plugins.builtin.mouth import MedianMouth
+    from persona.plugins.face.dynamics import smooth_in_time
+    from persona.plugins.kinds import MouthPhotos
+    from persona.plugins.manager import default_registry
+
+    assert default_registry().default("mouth") == "median"
+    assert (MedianMouth.key_name, MedianMouth.version) == ("-", "2")
+    photos = [open_photo(g) for g in (4.0, 20.0, 0.0, 12.0, 16.0)]
+    photos[4][0][100:120] = 40  # the darkest of the open ones
+    points = np.stack([p[1] for p in photos])
+    read = []
+
+    class Lazy(list):
+        def __getitem__(self, i):
+            read.append(i)
+            return super().__getitem__(i)
+
+    made = MedianMouth().interior(MouthPhotos(Lazy(p[0] for p in photos), points, points), count=2, min_gap=0.05,
+                                  choice="driver")
+    assert sorted(read) == [0, 1, 3, 4]  # the photo with closed lips is not read
+    samples = {i: mouth.sample(photos[i][0], points[i]) for i in (1, 4, 3, 0)}  # widest first
+    order = list(samples)
+    darkest = [order[k] for k in mouth.darkest(np.stack(list(samples.values())), 2)]
+    for interior, chosen in ((made.interior, [1, 4]), (made.cavity, darkest)):
+        expected = mouth.interior(samples[i] for i in chosen).round().astype(np.uint8)
+        np.testing.assert_array_equal(interior.image, expected)
+        assert interior.gap == np.nanmedian(mouth.lip_gap(points[chosen], per_iod=False))
+    np.testing.assert_array_equal(made.lips, mouth.lip_curves(points.mean(axis=0)))
+    assert MedianMouth().interior(MouthPhotos(Lazy(p[0] for p in photos), points, points), count=2,
+                                  min_gap=0.05, choice="widest").cavity is None
+    frames = [(image, lm) for image, lm in photos]
+    shares = [mouth.teeth_share(image, lm) for image, lm in frames]
+    np.testing.assert_array_equal(MedianMouth().teeth(iter(frames), 1.5), smooth_in_time(np.array(shares), 1.5))

@@ -457,3 +457,33 @@ def test_a_lower_lip_hanging_below_its_own_edge_is_spread_between_its_edges():
     np.testing.assert_array_equal(out[..., [0, 2]], hanging[..., [0, 2]])
     pushed = transfer_module.unfolded(hanging, below, step)
     assert pushed[edge, col, 1] > hanging[edge, col, 1] + 3  # without `lip`: the edge pushed off its place
+
+
+def test_the_built_in_transfer_backend_is_the_transfer_the_follower_and_the_unfolding():
+    """The ``transfer`` kind's default (plugins/builtin/transfer.py) prepares, once, the deformation transfer,
+    the fiducial follower on the targets smoothed in time and the unfolding below the mouth, with its params;
+    its cache key is the motion stage's before the kind existed: "-" and version 5."""
+    from persona.plugins.builtin.transfer import DeformationTransferBackend
+    from persona.plugins.face.dynamics import smooth_in_time
+    from persona.plugins.kinds import MotionPair
+    from persona.plugins.manager import default_registry
+
+    assert default_registry().default("transfer") == "deformation"
+    assert (DeformationTransferBackend.key_name, DeformationTransferBackend.version) == ("-", "5")
+    mask, fiducials, mesh, below = _template_at_rest()
+    rng = np.random.default_rng(3)
+    targets = fiducials + rng.normal(0, 0.5, (4, 49, 2))
+    frames = mesh + np.where(mask[..., None], rng.normal(0, 0.2, (4, *mesh.shape)), 0)
+    params = {"fiducial_sigma": 1.0, "corner_reach": 10.0}
+    pair = MotionPair(mesh, mesh[..., :2].copy(), mesh, mask, mask, fiducials, targets, NoDenoise())
+    made = DeformationTransferBackend(params).prepare(pair)
+
+    p = TransferParams.model_validate(params)
+    transfer = DeformationTransfer(mesh, mesh[..., :2], mesh, mask, mask, params=p, denoiser=NoDenoise())
+    follow = FiducialFollow(fiducials, mask, lam=p.fiducial_lambda, corner_reach=p.corner_reach)
+    steady = smooth_in_time(targets, p.fiducial_sigma)
+    lip = transfer_module.lower_lip(below, fiducials)
+    for t in (0, 3):
+        expected = transfer_module.unfolded(follow(transfer(frames[t]), steady[t], p.fiducials), below,
+                                            p.unfold_step, lip=lip)
+        np.testing.assert_array_equal(made(t, frames[t]), expected)
