@@ -104,7 +104,7 @@ def one_core(store: Path, runs: int, frames: int = 40) -> dict[str, list[float]]
     transfer = DeformationTransfer(drive.array("motion/driver_mean")[...], drive.array("motion/correspondence")[...],
                                    np.stack([xs, ys, depth], -1), mask, context["model"].mask)
     driver_meshes = drive.array("motion/driver_mesh")[:frames]
-    cache, fiducials = load_cache(puppet)
+    cache, fiducials, gazes = load_cache(puppet)
     texture = MultiscaleTexture()
     targets = drive.array("target")[:frames]
     meshes, textures = drive.array("mesh")[:frames], drive.array("texture/rgb")[:frames].astype(np.float32)
@@ -121,7 +121,7 @@ def one_core(store: Path, runs: int, frames: int = 40) -> dict[str, list[float]]
         renderer.render(p, targets[i], Pose.from_vector(poses[i]), images[i][:h, :w])
 
     steps = {"dynamics": dynamics, "transfer": lambda i: transfer(driver_meshes[i]),
-             "texture": lambda i: texture.blend(cache, fiducials, targets[i]), "render": render}
+             "texture": lambda i: texture.blend(cache, fiducials, targets[i], gazes=gazes), "render": render}
     out = {}
     for name, fn in steps.items():
         fn(0)  # warm up (numba, caches)

@@ -235,16 +235,16 @@ def cache_shard(url: str, path: str, start: int, stop: int, name: str, params: d
     return None if cache is None else cache.totals
 
 
-def load_cache(coll: Collection) -> tuple[BlendCache, np.ndarray]:
-    """The whole stored video-mode cache and the fiducials of its photos (for tests and benchmarks;
-    a drive reads it a shard at a time: :func:`frame_textures`)."""
+def load_cache(coll: Collection) -> tuple[BlendCache, np.ndarray, np.ndarray]:
+    """The whole stored video-mode cache, the fiducials of its photos and where they look (:func:`_gazes`;
+    for tests and benchmarks: a drive reads it a shard at a time, :func:`frame_textures`)."""
     ok = np.flatnonzero(coll.state("align") == OK)
     levels = _levels(coll)
     weighted = [coll.rows(f"texture/weighted_{k}", ok) for k in range(levels)]
     detail = [coll.rows(f"texture/detail_{k}", ok) for k in range(levels)]
     params = coll.provenance(CACHE_DONE).params
     cache = BlendCache(weighted, detail, level_bias(levels, params["beta"], params["tau"]))
-    return cache, coll.array("aligned/fiducials")[:][ok].astype(np.float64)
+    return cache, coll.array("aligned/fiducials")[:][ok].astype(np.float64), _gazes(coll, ok)
 
 
 def _levels(coll: Collection) -> int:
@@ -340,17 +340,24 @@ def stored_textures(url: str, path: str, name: str, params: dict, targets, start
     ok = np.flatnonzero(source.state("align") == OK)
     totals, fiducials = st.per_process(key, lambda: (_totals(source, backend.params),
                                                      source.array("aligned/fiducials")[:][ok].astype(np.float64)))
-    looking = backend.looking(st.per_process(f"{key}/gazes", lambda: photo_gazes(
-        source.array("aligned/rgb")[:][ok], source.array("aligned/mean_fiducials")[...])))
+    gazes = st.per_process(f"{key}/gazes", lambda: _gazes(source, ok))
     keep = slice(start - first, stop - first)
     rest = rest_shape(fiducials, neutral_share)
-    weights = backend.weights(fiducials, around, keep, rest, looking)  # (targets and the backend's own rows, photos)
+    weights = backend.weights(fiducials, around, keep, rest, gazes)  # (targets and the backend's own rows, photos)
     sums = backend.sums(fiducials, stop - start, totals)
     for begin, end in source.shard_ranges():
         a, b = np.searchsorted(ok, [begin, end])
         if weights[:, a:b].any():
             sums.add(*_read_shard(source, key, begin, end, ok[a:b]), weights[:, a:b])
     return backend.finish(sums, totals, fiducials, around[keep], gaze=gaze)
+
+
+def _gazes(source: Collection, ok: np.ndarray) -> np.ndarray:
+    """(len(ok), 2) where each of the photos ``ok`` (sorted) of the collection looks in its aligned photo
+    (gaze.photo_gazes at its mean fiducials), read a shard at a time."""
+    rgb, neutral = source.array("aligned/rgb"), source.array("aligned/mean_fiducials")[...]
+    parts = [photo_gazes(rgb.oindex[ok[(ok >= begin) & (ok < end)]], neutral) for begin, end in source.shard_ranges()]
+    return np.concatenate(parts) if parts else np.zeros((0, 2))
 
 
 def run_mouth(runner: RunContext, stage: st.Stage, target: Target) -> None:

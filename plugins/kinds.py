@@ -332,19 +332,14 @@ class TextureBackend(Backend):
 
     # A drive reads the stored cache a shard of photos at a time: the blend of Eq. 3 as weights per
     # photo (weights), sums over the shards (persona.plugins.face.blend.BlendSums) and a last step.
-    def looking(self, gazes: np.ndarray) -> np.ndarray | None:
-        """A factor (n,) on each photo's weight where the eyes are blended, from where each looks
-        (gazes (n, 2), persona.plugins.face.gaze.photo_gazes, NaN where not found), passed to
-        :meth:`weights`; None (the default): the photos' gaze does not matter."""
-        return None
-
     def weights(self, fiducials: np.ndarray, targets: np.ndarray, keep: slice = slice(None),
-                neutral: np.ndarray | None = None, looking: np.ndarray | None = None) -> np.ndarray:
+                neutral: np.ndarray | None = None, gazes: np.ndarray | None = None) -> np.ndarray:
         """The weights (m, n) of the photos (fiducials (n, 49, 2)) for the targets ``keep`` of
         consecutive frames' targets (T, 49, 2): a row per target kept, then any further rows that
         :meth:`finish` uses. ``neutral`` (49, 2): B's neutral fiducials in this drive (the ones its
         targets were retargeted about), for rows that stand for B at rest; None = the photos' mean.
-        ``looking``: :meth:`looking`'s factor, or None."""
+        ``gazes`` (n, 2): where each photo looks (persona.plugins.face.gaze.photo_gazes; NaN where its
+        irises were not found), for a backend that weighs the photos' eyes by it; None: not known."""
         raise NotImplementedError
 
     def finish(self, sums, totals, fiducials: np.ndarray, targets: np.ndarray, *,

@@ -19,7 +19,7 @@ from pydantic import Field, model_validator
 
 from ..base import Params
 from ..face import eyes, texture as align
-from ..face.gaze import look
+from ..face.gaze import ahead, look
 from ..face.blend import BlendCache, BlendSums, BlendTotals, chosen, expression_weights
 from ..face.dynamics import smooth_in_time, time_radius
 from ..face.fiducials import mean_shape
@@ -184,12 +184,10 @@ class MultiscaleTexture(TextureBackend):
                                  "percentile on the self-reenactment: 0.87). 0.9 rather than 0.85 brings the "
                                  "self-reenactment's composite eye gain 0.92 -> 1.03 and Bush <- Obama's 0.69 -> "
                                  "0.71 (docs/expression.md)")
-        eye_gaze: float = Field(0.05, ge=0, le=1, description="video mode: σ (eye widths) of a weight on each "
-                                "photo's eyes for where its irises sit, from where B's photos usually have them "
-                                "(persona.plugins.face.gaze.photo_gazes, on B's aligned photos): the eyes' own blend "
-                                "(`eye_sigma`) takes photos that look ahead, whose irises lie on one another, and "
-                                "`gaze` turns them; photos that look aside, blended in, left a doubled, grey iris "
-                                "over the white. Not in the paper (0: off; docs/gaze.md)")
+        eye_gaze: float = Field(0.05, ge=0, le=1, description="video mode: σ (eye widths) of the eyes' weights "
+                                "for where each photo's irises sit, from where B's photos usually have them: the eyes' "
+                                "blend takes photos whose irises lie on one another (blended with those looking aside, "
+                                "a doubled, grey iris), and `gaze` turns them. Not in the paper (0: off; docs/gaze.md)")
         gaze: bool = Field(True, description="video mode: B's eyes turn under their lids, the irises as far from "
                            "where they usually are as the driver's are from where the driver's usually are in the "
                            "clip, in eye widths (persona.plugins.face.gaze): the eyes look where the driver's look. "
@@ -248,25 +246,16 @@ class MultiscaleTexture(TextureBackend):
         e = np.stack([p.weights_of(fiducials, t, relative=p.tau == 0, eyes=eyes) for t in targets])
         return chosen(smooth_in_time(e, p.time_sigma)[keep], p.skip)
 
-    def looking(self, gazes: np.ndarray) -> np.ndarray | None:
-        """(n,) in (0, 1]: how much each photo's eyes weigh for where it looks (``eye_gaze``), from the photos'
-        gazes (n, 2; gaze.photo_gazes): exp(-d² / 2 eye_gaze²), d the distance from the photos' median gaze, 1
-        where a photo's irises were not found (its lids weigh it); None when off."""
-        if not self.params.eye_gaze or not self.params.eye_sigma:
-            return None
-        gazes = np.asarray(gazes, np.float64)
-        d2 = np.sum((gazes - np.nanmedian(gazes, axis=0)) ** 2, axis=1)
-        return np.where(np.isfinite(d2), np.exp(-np.nan_to_num(d2) / (2 * self.params.eye_gaze ** 2)), 1.0)
-
     def weights(self, fiducials: np.ndarray, targets: np.ndarray, keep: slice = slice(None),
-                neutral: np.ndarray | None = None, looking: np.ndarray | None = None) -> np.ndarray:
+                neutral: np.ndarray | None = None, gazes: np.ndarray | None = None) -> np.ndarray:
         """Video mode: the weights (f + 1, n), or (2f + 1, n) with ``eye_sigma``, a drive sums the photos
         with: the :meth:`expression` weights of the targets ``keep``, then the eyes' own of the same
-        targets (times ``looking``, :meth:`looking`, where given), then those of B's ``neutral`` (by default
-        the photos' mean fiducials), whose blend sets how much fine detail :meth:`finish` gives back, and
-        with ``detail_from`` neutral which, in every frame alike."""
-        eyes = ([self.expression(fiducials, targets, keep, eyes=True) * (1.0 if looking is None else looking)]
-                if self.params.eye_sigma > 0 else [])
+        targets (with ``eye_gaze`` and the photos' ``gazes``, times gaze.ahead), then those of B's
+        ``neutral`` (by default the photos' mean fiducials), whose blend sets how much fine detail
+        :meth:`finish` gives back, and with ``detail_from`` neutral which, in every frame alike."""
+        p = self.params
+        looking = ahead(gazes, p.eye_gaze) if gazes is not None and p.eye_gaze else 1.0
+        eyes = [self.expression(fiducials, targets, keep, eyes=True) * looking] if p.eye_sigma > 0 else []
         rest = mean_shape(fiducials) if neutral is None else np.asarray(neutral, np.float64)
         return np.vstack([self.expression(fiducials, targets, keep), *eyes, self.expression(fiducials, rest[None])])
 
@@ -307,15 +296,16 @@ class MultiscaleTexture(TextureBackend):
         return _eyes_moved(textures, targets, neutral, p, gaze if p.gaze else None,
                            p.close_eyes if close_eyes is None else close_eyes)
 
-    def blend(self, cache: BlendCache, fiducials: np.ndarray, targets: np.ndarray, *,
-              close_eyes: bool | None = None, gaze: np.ndarray | None = None) -> np.ndarray:
+    def blend(self, cache: BlendCache, fiducials: np.ndarray, targets: np.ndarray, *, close_eyes: bool | None = None,
+              gaze: np.ndarray | None = None, gazes: np.ndarray | None = None) -> np.ndarray:
         """Video mode with the whole cache in memory: the textures (f, H, W, 3) float32 of targets
         (f, 49, 2), or the texture (H, W, 3) of one target (49, 2), from a cache of photos aligned to
         their mean fiducials, whose own fiducials (n, 49, 2) give the expression weights
-        (:meth:`weights`, :meth:`finish`; ``gaze``, (f, 2, 2) or (2, 2), moves the irises)."""
+        (:meth:`weights`, with the photos' ``gazes``; :meth:`finish`; ``gaze``, (f, 2, 2) or (2, 2),
+        moves the irises)."""
         targets = np.asarray(targets, np.float64)
         every = targets.reshape(-1, *targets.shape[-2:])
-        weights = self.weights(fiducials, every)
+        weights = self.weights(fiducials, every, gazes=gazes)
         sums = self.sums(fiducials, len(every), cache.totals)
         sums.add(cache.weighted, cache.detail, weights)
         gaze = None if gaze is None else np.reshape(gaze, (len(every), 2, 2))

@@ -120,6 +120,15 @@ def photo_gazes(images: np.ndarray, neutral: np.ndarray) -> np.ndarray:
         return np.nanmean(offsets, axis=1)
 
 
+def ahead(gazes: np.ndarray, sigma: float) -> np.ndarray:
+    """(n,) in (0, 1]: how nearly each photo looks where the photos usually do, from their gazes (n, 2;
+    :func:`photo_gazes`): exp(-d² / 2σ²), d (eye widths) the distance from their median gaze; 1 where a
+    photo's irises were not found (a shut or narrowed eye, which its lids weigh)."""
+    gazes = np.asarray(gazes, np.float64)
+    d2 = np.sum((gazes - np.nanmedian(gazes, axis=0)) ** 2, axis=1)
+    return np.where(np.isfinite(d2), np.exp(-np.nan_to_num(d2) / (2 * sigma ** 2)), 1.0)
+
+
 def gaze_shift(offsets: np.ndarray) -> np.ndarray:
     """(T, 2, 2) a clip's iris offsets (:func:`iris_offsets` of every frame) from its own usual gaze (their
     median over the clip), both eyes moved together by the mean of the two (an eye that was not measured

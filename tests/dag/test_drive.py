@@ -423,7 +423,7 @@ def test_the_texture_cache_made_a_shard_at_a_time_is_the_whole_collections(drive
     for k in range(whole.levels):
         stored = puppet.rows(f"texture/weighted_{k}", ok)
         assert np.abs(stored - whole.weighted[k]).max() < 1e-3 * np.ptp(whole.weighted[k]), k
-    neutral = backend.blend(whole, photos.fiducials, target)
+    neutral = backend.blend(whole, photos.fiducials, target, gazes=texture_module.load_cache(puppet)[2])
     assert np.abs(puppet.array("texture/neutral")[...].astype(float) - neutral).max() <= 1.0
 
     monkeypatch.setattr(texture_module, "CACHE_BYTES", 1)  # every task reads every shard it needs
@@ -521,11 +521,12 @@ def test_a_run_killed_during_the_frame_textures_resumes_to_complete_textures(tmp
     drive, puppet = Collection(root, "drive"), Collection(root, "puppet")
     textures = drive.array("texture/rgb")[:]
     assert textures.reshape(len(textures), -1).max(axis=1).min() > 0  # no black frame
-    cache, fiducials = texture_module.load_cache(puppet)
+    cache, fiducials, gazes = texture_module.load_cache(puppet)
     backend = texture_module.texture_backend(type("R", (), {"wf": load_workflow(path)})())[2]
     for t in (1, 5, 7):  # the stored bytes are the backend's blend rounded; the drive sums the photos a shard at
         # a time, so a value within float32 noise (1e-4) of a half level may round the other way
-        exact = backend.blend(cache, fiducials, drive.array("target")[t], gaze=drive.array("eyes/gaze")[t])
+        exact = backend.blend(cache, fiducials, drive.array("target")[t], gaze=drive.array("eyes/gaze")[t],
+                              gazes=gazes)
         assert np.abs(textures[t] - exact).max() <= 0.5 + 1e-3
 
 
@@ -616,11 +617,12 @@ def test_a_frame_param_keeps_the_texture_cache_a_cache_param_builds_it_again(tmp
     assert sorted(after) == sorted(name for name in before if not name.endswith("_4"))
     assert all(after[name][0] != before[name][0] and after[name][1] != before[name][1] for name in after)
     puppet, drive = arrays(tmp_path / "a")
-    cache, fiducials = texture_module.load_cache(puppet)
+    cache, fiducials, gazes = texture_module.load_cache(puppet)
     assert cache.levels == 4
     backend = texture_module.texture_backend(type("R", (), {"wf": load_workflow(path)})())[2]
     for t in (0, 3, 7):  # summed a shard of photos at a time, the detail restored: to 1 level of 255
-        expect = backend.blend(cache, fiducials, drive.array("target")[t], gaze=drive.array("eyes/gaze")[t])
+        expect = backend.blend(cache, fiducials, drive.array("target")[t], gaze=drive.array("eyes/gaze")[t],
+                               gazes=gazes)
         assert np.abs(drive.array("texture/rgb")[t] - expect).max() <= 1.0, t
 
 

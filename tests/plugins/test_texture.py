@@ -357,16 +357,15 @@ def test_the_eyes_take_the_photos_that_look_ahead():
         drawn.append(aside)
     gazes = gaze.photo_gazes(np.stack(photos), neutral)
     assert np.abs(gazes[:, 0] - drawn).max() < 0.04, gazes
-    backend = MultiscaleTexture()
-    looking = backend.looking(np.vstack([gazes, [[np.nan, np.nan]]]))
+    looking = gaze.ahead(np.vstack([gazes, [[np.nan, np.nan]]]), 0.05)
     ahead = np.array(drawn) == 0
     assert looking[:12][ahead].min() > 0.5 and looking[:12][~ahead].max() < 1e-3 and looking[12] == 1.0
     fiducials = np.repeat(neutral[None], 12, axis=0)
-    plain = backend.weights(fiducials, neutral[None])
-    weighed = backend.weights(fiducials, neutral[None], looking=looking[:12])
+    plain = MultiscaleTexture().weights(fiducials, neutral[None])
+    weighed = MultiscaleTexture().weights(fiducials, neutral[None], gazes=gazes)
     assert np.array_equal(plain[[0, 2]], weighed[[0, 2]])  # the face's row and B at rest
     assert np.allclose(weighed[1], plain[1] * looking[:12])  # the eyes' own
-    assert MultiscaleTexture({"eye_gaze": 0.0}).looking(gazes) is None
+    assert np.array_equal(MultiscaleTexture({"eye_gaze": 0.0}).weights(fiducials, neutral[None], gazes=gazes), plain)
 
 
 def test_the_eyes_own_rows_summed_over_their_band_alone_give_the_same_texture():
