@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import logging
+import posixpath
 import time
 
 import numpy as np
@@ -52,14 +53,17 @@ def drive_outputs(runner: RunContext, plan, speed: dict) -> dict:
 def kept_outputs(output: str, key: str) -> dict | None:
     """The videos, speed, evaluation and series a drive's last run left in ``output``, when they
     were made from the same frames and evaluation settings (its metrics.json, written last,
-    records ``outputs_key``) and every video is still there; else None."""
+    records ``outputs_key``) and every video is still there; else None. A video is looked for in
+    ``output`` under its own name, wherever metrics.json says it was written: a folder copied or moved
+    elsewhere keeps its own videos, not the ones it was copied from."""
     metrics, series = storage.join(output, "metrics.json"), storage.join(output, "series.json")
     if not (storage.isfile(metrics) and storage.isfile(series)):
         return None
     last = json.loads(storage.read_text(metrics))
-    if last.get("outputs_key") != key or not all(storage.isfile(v) for v in last.get("videos", {}).values()):
+    videos = {k: str(storage.join(output, posixpath.basename(str(v)))) for k, v in last.get("videos", {}).items()}
+    if last.get("outputs_key") != key or not all(storage.isfile(v) for v in videos.values()):
         return None
-    return {**{k: last[k] for k in ("outputs_key", "videos", "speed", "evaluation")},
+    return {**{k: last[k] for k in ("outputs_key", "speed", "evaluation")}, "videos": videos,
             "series": json.loads(storage.read_text(series))}
 
 

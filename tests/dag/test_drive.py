@@ -5,6 +5,7 @@ import io
 import json
 import re
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -692,6 +693,17 @@ def test_a_drive_made_again_reports_its_own_speed(drive_run):
     assert after["evaluation"] == before["evaluation"]
     assert after["speed"]["ms_per_driver_frame"] != before["speed"]["ms_per_driver_frame"]
     assert after["speed"]["evaluate_seconds"] == before["speed"]["evaluate_seconds"]
+
+
+def test_an_output_folder_copied_elsewhere_keeps_its_own_videos(drive_run):
+    """A finished drive's output folder copied to a new place and run into: nothing is made again, and its
+    metrics.json names the videos in the new folder (it named the first folder's, which it kept)."""
+    folder, path, _ = drive_run
+    shutil.copytree(folder / "output", folder / "output_copy")
+    assert cli(["run", str(path), "--scheduler", "sync", "--quiet", "--set", "output=output_copy"]) == 0
+    after = json.loads((folder / "output_copy" / "metrics.json").read_text())
+    assert "videos" not in {r["stage"] for r in after["stages"]}
+    assert after["videos"] and all(Path(v).parent == folder / "output_copy" for v in after["videos"].values())
 
 
 def test_new_figures_evaluate_a_finished_drive_again(drive_run, monkeypatch):
