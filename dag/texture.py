@@ -339,7 +339,8 @@ def stored_textures(url: str, path: str, name: str, params: dict, targets, start
     around = np.asarray(targets[first:last], np.float64)  # the frames whose targets the weights take in
     ok = np.flatnonzero(source.state("align") == OK)
     totals, fiducials, gazes = st.per_process(key, lambda: (  # one entry: a second key would evict the first
-        _totals(source, backend.params), source.array("aligned/fiducials")[:][ok].astype(np.float64), _gazes(source, ok)))
+        _totals(source, backend.params), source.array("aligned/fiducials")[:][ok].astype(np.float64),
+        _gazes(source, ok)))
     keep = slice(start - first, stop - first)
     rest = rest_shape(fiducials, neutral_share)
     weights = backend.weights(fiducials, around, keep, rest, gazes)  # (targets and the backend's own rows, photos)
