@@ -65,8 +65,8 @@ def test_a_drive_report_plays_its_videos_and_draws_the_puppet_in_3d(batch, tmp_p
         assert len(videos) == 3 and all(v["error"] is None and v["width"] > 0 and v["furthest"] > 0 for v in videos), videos
         browser.js("document.querySelector('.persona-3d').scrollIntoView()")
         frames = set()
-        for _ in range(10):  # the drive plays: the frame shown changes while the page draws on
-            browser.pump(0.15)
+        for i in range(10):  # the drive plays: the frame shown changes while the page draws on
+            browser.pump(0.03 * (i + 1))  # uneven steps: a fixed one can alias with the loop (frames 2, 6, 2, 6)
             frames.add(browser.js("document.querySelector('.persona-3d canvas').dataset.frame"))
         draws = int(browser.js("document.querySelector('.persona-3d canvas').dataset.draws"))
         box = browser.js("(() => { const r = document.querySelector('.persona-3d canvas').getBoundingClientRect();"
