@@ -93,8 +93,11 @@ def run_texture(runner: RunContext, stage: st.Stage, target: Target) -> None:
                           inputs={"align": aligned.key}, persona_version=runner.version)
     prov = st.provenance(stage.name, backend=name, backend_version=backend.version, params=params,
                          inputs={"align": aligned.key, "cache": cache.key}, persona_version=runner.version)
+    looks = st.provenance(stage.name, backend="photo gazes", backend_version=LOOK_VERSION, params={},
+                          inputs={"align": aligned.key}, persona_version=runner.version)
     out = storage.join(runner.wf.output, f"{coll.path.replace('/', '_')}_texture_neutral.png")
-    if st.is_done(coll, prov, *stage.done) and st.is_done(coll, cache, CACHE_DONE) and storage.isfile(out):
+    if (st.is_done(coll, prov, *stage.done) and st.is_done(coll, cache, CACHE_DONE) and st.is_done(coll, looks, GAZES)
+            and storage.isfile(out)):
         target.pictures["texture_neutral"] = str(out)
         return
     if type(backend).cache is TextureBackend.cache:
@@ -103,6 +106,10 @@ def run_texture(runner: RunContext, stage: st.Stage, target: Target) -> None:
         return
     if not st.is_done(coll, cache, CACHE_DONE):
         build_cache(runner, coll, cache, (name, params, backend))
+    if not st.is_done(coll, looks, GAZES):  # read by every blend's weights: made once here, not by each drive
+        looked = runner.tasks.map_shards(coll, "gazes", photo_looks)
+        coll.create_single(GAZES, np.concatenate([looked[s] for s, _ in coll.shard_ranges()]), ("photo", "along_across"),
+                           looks)
     fiducials = coll.array("aligned/mean_fiducials")[...].astype(np.float64)
     (neutral,) = runner.executor.run(stored_textures, [(runner.wf.store, coll.path, name, params, fiducials[None])])
     neutral = neutral[0].round().astype(np.uint8)
@@ -161,6 +168,10 @@ def build_cache(runner: RunContext, coll: Collection, cache: Provenance, chosen:
 #: the array of the video-mode cache whose provenance, written after all the cache's data, marks it done
 CACHE_DONE = "texture/weighted_0"
 
+#: where each photo looks in its aligned photo (photo, 2): the texture's eyes are blended from the photos
+#: that look ahead (``eye_gaze``); made from the aligned photos, so kept apart from the cache's key
+GAZES = "texture/gazes"
+
 
 def _cache_arrays(coll: Collection) -> list[str]:
     """The names of the stored video-mode cache's arrays, whatever its number of levels."""
@@ -210,6 +221,17 @@ def warp_shard(url: str, path: str, start: int, stop: int, name: str, params: di
     return seen_sums(warped.rgb, warped.valid)
 
 
+def photo_looks(url: str, path: str, start: int, stop: int) -> np.ndarray:
+    """(stop - start, 2) where each accepted photo of shard [start, stop) looks in its aligned photo
+    (gaze.photo_gazes at the collection's mean fiducials); NaN for the others."""
+    coll = Collection(open_store(url, mode="r"), path)
+    rows = _shard_photos(coll, start, stop)
+    out = np.full((stop - start, 2), np.nan)
+    if len(rows):
+        out[rows - start] = photo_gazes(coll.array("aligned/rgb").oindex[rows], coll.array("aligned/mean_fiducials")[...])
+    return out
+
+
 def cache_shard(url: str, path: str, start: int, stop: int, name: str, params: dict, fill: np.ndarray,
                 basis: np.ndarray | None) -> BlendTotals | None:
     """Step (3) of :func:`run_texture` for one shard: its accepted photos aligned (the own
@@ -236,7 +258,7 @@ def cache_shard(url: str, path: str, start: int, stop: int, name: str, params: d
 
 
 def load_cache(coll: Collection) -> tuple[BlendCache, np.ndarray, np.ndarray]:
-    """The whole stored video-mode cache, the fiducials of its photos and where they look (:func:`_gazes`;
+    """The whole stored video-mode cache, the fiducials of its photos and where they look (:data:`GAZES`;
     for tests and benchmarks: a drive reads it a shard at a time, :func:`frame_textures`)."""
     ok = np.flatnonzero(coll.state("align") == OK)
     levels = _levels(coll)
@@ -244,7 +266,7 @@ def load_cache(coll: Collection) -> tuple[BlendCache, np.ndarray, np.ndarray]:
     detail = [coll.rows(f"texture/detail_{k}", ok) for k in range(levels)]
     params = coll.provenance(CACHE_DONE).params
     cache = BlendCache(weighted, detail, level_bias(levels, params["beta"], params["tau"]))
-    return cache, coll.array("aligned/fiducials")[:][ok].astype(np.float64), _gazes(coll, ok)
+    return cache, coll.array("aligned/fiducials")[:][ok].astype(np.float64), coll.array(GAZES)[...][ok]
 
 
 def _levels(coll: Collection) -> int:
@@ -340,7 +362,7 @@ def stored_textures(url: str, path: str, name: str, params: dict, targets, start
     ok = np.flatnonzero(source.state("align") == OK)
     totals, fiducials, gazes = st.per_process(key, lambda: (  # one entry: a second key would evict the first
         _totals(source, backend.params), source.array("aligned/fiducials")[:][ok].astype(np.float64),
-        _gazes(source, ok)))
+        source.array(GAZES)[...][ok]))
     keep = slice(start - first, stop - first)
     rest = rest_shape(fiducials, neutral_share)
     weights = backend.weights(fiducials, around, keep, rest, gazes)  # (targets and the backend's own rows, photos)
@@ -350,14 +372,6 @@ def stored_textures(url: str, path: str, name: str, params: dict, targets, start
         if weights[:, a:b].any():
             sums.add(*_read_shard(source, key, begin, end, ok[a:b]), weights[:, a:b])
     return backend.finish(sums, totals, fiducials, around[keep], gaze=gaze)
-
-
-def _gazes(source: Collection, ok: np.ndarray) -> np.ndarray:
-    """(len(ok), 2) where each of the photos ``ok`` (sorted) of the collection looks in its aligned photo
-    (gaze.photo_gazes at its mean fiducials), read a shard at a time."""
-    rgb, neutral = source.array("aligned/rgb"), source.array("aligned/mean_fiducials")[...]
-    parts = [photo_gazes(rgb.oindex[ok[(ok >= begin) & (ok < end)]], neutral) for begin, end in source.shard_ranges()]
-    return np.concatenate(parts) if parts else np.zeros((0, 2))
 
 
 def run_mouth(runner: RunContext, stage: st.Stage, target: Target) -> None:
