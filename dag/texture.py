@@ -266,7 +266,13 @@ def load_cache(coll: Collection) -> tuple[BlendCache, np.ndarray, np.ndarray]:
     detail = [coll.rows(f"texture/detail_{k}", ok) for k in range(levels)]
     params = coll.provenance(CACHE_DONE).params
     cache = BlendCache(weighted, detail, level_bias(levels, params["beta"], params["tau"]))
-    return cache, coll.array("aligned/fiducials")[:][ok].astype(np.float64), coll.array(GAZES)[...][ok]
+    return cache, *_fiducials_and_gazes(coll, ok)
+
+
+def _fiducials_and_gazes(coll: Collection, ok: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The fiducials (n, 49, 2) of the photos ``ok`` of the collection and where they look (:data:`GAZES`,
+    (n, 2)): what every blend's weights read of them."""
+    return coll.array("aligned/fiducials")[:][ok].astype(np.float64), coll.array(GAZES)[...][ok]
 
 
 def _levels(coll: Collection) -> int:
@@ -361,8 +367,7 @@ def stored_textures(url: str, path: str, name: str, params: dict, targets, start
     around = np.asarray(targets[first:last], np.float64)  # the frames whose targets the weights take in
     ok = np.flatnonzero(source.state("align") == OK)
     totals, fiducials, gazes = st.per_process(key, lambda: (  # one entry: a second key would evict the first
-        _totals(source, backend.params), source.array("aligned/fiducials")[:][ok].astype(np.float64),
-        source.array(GAZES)[...][ok]))
+        _totals(source, backend.params), *_fiducials_and_gazes(source, ok)))
     keep = slice(start - first, stop - first)
     rest = rest_shape(fiducials, neutral_share)
     weights = backend.weights(fiducials, around, keep, rest, gazes)  # (targets and the backend's own rows, photos)
