@@ -358,9 +358,27 @@ def hair_in_front(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, rea
     out[y0 + ys, x0 + xs] = not_skin * _skin_likeness(b, skin_b, tint, shade) * beside  # 0 off the band
     if eyes is not None:
         out[eyes] = 0
+    out[box] *= _reaching_in(out[box] > 0, inside[box] == 0)
     near = np.s_[max(y0 - 4, 0):y1 + 4, max(x0 - 4, 0):x1 + 4]  # softened over a pixel: nothing further
     out[near] = cv2.GaussianBlur(out[near], (0, 0), 1.0)
     return out
+
+
+def _reaching_in(kept: np.ndarray, outside: np.ndarray) -> np.ndarray:
+    """(h, w) bool: the parts of ``kept`` (h, w) bool, each connected region of it, that touch ``outside``
+    (h, w) bool, the frame beyond B's mask (and all beyond the array), or lie next to it. Hair and background come into B's face from
+    beyond its edge; a patch of A's frame inside the band that is not skin but touches nothing outside (a
+    mole, a dimple's shadow, stubble, a flushed patch of A's cheek where A's face is wider than B's) is A's
+    face, and kept in front it showed as a dark blot on B's cheek."""
+    count, labels = cv2.connectedComponents(kept.astype(np.uint8), connectivity=8)
+    if count <= 1:
+        return kept
+    beyond = np.pad(outside.astype(np.uint8), 1, constant_values=1)
+    near = cv2.dilate(beyond, np.ones((3, 3), np.uint8))[1:-1, 1:-1] > 0
+    touching = np.zeros(count, bool)
+    touching[np.unique(labels[near & kept])] = True
+    touching[0] = False
+    return touching[labels]
 
 
 def blend(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, lighting: float = 1.0,

@@ -167,6 +167,25 @@ def test_a_fringe_stays_in_front_and_a_collar_does_not():
     assert not composite.hair_in_front(face, frame, alone).any()
 
 
+def test_a_blot_inside_the_edge_is_covered_but_a_strand_that_reaches_in_is_kept():
+    """Inside B's edge band (14 px wide here) A's frame has a dark blot 6 px across that touches nothing
+    beyond B's edge (a mole, stubble or a shadow on A's cheek where A's face is wider than B's): B's face
+    covers it, as it covers A's skin. A strand of hair 4 px wide crossing the same band from beyond the
+    edge stays in front, as a fringe does."""
+    face, frame, alpha = lit_scene()  # the disk spans columns 40-160, rows 40-160
+    hair = (30, 22, 18)
+    frame[97:103, 148:154] = hair  # the blot: 6-12 px inside the right edge (x 160), not touching it
+    frame[96:100, 30:58] = hair  # the strand: from beyond the left edge (x 40) 18 px into the face
+    kept, covered = composite.blend(face, frame, alpha), composite.blend(face, frame, alpha, hair=0)
+    blot, strand = np.s_[98:102, 149:153], np.s_[97:99, 44:52]
+    print(f"\nblot: {kept[blot].mean():.1f} (B's face over it: {covered[blot].mean():.1f}); "
+          f"strand: {kept[strand].mean():.1f} (covered: {covered[strand].mean():.1f})")
+    assert np.abs(kept[blot].astype(float) - covered[blot]).max() <= 2  # B's face over the blot
+    assert covered[strand].mean() > kept[strand].mean() + 40  # the strand in front: darker
+    in_front = composite.hair_in_front(face, frame, alpha)
+    assert in_front[blot].max() < 0.05 and in_front[strand].min() > 0.5
+
+
 def test_the_drivers_eye_beside_the_edge_is_not_kept_in_front_but_its_fringe_is():
     """A's eye whose outer corner and lashes (dark, not skin) lie in B's edge band, where A's face is
     narrower than B's: kept in front of B's face as if it were hair without A's landmarks (a smudge
@@ -273,7 +292,7 @@ def test_the_built_in_composite_and_light_backends_are_the_blend_and_the_steady_
     planes[4] = np.nan
     assert np.array_equal(SteadyLight({"sigma": 2}).light(planes), composite.steady_light(planes, 2), equal_nan=True)
     # their cache keys are those of the stages before they had backends: "-" and those stages' versions
-    assert (MultibandComposite.key_name, MultibandComposite.version) == ("-", "5")
+    assert (MultibandComposite.key_name, MultibandComposite.version) == ("-", "6")
     assert (SteadyLight.key_name, SteadyLight.version) == ("-", "1")
     try:
         SteadyLight().light(planes[0])
