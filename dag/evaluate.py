@@ -4,7 +4,8 @@ Figures (paper §6, with dlib's descriptor and landmarks only; nothing downloade
 
 - identity: descriptor distance of every output frame to the centroid of B's photos and
   to that of A's; the fraction of frames that are "B and not A", of the render and of
-  composite.mp4's frames (B's face in A's frame, matched to A's light);
+  composite.mp4's frames (B's face in A's frame, matched to A's light); the distance between
+  the two centroids (under the threshold, dlib cannot tell B's photos from A's: nothing to judge);
 - expression: Pearson correlation of mouth opening, eye openness, brow height and mouth
   width between A's video and the output (landmarks found anew in the output frames);
 - amplitude: for the same signals, the gain (slope of the output's signal on the driver's:
@@ -59,7 +60,7 @@ from .stages import RENDER_3D, accepted, render_alpha
 
 #: the figures' version: a run keeps its last evaluation only when this is the same (raise it whenever a
 #: figure is added or computed differently)
-VERSION = 6
+VERSION = 7
 
 
 def _identity(spec: tuple[str, dict]):
@@ -214,6 +215,7 @@ def evaluate(store: str, executor, *, identity: tuple[str, dict], threshold: flo
         for name in distances:
             distances[name][::every] = figures[name]
         identity = {**{k: v for k, v in figures.items() if not isinstance(v, np.ndarray)},
+                    "distance_b_to_a": float(np.linalg.norm(centroids["puppet"] - centroids["driver"])),
                     "fraction_b_not_a_composite": on_composite["fraction_b_not_a"],
                     "frames_judged": len(described), "frames_without_face": without_face}
     else:  # the puppet is the driver: nothing to tell apart

@@ -222,6 +222,8 @@ def test_identity_judged_on_a_few_frames_gives_every_frames_own_distances(drive_
     assert np.isnan(few["distance_to_b"][~judged]).all()
     assert json.dumps(results[5]["amplitude"]) == json.dumps(results[0]["amplitude"])
     assert results[5]["identity"]["frames_without_face"] == results[0]["identity"]["frames_without_face"]
+    apart = results[0]["identity"]["distance_b_to_a"]  # the centroids of B's and A's photos: the frames do not matter
+    assert np.isfinite(apart) and apart > 0 and results[5]["identity"]["distance_b_to_a"] == apart
 
 
 def test_a_collection_is_described_once_by_a_runner_that_evaluates_again(drive_run, monkeypatch):

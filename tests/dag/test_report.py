@@ -23,7 +23,7 @@ def evaluation(to_b: float, to_a: float) -> dict:
 
 def test_every_figure_says_what_is_good():
     rows = figure_rows(evaluation(0.3, 0.9))
-    assert len(rows) == 26  # 8 identity, 2 + 2 expression, 2 gaze, 1 held, 3 stability, 2 composite, 6 self-reenactment
+    assert len(rows) == 27  # 9 identity, 2 + 2 expression, 2 gaze, 1 held, 3 stability, 2 composite, 6 self-reenactment
     for label, _, guide, _ in rows[1:]:  # all but the frame count
         assert "better" in guide or "target" in guide or "= " in guide, label
     guides = dict((r[0], r[2]) for r in rows)
@@ -42,6 +42,14 @@ def test_identity_caveat_when_dlib_sees_one_person_or_the_puppet_is_the_driver()
     assert identity_caveat(evaluation(0.3, 0.9)) is None  # B, and not A: identity can be judged
     text = identity_caveat(evaluation(0.3, 0.4))  # self-reenactment, or synthetic faces
     assert "cannot judge identity" in text
+    # B's photos and A's apart (version 7 on): an output near both is a figure to judge, not a caveat
+    near_both = evaluation(0.36, 0.59)
+    near_both["identity"]["distance_b_to_a"] = 0.74
+    assert identity_caveat(near_both) is None
+    rows = {r[0]: r for r in figure_rows(near_both)}
+    assert rows["frames that are B and not A"][3] == (0.95, None)
+    near_both["identity"]["distance_b_to_a"] = 0.45  # dlib sees B's photos and A's as one person
+    assert "cannot judge identity" in identity_caveat(near_both)
     own = {**evaluation(0.3, 0.4), "identity": {"judged": False, "frames_judged": 0, "frames_without_face": 0}}
     assert "the puppet is the driver" in identity_caveat(own)
     rows = {r[0]: r for r in figure_rows(own)}  # no identity figure, no target for one
