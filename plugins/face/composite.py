@@ -326,7 +326,8 @@ def hair_in_front(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, rea
     ``chin`` degrees of straight down from the mask's centre (its jaw, chin and the collar below are
     left to B), fading in over the next 20 degrees; and never within A's ``eyes`` ((h, w) bool,
     :func:`eyes_of`): their lashes and corners are dark and not skin, but not in front of B's face
-    either (they showed as a smudge beside B's eye where A's face is narrower than B's); softened over
+    either (they showed as a smudge beside B's eye where A's face is narrower than B's); and only where
+    what is not A's skin there reaches in from beyond B's edge (:func:`_reaching_in`); softened over
     a pixel. (The hair's first version
     counted the upper half only, then faded it over a tenth of the height: B's cheek was drawn over
     the wall beside a turned head as a soft band.)"""
@@ -346,30 +347,33 @@ def hair_in_front(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, rea
     m = cv2.moments(inside[y0:y1, x0:x1], binaryImage=True)
     down = np.degrees(np.arctan2(np.abs(xs - m["m10"] / m["m00"]), ys - m["m01"] / m["m00"]))  # 0: straight down
     beside = np.clip((down - chin) / 20, 0, 1).astype(np.float32)  # 0 in the chin's sector
-    ys, xs, beside = ys[beside > 0], xs[beside > 0], beside[beside > 0]
     box = np.s_[y0:y1, x0:x1]
     a, b = np.asarray(frame)[box], np.asarray(face)[box]
     step = max(1, side // 256)  # each skin's median colour from a grid of the middle's pixels: at HD 1 in 4
     grid = np.zeros_like(centre)
     grid[::step, ::step] = centre[::step, ::step]
     skin_a, skin_b = (np.log1p(np.median(img[grid].astype(np.float32), axis=0)) for img in (a, b))
-    a, b = (np.log1p(img[ys, xs].astype(np.float32)) for img in (a, b))
-    not_skin = np.clip((0.5 - _skin_likeness(a, skin_a, tint, shade)) / 0.4, 0, 1)
-    out[y0 + ys, x0 + xs] = not_skin * _skin_likeness(b, skin_b, tint, shade) * beside  # 0 off the band
+    not_skin = np.clip((0.5 - _skin_likeness(np.log1p(a[ys, xs].astype(np.float32)), skin_a, tint, shade)) / 0.4, 0, 1)
+    seen = np.zeros(centre.shape, bool)  # what is not A's skin in the whole band, chin's sector too
+    seen[ys, xs] = not_skin > 0
+    reaching = _reaching_in(seen, inside[box] == 0)[ys, xs]
+    keep = (beside > 0) & reaching
+    ys, xs = ys[keep], xs[keep]
+    b = np.log1p(b[ys, xs].astype(np.float32))
+    out[y0 + ys, x0 + xs] = not_skin[keep] * _skin_likeness(b, skin_b, tint, shade) * beside[keep]  # 0 off the band
     if eyes is not None:
         out[eyes] = 0
-    out[box] *= _reaching_in(out[box] > 0, inside[box] == 0)
     near = np.s_[max(y0 - 4, 0):y1 + 4, max(x0 - 4, 0):x1 + 4]  # softened over a pixel: nothing further
     out[near] = cv2.GaussianBlur(out[near], (0, 0), 1.0)
     return out
 
 
 def _reaching_in(kept: np.ndarray, outside: np.ndarray) -> np.ndarray:
-    """(h, w) bool: the parts of ``kept`` (h, w) bool, each connected region of it, that touch ``outside``
-    (h, w) bool, the frame beyond B's mask (and all beyond the array), or lie next to it. Hair and background come into B's face from
-    beyond its edge; a patch of A's frame inside the band that is not skin but touches nothing outside (a
-    mole, a dimple's shadow, stubble, a flushed patch of A's cheek where A's face is wider than B's) is A's
-    face, and kept in front it showed as a dark blot on B's cheek."""
+    """(h, w) bool: the connected regions of ``kept`` (h, w) bool that touch ``outside`` (h, w) bool, the
+    frame beyond B's mask (and all beyond the array), or lie next to it. Hair and background come into B's
+    face from beyond its edge; a patch of A's frame in the band that is not skin but reaches nothing outside
+    (a mole, stubble, the shadow of a dimple or a glasses' pad on A's cheek where A's face is wider than B's)
+    is A's face, and kept in front it showed as a dark blot on B's cheek."""
     count, labels = cv2.connectedComponents(kept.astype(np.uint8), connectivity=8)
     if count <= 1:
         return kept
