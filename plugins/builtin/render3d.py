@@ -211,6 +211,11 @@ class RaycastRender(RenderBackend):
             "(Bush's widest are shouts, dark inside), and B's opening was a dark hole where the driver showed "
             "teeth: with A's own, Bush <- Obama's composite mouth-opening gain rose 0.81 -> 1.13 and its width "
             "0.68 -> 0.74 (docs/expression.md)")
+        frame_min_gap: float = Field(0.04, ge=0, description="mouth_choice frame: the driver's own interior is "
+                                     "drawn where A's inner lips are at least this many inter-ocular distances "
+                                     "apart (and 2 px); closer, B's own lips close over the gap. dlib puts the inner "
+                                     "lips of a closed mouth a little apart; 0.04 is 2 px at the 256² address's 50 px "
+                                     "between the eyes, where the interior was tuned (mouth.from_frame)")
         lip_shadow: float = Field(0.5, ge=0, le=1, description="mouth_choice frame: how dark the band drawn "
                                   "along B's lower lip inside the opening is at the lip (0: none; it fades over a "
                                   "tenth of the gap's height, mouth.lower_lip_shadow). The driver's interior is "

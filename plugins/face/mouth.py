@@ -179,18 +179,20 @@ def sample(rgb: np.ndarray, landmarks68: np.ndarray, inset: float = 0.0) -> np.n
                      borderMode=cv2.BORDER_REPLICATE)
 
 
-def from_frame(rgb: np.ndarray, landmarks68: np.ndarray, *, inset: float = 0.15,
-               min_gap: float = 2.0) -> tuple[np.ndarray, float] | None:
+def from_frame(rgb: np.ndarray, landmarks68: np.ndarray, *, inset: float = 0.15, min_gap: float = 0.04,
+               min_px: float = 2.0) -> tuple[np.ndarray, float] | None:
     """The driver's own mouth interior in one frame (``mouth_choice: frame``): its :func:`sample`
     between A's inner lips, ``inset`` inside them, and the height it spans, (1 - 2 ``inset``) of how far
     apart A's lips are (frame px: the size at which :func:`draw` keeps its rows); None where A's lips
-    are under ``min_gap`` px apart or a point is missing (the renderer then draws no interior: B's own lips
-    close over the gap)."""
+    are under ``min_gap`` inter-ocular distances or ``min_px`` px apart, or a point is missing (the renderer
+    then draws no interior: B's own lips close over the gap). dlib's inner-lip points on closed lips lie a
+    little apart, by about as much at any resolution: a gap of a few px at HD is still lips, and drawn as
+    the interior it showed as a pale line or a patch of A's lip colour across B's mouth."""
     lm = np.asarray(landmarks68, np.float64)
     if not np.isfinite(lm).all():
         return None
     gap = lip_gap(lm[None], per_iod=False)[0]
-    if not gap >= min_gap:
+    if not (gap >= min_px and lip_gap(lm[None])[0] >= min_gap):
         return None
     return sample(rgb, lm, inset), float(gap) * (1 - 2 * inset)
 

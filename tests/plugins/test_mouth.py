@@ -272,6 +272,13 @@ def test_the_drivers_own_interior_is_taken_inside_its_lips():
     assert interior[2:-2, 16:48].max() < 40
     assert gap == 14.0
     assert mouth.from_frame(*open_photo(1.0)) is None  # lips under 2 px apart: no interior is drawn
+    # at HD (the eyes 150 px apart) lips 4 px apart are closed lips as dlib reads them (0.027 of the
+    # eyes' distance, under 0.04); 8 px apart (0.053) they part
+    for gap, parts in ((4.0, False), (8.0, True)):
+        rgb, hd = open_photo(gap)
+        hd[42:48, 0] += 100  # the eyes 150 px apart
+        assert (mouth.from_frame(rgb, hd) is not None) == parts
+        assert mouth.from_frame(rgb, hd, min_gap=0.0) is not None  # 2 px alone, at any resolution
     lm[66] = np.nan
     assert mouth.from_frame(rgb, lm) is None
 
