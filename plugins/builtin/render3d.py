@@ -172,7 +172,7 @@ class RaycastRender(RenderBackend):
     uses_mesh = True
     #: raised whenever the same inputs are drawn differently, so a stored render is drawn again (the history
     #: is in docs/CHANGELOG.md)
-    version = "12"
+    version = "13"
 
     class Params(Params):
         min_coverage: float = Field(0.3, ge=0, le=1, description="canonical pixels seen in fewer "
@@ -270,7 +270,7 @@ class RaycastRender(RenderBackend):
         out[y0:y1, x0:x1] = np.where((part > 0)[..., None], face, out[y0:y1, x0:x1])
         if self.params.mouth and puppet.mouth is not None and puppet.lips is not None:
             corners = mouth.outer_corners(np.asarray(puppet.fiducials, np.float32))
-            points = np.concatenate([np.asarray(puppet.lips, np.float32).reshape(-1, 2), corners])[None]
+            points = np.concatenate([mouth.apart(puppet.lips).astype(np.float32).reshape(-1, 2), corners])[None]
             xy, z = project(compose(np.asarray(puppet.mesh, np.float32), points)[0], pose)  # the mesh there
             curves, outer = xy[:-2].reshape(2, -1, 2), xy[-2:]
             if self.params.mouth_corners == "driver" and puppet.lip_insets is not None:

@@ -83,6 +83,26 @@ def lip_gap(landmarks68: np.ndarray, per_iod: bool = True) -> np.ndarray:
     return gap / np.linalg.norm(lm[:, 36:42].mean(axis=1) - lm[:, 42:48].mean(axis=1), axis=1)
 
 
+#: texels at least between B's upper and lower inner-lip curves where the mesh is read for them
+#: (:func:`apart`)
+LIP_SIDES = 2.0
+
+
+def apart(curves: np.ndarray, least: float = LIP_SIDES) -> np.ndarray:
+    """(2, 5, 2) B's inner-lip ``curves`` (canonical texels) with their three middle pairs moved apart, each
+    lip by half the shortfall, to at least ``least`` texels: where the renderer reads the mesh for the
+    opening's outline. The driver's meshes part the lips as a step at the line where they meet
+    (:func:`persona.plugins.face.mesh.lip_split`), which B's meshes carry, smoothed, across the line; a
+    puppet whose photos never part their lips has curves a texel or less apart, both on that line, and the
+    lower curve read there moved with the upper lip: the opening was drawn a sliver (a V of teeth under a
+    stretched pink lower lip where the driver laughed). Curves further apart are as they are."""
+    out = np.array(curves, np.float64)
+    short = np.maximum(least - (out[1, 1:-1, 1] - out[0, 1:-1, 1]), 0.0) / 2
+    out[0, 1:-1, 1] -= short
+    out[1, 1:-1, 1] += short
+    return out
+
+
 def outer_corners(fiducials49: np.ndarray) -> np.ndarray:
     """(2, 2): the mouth's outer corners (iBUG 48, 54), left first, among the paper's 49 fiducials (49, 2)."""
     return np.asarray(fiducials49)[[IDX49.index(48), IDX49.index(54)]]

@@ -435,3 +435,19 @@ def test_the_built_in_mouth_backend_is_the_median_of_the_widest_and_darkest_and_
     frames = [(image, lm) for image, lm in photos]
     shares = [mouth.teeth_share(image, lm) for image, lm in frames]
     np.testing.assert_array_equal(MedianMouth().teeth(iter(frames), 1.5), smooth_in_time(np.array(shares), 1.5))
+
+
+def test_curves_a_texel_apart_are_read_on_each_side_of_the_lips_line():
+    """A puppet whose photos never part their lips has inner-lip curves about half a texel apart; the
+    renderer reads the mesh for them at least LIP_SIDES texels apart, each lip by half the shortfall, the
+    corners (shared by both curves) as they are; curves further apart stay where they are."""
+    xs = np.linspace(60, 130, 5)
+    closed = np.stack([np.c_[xs, [170, 169.8, 169.7, 169.8, 170]], np.c_[xs, [170, 170.3, 170.3, 170.3, 170]]])
+    read = mouth.apart(closed)
+    np.testing.assert_allclose(read[1, 1:-1, 1] - read[0, 1:-1, 1], mouth.LIP_SIDES)
+    np.testing.assert_allclose((read[0, 1:-1, 1] + read[1, 1:-1, 1]) / 2, (closed[0, 1:-1, 1] + closed[1, 1:-1, 1]) / 2)
+    np.testing.assert_array_equal(read[:, [0, -1]], closed[:, [0, -1]])
+    np.testing.assert_array_equal(read[..., 0], closed[..., 0])
+    opened = closed.copy()
+    opened[1, 1:-1, 1] += 6
+    np.testing.assert_array_equal(mouth.apart(opened), opened)
