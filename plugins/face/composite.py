@@ -380,8 +380,7 @@ def _reaching_in(kept: np.ndarray, outside: np.ndarray) -> np.ndarray:
     beyond = np.pad(outside.astype(np.uint8), 1, constant_values=1)
     near = cv2.dilate(beyond, np.ones((3, 3), np.uint8))[1:-1, 1:-1] > 0
     touching = np.zeros(count, bool)
-    touching[np.unique(labels[near & kept])] = True
-    touching[0] = False
+    touching[np.unique(labels[near & kept])] = True  # labels of kept pixels: never the background's 0
     return touching[labels]
 
 
