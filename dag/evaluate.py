@@ -156,11 +156,11 @@ def _sample(ok: np.ndarray, k: int) -> list[int]:
     return [int(i) for i in idx[np.linspace(0, len(idx) - 1, min(k, len(idx))).round().astype(int)]] if len(idx) else []
 
 
-def photo_centroid(store: str, root, actor: str, path: str, executor, identity: tuple[str, dict], sample: int,
-                   known: dict) -> np.ndarray:
-    """The centroid of the descriptors of ``sample`` of the accepted photos of the collection at ``path``
-    (the ``actor``'s), from ``known`` when it holds the same photos' (the same accepted rows of the same
-    landmarks, the same identity backend), else computed by two tasks and kept there."""
+def centroid_plan(store: str, root, actor: str, path: str, identity: tuple[str, dict], sample: int
+                  ) -> tuple[tuple | None, list[int]]:
+    """Which ``sample`` of the accepted photos of the collection at ``path`` (the ``actor``'s) its descriptor
+    centroid is taken over, and the key under which a runner keeps that centroid (the same accepted rows
+    of the same landmarks, the same identity backend; None for landmarks without provenance)."""
     coll = Collection(root, path)
     if not coll.has("status/screen/state"):
         raise InputError(f"{store}: the {actor}'s photos were processed by an older Persona, before the "
@@ -168,14 +168,36 @@ def photo_centroid(store: str, root, actor: str, path: str, executor, identity: 
                          "the store up to date, then evaluate")
     chosen = _sample(accepted(coll), sample)
     landmarks = coll.provenance("landmarks/points")
-    key = None if landmarks is None else (store, path, landmarks.key, tuple(chosen), repr(identity))
-    if key in known:
-        return known[key]
-    parts = list(executor.run(describe_photos, [(store, path, chosen[i::2], identity) for i in range(2)]))
-    centroid = ev.centroid(np.concatenate(parts))
-    if key is not None:
-        known[key] = centroid
-    return centroid
+    return (None if landmarks is None else (store, path, landmarks.key, tuple(chosen), repr(identity))), chosen
+
+
+def motion_figures(store: str, cast: Cast) -> dict | None:
+    """The expression signals of A's meshes, B's meshes and B's meshes as posed (:func:`mesh_expression`)
+    against A's landmarks; None for a drive not rendered from the motion step's meshes."""
+    root = open_store(store, mode="r")
+    drive = Collection(root, cast.drive)
+    if drive.provenance("render/rgb").stage != RENDER_3D.name:
+        return None
+    driver_landmarks = driver_frame_landmarks(root, cast.frames)
+    puppet, posed = mesh_expression(root, f"{cast.drive}/mesh", cast.puppet, driver_landmarks,
+                                    poses=drive.array("pose")[:])
+    return {"driver_meshes": mesh_expression(root, f"{cast.drive}/motion/driver_mesh", cast.driver,
+                                             driver_landmarks)[0],
+            "puppet_meshes": puppet, "puppet_meshes_posed": posed}
+
+
+def _piece(tag: str, kind: str, *args):
+    """One independent piece of an evaluation as one task, returned as (tag, result): ``frames``
+    (:func:`analyse_frames` of a shard), ``photos`` (:func:`describe_photos`), ``texture``
+    (:func:`texture_figures` of the store at args[0]) or ``motion`` (:func:`motion_figures`). All of a
+    drive's pieces go to the workers at once, so none waits for another's last task."""
+    if kind == "frames":
+        return tag, analyse_frames(*args)
+    if kind == "photos":
+        return tag, describe_photos(*args)
+    if kind == "texture":
+        return tag, texture_figures(open_store(args[0], mode="r"), *args[1:])
+    return tag, motion_figures(*args)
 
 
 def evaluate(store: str, executor, *, identity: tuple[str, dict], threshold: float = 0.6,
@@ -187,7 +209,7 @@ def evaluate(store: str, executor, *, identity: tuple[str, dict], threshold: flo
     frames is analysed. Identity is judged on ``identity_frames`` frames evenly spaced (0: all), and not at
     all where the puppet is the driver (a self-reenactment from one collection: B is A, and dlib's
     descriptors, two a frame, were most of the evaluation's time).
-    ``known``: the collections' descriptor centroids already computed (:func:`photo_centroid`), which a
+    ``known``: the collections' descriptor centroids already computed (:func:`centroid_plan`'s keys), which a
     caller that evaluates several drives keeps from one to the next (a person who drives two puppets,
     or a puppet driven by its own person, is described once)."""
     root = open_store(store, mode="r")
@@ -195,11 +217,30 @@ def evaluate(store: str, executor, *, identity: tuple[str, dict], threshold: flo
     drive = Collection(root, cast.drive)
     judged = cast.puppet != cast.driver
     every = identity_every(drive.n, identity_frames) if judged else 0
-    tasks = [(store, s, e, identity, self_reenactment, cast, every) for s, e in drive.shard_ranges()]
-    parts = []
-    for part in executor.run(analyse_frames, tasks):
-        parts.append(part)
-        progress(len(part["landmarks"]))
+    tasks = [("frames", "frames", store, start, stop, identity, self_reenactment, cast, every)
+             for start, stop in drive.shard_ranges()]
+    centroids, wanted = {}, {}  # the actors' centroids known, and the keys of those to compute
+    for actor, path in ((("puppet", cast.puppet), ("driver", cast.driver)) if judged else ()):
+        key, chosen = centroid_plan(store, root, actor, path, identity, collection_sample)
+        if key is not None and key in known:
+            centroids[actor] = known[key]
+        else:
+            wanted[actor] = key
+            tasks += [(actor, "photos", store, path, chosen[i::2], identity) for i in range(2)]
+    tasks += [("texture", "texture", store, cast, collection_sample), ("motion", "motion", store, cast)]
+    parts, described, pieces = [], {actor: [] for actor in wanted}, {}
+    for tag, result in executor.run(_piece, tasks):
+        if tag == "frames":
+            parts.append(result)
+            progress(len(result["landmarks"]))
+        elif tag in described:
+            described[tag].append(result)
+        else:
+            pieces[tag] = result
+    for actor, key in wanted.items():
+        centroids[actor] = ev.centroid(np.concatenate(described[actor]))
+        if key is not None:
+            known[key] = centroids[actor]
     parts.sort(key=lambda p: p["start"])
     joined = {k: np.concatenate([p[k] for p in parts]) for k in parts[0] if k != "start"}
 
@@ -207,8 +248,6 @@ def evaluate(store: str, executor, *, identity: tuple[str, dict], threshold: flo
     without_face = int(np.isnan(joined["landmarks"][:, 0, 0]).sum())
     distances = {name: np.full(drive.n, np.nan) for name in ("distance_to_b", "distance_to_a")}  # NaN: not judged
     if judged:
-        centroids = {actor: photo_centroid(store, root, actor, path, executor, identity, collection_sample, known)
-                     for actor, path in (("puppet", cast.puppet), ("driver", cast.driver))}
         described = joined["descriptors"][::every]
         figures = ev.identity_figures(described[:, 0], centroids["puppet"], centroids["driver"], threshold)
         on_composite = ev.identity_figures(described[:, 1], centroids["puppet"], centroids["driver"], threshold)
@@ -237,7 +276,7 @@ def evaluate(store: str, executor, *, identity: tuple[str, dict], threshold: flo
     stability["texture_change_ratio"] = _ratio(stability["texture_change_output"], stability["texture_change_driver"])
     result = {
         "identity": identity,
-        "texture": texture_figures(root, cast, collection_sample),
+        "texture": pieces["texture"],
         "expression": video["expression"],
         "amplitude": video["amplitude"],
         "amplitude_composite": on_composite_video["amplitude"],
@@ -256,13 +295,8 @@ def evaluate(store: str, executor, *, identity: tuple[str, dict], threshold: flo
             **{f"output_{k}": v for k, v in ev.expression_signals(joined["landmarks"]).items()},
         },
     }
-    if drive.provenance("render/rgb").stage == RENDER_3D.name:  # rendered from the motion step's meshes
-        puppet, posed = mesh_expression(root, f"{cast.drive}/mesh", cast.puppet, driver_landmarks,
-                                        poses=drive.array("pose")[:])
-        result["motion"] = {
-            "driver_meshes": mesh_expression(root, f"{cast.drive}/motion/driver_mesh", cast.driver,
-                                             driver_landmarks)[0],
-            "puppet_meshes": puppet, "puppet_meshes_posed": posed}
+    if pieces["motion"] is not None:  # rendered from the motion step's meshes
+        result["motion"] = pieces["motion"]
     if self_reenactment:
         result["self_reenactment"] = {"psnr_db": _nanmean(joined["psnr"][:, 0]), "ssim": _nanmean(joined["ssim"][:, 0]),
                                       "psnr_db_composite": _nanmean(joined["psnr"][:, 1]),

@@ -59,7 +59,7 @@ class Runner:
     timer: StageTimer = field(default_factory=StageTimer)
     #: why a collection has no 3D shape in this run (its arrays from an earlier run must not be used)
     shape_problems: dict = field(default_factory=dict)
-    #: the collections' descriptor centroids the evaluation computed in this run (dag.evaluate.photo_centroid)
+    #: the collections' descriptor centroids the evaluation computed in this run (dag.evaluate.centroid_plan)
     centroids: dict = field(default_factory=dict)
 
     def __post_init__(self):
