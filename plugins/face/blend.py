@@ -25,7 +25,6 @@ import functools
 from dataclasses import dataclass, field
 
 import cv2
-import numba
 import numpy as np
 
 from .fiducials import gap_square_distance, mean_square_distance
@@ -153,17 +152,6 @@ def detail_pyramid(grey: np.ndarray, valid: np.ndarray, levels: int, *, blur: fl
     return gaussian_pyramid(response, levels)
 
 
-@numba.njit(cache=True, nogil=True, fastmath=True)
-def _gemv_rows(stack, rows, weights, out):
-    """out += Σ_r weights[r] · stack[rows[r]] (a matrix-vector product over the chosen rows of a
-    (n, p) matrix, streaming each row once, without gathering them into a copy). Adding into
-    ``out``, row after row, makes a sum over shards of rows equal to the sum over all of them."""
-    for r in range(rows.shape[0]):
-        row, w = stack[rows[r]], weights[r]
-        for j in range(out.shape[0]):
-            out[j] += w * row[j]
-
-
 def chosen(e: np.ndarray, skip: float) -> np.ndarray:
     """Expression weights (f, n), one row per target, float32, with those below ``skip`` × their
     row's largest set to 0: whatever their detail, their share of every level but the two coarsest
@@ -254,17 +242,22 @@ class BlendSums:
         return max(int(np.floor(top * scale)), 0), min(int(np.ceil(bottom * scale)), height)
 
     def add(self, weighted: list[np.ndarray], detail: list[np.ndarray], e: np.ndarray) -> None:
-        """Add photos: their cache levels (m, h_k, w_k, ·) and their :func:`chosen` weights (f, m)."""
-        for t, row in enumerate(np.asarray(e, np.float32)):
-            rows = np.flatnonzero(row > 0)
-            if len(rows) == 0:
-                continue
+        """Add photos: their cache levels (m, h_k, w_k, ·) and their :func:`chosen` weights (f, m). The targets
+        summed over the same rows are summed together, as one matrix product per level: each photo's
+        levels are read once for all of them (a product per target read them once per target)."""
+        e = np.asarray(e, np.float32)
+        groups: dict[tuple[int, int] | None, list[int]] = {}
+        for t in np.flatnonzero(e.any(axis=1)):
+            groups.setdefault(self.bands.get(int(t)), []).append(int(t))
+        for band, targets in groups.items():
+            t0 = targets[0]  # every target of a group sums the same rows
             for k in range(len(self.num)):
-                top, bottom = self._span(t, k)
-                for stack, out in ((weighted[k], self.num[k][t]), (detail[k], self.den[k][t])):
-                    flat = stack.reshape(len(stack), -1)
-                    a, b = top * flat.shape[1] // out.shape[0], bottom * flat.shape[1] // out.shape[0]
-                    _gemv_rows(flat[:, a:b], rows, row[rows], out.reshape(-1)[a:b])
+                top, bottom = self._span(t0, k)
+                for stack, out in ((weighted[k], self.num[k]), (detail[k], self.den[k])):
+                    flat, sums = stack.reshape(len(stack), -1), out.reshape(len(out), -1)
+                    a, b = top * flat.shape[1] // out.shape[1], bottom * flat.shape[1] // out.shape[1]
+                    for t, row in zip(targets, e[targets] @ flat[:, a:b]):
+                        sums[t, a:b] += row
 
     def band(self, totals: BlendTotals, k: int, t: int) -> tuple[np.ndarray, np.ndarray]:
         """Target t's level k, (h_k, w_k, C) (num + c Σ P) / (den + c Σ Q) with Σ over all photos'
