@@ -557,6 +557,25 @@ def _cracks(image, rng, n=8):
     return np.clip(out, 0, 255).astype(np.uint8)
 
 
+def test_a_percentile_over_the_finite_values_is_numpys_nanpercentile():
+    """The tears' reference takes a percentile per pixel over the photos that see it: the same as
+    np.nanpercentile, NaN where no photo does, a pixel seen by one photo its value."""
+    import warnings
+
+    rng = np.random.default_rng(0)
+    values = rng.random((40, 30, 20))
+    values[rng.random(values.shape) < 0.3] = np.nan
+    values[:, 0, 0] = np.nan
+    values[:, 1, 1] = np.nan
+    values[7, 1, 1] = 0.25
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # numpy warns of the all-NaN pixel
+        expected = np.nanpercentile(values, 90, axis=0)
+    got = ev.nan_percentile(values, 90)
+    np.testing.assert_allclose(got, expected, rtol=0, atol=1e-12)
+    assert np.isnan(got[0, 0]) and got[1, 1] == 0.25
+
+
 def test_tears_are_caught_in_cracked_images_and_not_in_a_clean_blend(canonical_photos):
     photos, masks = canonical_photos
     reference = ev.tear_reference(photos[:8], masks[:8])
