@@ -207,22 +207,16 @@ def write_videos(drive: Collection, frames: Collection, output) -> dict[str, str
     composite.mp4 (the ``composite`` stage's frames: B's face in A's light and frame), at the video's
     fps, with the driver video's sound (:func:`driver_sound`)."""
     fps = float(drive.attrs["fps"])
-    rendered, mask = drive.array("render/rgb"), drive.array("render/mask")
+    arrays = [drive.array("render/rgb"), drive.array("render/mask"), frames.array("photos/rgb"),
+              drive.array("composite/rgb")]
 
-    def puppet(start, stop):
-        return [alone(r, st.render_alpha(m)) for r, m in zip(rendered[start:stop], mask[start:stop])]
-
-    def stored(array):
-        return lambda start, stop: array[start:stop]
-
-    def shards(*views):
-        """Frame by frame, side by side, the images of ``views`` (each a shard's range -> its images)."""
+    def images():
+        """Each frame's three images, a shard's arrays read at a time."""
         for start, stop in drive.shard_ranges():
-            yield from (np.concatenate(row, axis=1) for row in zip(*(view(start, stop) for view in views)))
+            for rendered, mask, photo, composite in zip(*(a[start:stop] for a in arrays)):
+                face = alone(rendered, st.render_alpha(mask))
+                yield face, np.concatenate([photo, face], axis=1), composite
 
-    sound = driver_sound(frames, fps)
     files = {name: storage.join(output, f"{name}.mp4") for name in ("puppet", "side_by_side", "composite")}
-    media.write_video_mp4(files["puppet"], shards(puppet), fps, sound)
-    media.write_video_mp4(files["side_by_side"], shards(stored(frames.array("photos/rgb")), puppet), fps, sound)
-    media.write_video_mp4(files["composite"], shards(stored(drive.array("composite/rgb"))), fps, sound)
+    media.write_videos_mp4(list(files.values()), images(), fps, driver_sound(frames, fps))
     return {name: str(file) for name, file in files.items()}

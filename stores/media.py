@@ -63,6 +63,7 @@ __all__ = [
     "atomic_path",
     "contact_sheet",
     "write_video_mp4",
+    "write_videos_mp4",
 ]
 
 log = logging.getLogger(__name__)
@@ -1046,23 +1047,34 @@ def _add_audio_stream(container, audio: Audio):
     return stream
 
 
-def _encode_audio(container, stream, audio: Audio, duration: float) -> None:
-    """Encode ``audio``, cut or padded with silence to ``duration`` seconds, into ``stream``."""
+def _encode_audio(containers, streams, audio: Audio, duration: float) -> None:
+    """Encode ``audio``, cut or padded with silence to ``duration`` seconds, once, into ``streams[0]``,
+    and copy every packet into the other streams (each of its own container): the same sound for
+    several videos at the cost of one."""
     import av
+
+    def mux(packet):
+        for container, stream in zip(containers[1:], streams[1:]):
+            copy = av.Packet(bytes(packet))
+            copy.pts, copy.dts, copy.time_base = packet.pts, packet.dts, packet.time_base
+            copy.duration, copy.is_keyframe, copy.stream = packet.duration, packet.is_keyframe, stream
+            container.mux(copy)
+        containers[0].mux(packet)
 
     n = int(round(duration * audio.rate))
     samples = np.zeros((audio.samples.shape[0], n), np.float32)
     take = min(n, audio.samples.shape[1])
     samples[:, :take] = audio.samples[:, :take]
-    size = stream.codec_context.frame_size or 1024
+    encoder = streams[0]
+    size = encoder.codec_context.frame_size or 1024
     for offset in range(0, n, size):
         frame = av.AudioFrame.from_ndarray(np.ascontiguousarray(samples[:, offset:offset + size]), format="fltp",
-                                           layout=stream.codec_context.layout.name)
+                                           layout=encoder.codec_context.layout.name)
         frame.sample_rate, frame.pts, frame.time_base = audio.rate, offset, Fraction(1, audio.rate)
-        for packet in stream.encode(frame):
-            container.mux(packet)
-    for packet in stream.encode(None):
-        container.mux(packet)
+        for packet in encoder.encode(frame):
+            mux(packet)
+    for packet in encoder.encode(None):
+        mux(packet)
 
 
 #: libx264's settings for every video Persona writes: constant quality 18 (visually lossless), and the
@@ -1080,45 +1092,57 @@ def write_video_mp4(path, frames: Iterable[np.ndarray], fps: float, audio: Audio
     file in the same folder, then ``os.replace``); ``+faststart`` so that browsers can
     play it while loading.
     """
+    write_videos_mp4([path], ((image,) for image in frames), fps, audio)
+
+
+def _add_video_stream(container, rate: Fraction, size: tuple[int, int]):
+    """An H.264 stream (:data:`X264`) of even ``size`` (height, width) at ``rate`` frames a second."""
+    stream = container.add_stream("libx264", rate=rate)
+    stream.height, stream.width = size
+    stream.pix_fmt = "yuv420p"
+    stream.options = dict(X264)
+    stream.codec_context.time_base = 1 / rate
+    return stream
+
+
+def write_videos_mp4(paths: Sequence, frames: Iterable[Sequence[np.ndarray]], fps: float,
+                     audio: Audio | None = None) -> None:
+    """:func:`write_video_mp4` for several videos of the same timing in one pass: each item of
+    ``frames`` holds one image for each of ``paths``, so that what the images are made of is read
+    once, and the sound is encoded once and copied into each. All the files are written, or none."""
     import av
 
     rate = _rate(float(fps))
-    with atomic_path(path, ".mp4") as tmp:
-        container = av.open(tmp, mode="w", format="mp4", options={"movflags": "+faststart"})
-        try:
-            stream = None
-            size = None
-            n = 0
-            for i, image in enumerate(frames):
-                a = _check_uint8_image(image, f"frame {i}")
-                if a.ndim == 2:
-                    a = np.repeat(a[..., None], 3, axis=2)
-                if size is None:
-                    size = a.shape[:2]
-                    h2, w2 = size[0] + size[0] % 2, size[1] + size[1] % 2
-                    stream = container.add_stream("libx264", rate=rate)
-                    stream.width, stream.height = w2, h2
-                    stream.pix_fmt = "yuv420p"
-                    stream.options = dict(X264)
-                    stream.codec_context.time_base = 1 / rate
-                    sound = _add_audio_stream(container, audio) if audio is not None else None
-                elif a.shape[:2] != size:
+    with contextlib.ExitStack() as files:
+        temps = [files.enter_context(atomic_path(path, ".mp4")) for path in paths]
+        containers = [files.enter_context(contextlib.closing(
+            av.open(tmp, mode="w", format="mp4", options={"movflags": "+faststart"}))) for tmp in temps]
+        streams = sizes = sound = None
+        n = 0
+        for i, images in enumerate(frames):
+            arrays = [_check_uint8_image(image, f"frame {i}") for image in images]
+            arrays = [np.repeat(a[..., None], 3, axis=2) if a.ndim == 2 else a for a in arrays]
+            if sizes is None:
+                sizes = [a.shape[:2] for a in arrays]
+                streams = [_add_video_stream(c, rate, (h + h % 2, w + w % 2)) for c, (h, w) in zip(containers, sizes)]
+                sound = [_add_audio_stream(c, audio) for c in containers] if audio is not None else None
+            for a, size, stream, container in zip(arrays, sizes, streams, containers):
+                if a.shape[:2] != size:
                     raise ValueError(
                         f"frame {i} is {a.shape[1]}x{a.shape[0]}, expected {size[1]}x{size[0]} like frame 0"
                     )
-                if (h2, w2) != a.shape[:2]:
-                    a = np.pad(a, ((0, h2 - a.shape[0]), (0, w2 - a.shape[1]), (0, 0)), mode="edge")
+                even = (stream.height, stream.width)
+                if even != size:
+                    a = np.pad(a, ((0, even[0] - size[0]), (0, even[1] - size[1]), (0, 0)), mode="edge")
                 vf = av.VideoFrame.from_ndarray(np.ascontiguousarray(a), format="rgb24")
-                vf.pts = i
-                vf.time_base = 1 / rate
+                vf.pts, vf.time_base = i, 1 / rate
                 for packet in stream.encode(vf):
                     container.mux(packet)
-                n += 1
-            if stream is None:
-                raise ValueError(f"write_video_mp4({path}): no frames")
+            n += 1
+        if streams is None:
+            raise ValueError(f"write_video_mp4({', '.join(map(str, paths))}): no frames")
+        for stream, container in zip(streams, containers):
             for packet in stream.encode(None):
                 container.mux(packet)
-            if audio is not None:
-                _encode_audio(container, sound, audio, n / float(rate))
-        finally:
-            container.close()
+        if sound is not None:
+            _encode_audio(containers, sound, audio, n / float(rate))

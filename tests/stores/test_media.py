@@ -642,7 +642,8 @@ def test_outputs_get_the_mode_of_any_new_file(tmp_path, faces, monkeypatch, umas
 def test_sound_is_carried_across_and_cut_to_a_frame_range(tmp_path):
     """A 4 s video whose sound is a tone rising in pitch: its frames 25-74 (1-3 s) re-encoded with
     the sound cut to the same range keep a sound stream exactly as long as the video, in sync with
-    the source to within a millisecond; a video without sound has None."""
+    the source to within a millisecond; a second video written in the same pass carries the same
+    sound; a video without sound has None."""
     rate, fps = 44100, 25
     t = np.arange(4 * rate) / rate
     tone = (0.5 * np.sin(2 * np.pi * (200 + 100 * t) * t)).astype(np.float32)
@@ -653,8 +654,8 @@ def test_sound_is_carried_across_and_cut_to_a_frame_range(tmp_path):
     assert whole.rate == rate and whole.samples.shape[0] == 2
 
     cut = media.read_audio(source, 25 / fps, 75 / fps)
-    out = tmp_path / "cut.mp4"
-    media.write_video_mp4(out, frames[25:75], fps, cut)
+    out, other = tmp_path / "cut.mp4", tmp_path / "other.mp4"
+    media.write_videos_mp4([out, other], ((f, f[:16]) for f in frames[25:75]), fps, cut)
     import av
 
     with av.open(str(out)) as container:
@@ -666,6 +667,9 @@ def test_sound_is_carried_across_and_cut_to_a_frame_range(tmp_path):
     probe = expected[rate // 2:rate // 2 + 4410]  # 0.1 s from the middle of the cut
     lag = int(np.argmax(np.correlate(again[:2 * rate], probe, mode="valid"))) - rate // 2
     assert abs(lag) <= rate // 1000, lag
+    assert np.array_equal(media.read_audio(other).samples, media.read_audio(out).samples)  # encoded once, copied
+    with media.VideoReader(other) as r:
+        assert (r.width, r.height, r.n_frames) == (32, 16, 50)
     media.write_video_mp4(tmp_path / "silent.mp4", frames[:5], fps)
     assert media.read_audio(tmp_path / "silent.mp4") is None
 
