@@ -189,6 +189,7 @@ def _cmd_demo(args) -> int:
 
 
 def _cmd_evaluate(args) -> int:
+    from persona.stores import lock
     from persona.stores.layout import open_store
 
     from .errors import RunError
@@ -209,8 +210,8 @@ def _cmd_evaluate(args) -> int:
             raise RunError(f"{wf.store} holds no composited output of {plan.cast.drive} yet: run "
                            f"`persona run {args.workflow}` first")
     results = {}
-    with executor_for(wf, args.scheduler, args.workers) as ex:
-        runner = Runner(wf, ex, progress=False)  # one: a person in several drives is described once
+    with lock.writer(wf.store), executor_for(wf, args.scheduler, args.workers) as ex:  # it keeps the centroids
+        runner = Runner(wf, ex, progress=False)
         for plan in plans:
             results[plan.name] = runner.evaluate(plan.cast)
             results[plan.name].pop("series")

@@ -32,8 +32,6 @@ class RunContext(Protocol):
     timer: StageTimer
     #: why a collection has no 3D shape in this run
     shape_problems: dict
-    #: the collections' descriptor centroids the evaluation computed in this run
-    centroids: dict
 
     def ingest_params(self) -> dict: ...
 

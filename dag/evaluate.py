@@ -38,7 +38,9 @@ Figures (paper §6, with dlib's descriptor and landmarks only; nothing downloade
   (gain, correlation, ranges): how much of A's expression each step of the 3D method carries,
   before texture and rendering add their own errors (the chain: A's meshes, B's meshes, output).
 
-Descriptors are computed by Dask tasks over shards; only small per-frame figures come back.
+Descriptors are computed by Dask tasks over shards; only small per-frame figures come back. A person's
+centroid is kept in its collection (:data:`CENTROID`), so that its photos are described once, not once
+a drive.
 """
 
 from __future__ import annotations
@@ -55,12 +57,17 @@ from persona.plugins.base import Rejected
 from persona.plugins.manager import default_registry
 from persona.stores.errors import InputError
 from persona.stores.layout import OK, Cast, Collection, open_store
+from persona.stores.provenance import Provenance
 
-from .stages import RENDER_3D, accepted, render_alpha
+from .stages import RENDER_3D, accepted, backend_key, provenance, render_alpha
 
 #: the figures' version: a run keeps its last evaluation only when this is the same (raise it whenever a
 #: figure is added or computed differently)
 VERSION = 7
+
+#: a person's descriptor centroid (128,), kept in its collection: the mean descriptor of the sample of its
+#: accepted photos that every drive of the person is judged against (:func:`centroid_plan`)
+CENTROID = "identity/centroid"
 
 
 def _identity(spec: tuple[str, dict]):
@@ -156,11 +163,11 @@ def _sample(ok: np.ndarray, k: int) -> list[int]:
     return [int(i) for i in idx[np.linspace(0, len(idx) - 1, min(k, len(idx))).round().astype(int)]] if len(idx) else []
 
 
-def centroid_plan(store: str, root, actor: str, path: str, identity: tuple[str, dict], sample: int
-                  ) -> tuple[tuple | None, list[int]]:
+def centroid_plan(store: str, root, actor: str, path: str, identity: tuple[str, dict], sample: int,
+                  version: str) -> tuple[Provenance | None, list[int]]:
     """Which ``sample`` of the accepted photos of the collection at ``path`` (the ``actor``'s) its descriptor
-    centroid is taken over, and the key under which a runner keeps that centroid (the same accepted rows
-    of the same landmarks, the same identity backend; None for landmarks without provenance)."""
+    centroid is taken over, and the provenance of that centroid (:data:`CENTROID`: the same accepted rows
+    of the same landmarks, described by the same identity backend; None for landmarks without one)."""
     coll = Collection(root, path)
     if not coll.has("status/screen/state"):
         raise InputError(f"{store}: the {actor}'s photos were processed by an older Persona, before the "
@@ -168,7 +175,12 @@ def centroid_plan(store: str, root, actor: str, path: str, identity: tuple[str, 
                          "the store up to date, then evaluate")
     chosen = _sample(accepted(coll), sample)
     landmarks = coll.provenance("landmarks/points")
-    return (None if landmarks is None else (store, path, landmarks.key, tuple(chosen), repr(identity))), chosen
+    if landmarks is None:
+        return None, chosen
+    backend, backend_version = backend_key("identity", identity[0])
+    return provenance("evaluate", backend=backend, backend_version=backend_version,
+                      params={**identity[1], "photos": chosen}, inputs={"landmarks": landmarks.key},
+                      persona_version=version), chosen
 
 
 def motion_figures(store: str, cast: Cast) -> dict | None:
@@ -203,29 +215,30 @@ def _piece(tag: str, kind: str, *args):
 def evaluate(store: str, executor, *, identity: tuple[str, dict], threshold: float = 0.6,
              collection_sample: int = 100, identity_frames: int = 0, self_reenactment: bool = False,
              cast: Cast = Cast(),
-             progress: Callable[[int], object] = lambda frames: None, known: dict | None = None) -> dict:
+             progress: Callable[[int], object] = lambda frames: None, keep_in=None, version: str = "") -> dict:
     """Every figure of a finished drive (``cast``; a format-1 store's by default), as a JSON-ready
     dict (plus per-frame series under "series"); ``progress(n)`` is called as each shard of n
     frames is analysed. Identity is judged on ``identity_frames`` frames evenly spaced (0: all), and not at
     all where the puppet is the driver (a self-reenactment from one collection: B is A, and dlib's
     descriptors, two a frame, were most of the evaluation's time).
-    ``known``: the collections' descriptor centroids already computed (:func:`centroid_plan`'s keys), which a
-    caller that evaluates several drives keeps from one to the next (a person who drives two puppets,
-    or a puppet driven by its own person, is described once)."""
+    A collection's centroid is taken from the collection when it holds one made from the same photos
+    (:data:`CENTROID`), and kept in ``keep_in`` (the store, open for writing by a caller that holds its
+    lock; ``version``: Persona's, which the centroid's provenance records) when it was computed: a person
+    who drives two puppets, or whose drive is evaluated again, is described once."""
     root = open_store(store, mode="r")
-    known = {} if known is None else known
     drive = Collection(root, cast.drive)
     judged = cast.puppet != cast.driver
     every = identity_every(drive.n, identity_frames) if judged else 0
     tasks = [("frames", "frames", store, start, stop, identity, self_reenactment, cast, every)
              for start, stop in drive.shard_ranges()]
-    centroids, wanted = {}, {}  # the actors' centroids known, and the keys of those to compute
+    centroids, wanted = {}, {}  # the actors' centroids kept, and (path, provenance) of those to compute
     for actor, path in ((("puppet", cast.puppet), ("driver", cast.driver)) if judged else ()):
-        key, chosen = centroid_plan(store, root, actor, path, identity, collection_sample)
-        if key is not None and key in known:
-            centroids[actor] = known[key]
+        made, chosen = centroid_plan(store, root, actor, path, identity, collection_sample, version)
+        person = Collection(root, path)
+        if made is not None and person.made_by(CENTROID, made):
+            centroids[actor] = person.array(CENTROID)[:]
         else:
-            wanted[actor] = key
+            wanted[actor] = (path, made)
             tasks += [(actor, "photos", store, path, chosen[i::2], identity) for i in range(2)]
     tasks += [("texture", "texture", store, cast, collection_sample), ("motion", "motion", store, cast)]
     parts, described, pieces = [], {actor: [] for actor in wanted}, {}
@@ -237,10 +250,10 @@ def evaluate(store: str, executor, *, identity: tuple[str, dict], threshold: flo
             described[tag].append(result)
         else:
             pieces[tag] = result
-    for actor, key in wanted.items():
+    for actor, (path, made) in wanted.items():
         centroids[actor] = ev.centroid(np.concatenate(described[actor]))
-        if key is not None:
-            known[key] = centroids[actor]
+        if keep_in is not None and made is not None:
+            Collection(keep_in, path).create_single(CENTROID, centroids[actor], ("descriptor",), made)
     parts.sort(key=lambda p: p["start"])
     joined = {k: np.concatenate([p[k] for p in parts]) for k in parts[0] if k != "start"}
 

@@ -59,8 +59,6 @@ class Runner:
     timer: StageTimer = field(default_factory=StageTimer)
     #: why a collection has no 3D shape in this run (its arrays from an earlier run must not be used)
     shape_problems: dict = field(default_factory=dict)
-    #: the collections' descriptor centroids the evaluation computed in this run (dag.evaluate.centroid_plan)
-    centroids: dict = field(default_factory=dict)
 
     def __post_init__(self):
         if self.pm is None:
@@ -234,11 +232,13 @@ class Runner:
         return drive_outputs(self, plan, speed)
 
     def evaluate(self, cast: Cast = Cast(), progress=lambda frames: None) -> dict:
+        """Every figure of the drive of ``cast`` (:func:`persona.dag.evaluate.evaluate`); the people's descriptor
+        centroids it computes are kept in the store."""
         e = self.wf.evaluate
         return evaluate(self.wf.store, self.executor, identity=self.wf.stage("identity"),
                         threshold=e.threshold, collection_sample=e.collection_sample,
                         identity_frames=e.identity_frames, self_reenactment=e.self_reenactment, cast=cast,
-                        progress=progress, known=self.centroids)
+                        progress=progress, keep_in=self.root, version=self.version)
 
 
 def run_workflow(wf: Workflow, *, scheduler: str | None = None, workers: int | None = None,

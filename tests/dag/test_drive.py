@@ -226,10 +226,10 @@ def test_identity_judged_on_a_few_frames_gives_every_frames_own_distances(drive_
     assert np.isfinite(apart) and apart > 0 and results[5]["identity"]["distance_b_to_a"] == apart
 
 
-def test_a_collection_is_described_once_by_a_runner_that_evaluates_again(drive_run, monkeypatch):
-    """The centroid of a collection's photo descriptors is computed once by a runner (a run, or `persona
-    evaluate` of every drive of a workflow): a second evaluation, or a second drive of the same person,
-    takes it again from the first, with the same figures."""
+def test_a_persons_centroid_is_kept_in_the_store_and_made_again_only_from_other_photos(drive_run, monkeypatch):
+    """The centroid of a person's photo descriptors is kept in its collection: an evaluation after the
+    run's own describes no photo; another sample of the photos describes them again; with the kept
+    centroids gone, the photos are described again, to the same figures."""
     from persona.dag import evaluate as evaluation
     from persona.dag.runner import Runner, executor_for
 
@@ -238,12 +238,16 @@ def test_a_collection_is_described_once_by_a_runner_that_evaluates_again(drive_r
     monkeypatch.setattr(evaluation, "describe_photos", lambda *task: described.append(task[1]) or describe(*task))
     wf = load_workflow(path, ["evaluate.identity_frames=2"])
     with executor_for(wf, "sync", None) as ex:
-        runner = Runner(wf, ex, progress=False)
-        first = runner.evaluate()
+        kept = Runner(wf, ex, progress=False).evaluate()
+        assert described == []  # the run kept both people's centroids
+        Runner(load_workflow(path, ["evaluate.identity_frames=2", "evaluate.collection_sample=3"]), ex,
+               progress=False).evaluate()
         assert sorted(described) == ["driver", "driver", "puppet", "puppet"]  # two tasks each
-        again = runner.evaluate()
-    assert len(described) == 4
-    assert json.dumps(again["identity"]) == json.dumps(first["identity"])
+        for person in ("puppet", "driver"):
+            shutil.rmtree(Path(wf.store) / person / "identity")
+        again = Runner(wf, ex, progress=False).evaluate()
+    assert len(described) == 8
+    assert json.dumps(again["identity"]) == json.dumps(kept["identity"])
 
 
 def test_evaluating_a_store_from_before_the_screen_says_to_run_again(drive_run, tmp_path, capsys):
