@@ -11,6 +11,7 @@ the ``drive`` collection, whose photo axis is the driver's frame axis.
 from __future__ import annotations
 
 import logging
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
@@ -210,12 +211,26 @@ def write_videos(drive: Collection, frames: Collection, output) -> dict[str, str
     arrays = [drive.array("render/rgb"), drive.array("render/mask"), frames.array("photos/rgb"),
               drive.array("composite/rgb")]
 
+    def shard(start, stop):
+        """A shard's frames, each as its three images."""
+        out = []
+        for rendered, mask, photo, composite in zip(*(a[start:stop] for a in arrays)):
+            face = alone(rendered, st.render_alpha(mask))
+            out.append((face, np.concatenate([photo, face], axis=1), composite))
+        return out
+
     def images():
-        """Each frame's three images, a shard's arrays read at a time."""
-        for start, stop in drive.shard_ranges():
-            for rendered, mask, photo, composite in zip(*(a[start:stop] for a in arrays)):
-                face = alone(rendered, st.render_alpha(mask))
-                yield face, np.concatenate([photo, face], axis=1), composite
+        """Every frame's three images, the next shard read and made in a thread while this one is encoded."""
+        ranges = drive.shard_ranges()
+        if not ranges:
+            return
+        with ThreadPoolExecutor(1) as reader:
+            ahead = reader.submit(shard, *ranges[0])
+            for following in ranges[1:] + [None]:
+                made = ahead.result()
+                if following is not None:
+                    ahead = reader.submit(shard, *following)
+                yield from made
 
     files = {name: storage.join(output, f"{name}.mp4") for name in ("puppet", "side_by_side", "composite")}
     media.write_videos_mp4(list(files.values()), images(), fps, driver_sound(frames, fps))
