@@ -102,8 +102,7 @@ def time_drive(path: Path, runs: int, workers: int, render: str) -> None:
     for stage, times in steps.items():
         w_s = statistics.median(t[0] for t in times)
         task = statistics.median(t[1] for t in times)
-        share = f"{100 * w_s / wall:5.1f} % of the drive" if stage not in APART else \
-            f"{100 * w_s / wall:5.1f} % of the drive's time, apart"
+        share = f"{100 * w_s / wall:5.1f} % of the drive" + ("'s time, apart" if stage in APART else "")
         print(f"  {stage:<14} {1000 * w_s / n:7.1f} ms/frame wall, {share}; {1000 * task / n:7.1f} ms/frame "
               f"of one worker's compute")
     if render == "mesh3d":
