@@ -260,7 +260,7 @@ def _render(backend, params, inputs, context):
     pose, drivers = Pose.from_vector(inputs["pose"]), None
     if getattr(backend.params, "mouth_choice", None) == "frame" and interior is not None:
         drivers = mouth.from_frame(frame, inputs["@frames/landmarks/points"],  # A's own interior, where A's lips part
-                                   min_gap=backend.params.frame_min_gap)
+                                   max_inset=backend.params.frame_inset, min_gap=backend.params.frame_min_gap)
         if drivers is not None:  # its gap in this frame's px, where the renderer draws it
             interior, gap = drivers
         else:  # A's lips closed: none, B's own lips close over the gap the mesh leaves

@@ -172,7 +172,7 @@ class RaycastRender(RenderBackend):
     uses_mesh = True
     #: raised whenever the same inputs are drawn differently, so a stored render is drawn again (the history
     #: is in docs/CHANGELOG.md)
-    version = "13"
+    version = "14"
 
     class Params(Params):
         min_coverage: float = Field(0.3, ge=0, le=1, description="canonical pixels seen in fewer "
@@ -216,6 +216,11 @@ class RaycastRender(RenderBackend):
                                      "apart (and 2 px); closer, B's own lips close over the gap. dlib puts the inner "
                                      "lips of a closed mouth a little apart; 0.04 is 2 px at the 256² address's 50 px "
                                      "between the eyes, where the interior was tuned (mouth.from_frame)")
+        frame_inset: float | None = Field(0.03, ge=0, description="mouth_choice frame: the driver's interior is "
+                                          "taken 15 % of the gap inside A's inner-lip points (which sit on the lips' "
+                                          "edge), but at most this many inter-ocular distances (null: no cap). Not in "
+                                          "the paper: 15 % of a wide-open mouth at HD cut off both rows of teeth, "
+                                          "which hang from the lips (docs/expression.md)")
         lip_shadow: float = Field(0.5, ge=0, le=1, description="mouth_choice frame: how dark the band drawn "
                                   "along B's lower lip inside the opening is at the lip (0: none; it fades over a "
                                   "tenth of the gap's height, mouth.lower_lip_shadow). The driver's interior is "

@@ -190,31 +190,42 @@ def _positions(curves: np.ndarray, size: tuple[int, int] = SIZE, inset: float = 
     return upper[None] * (1 - t) + lower[None] * t
 
 
-def sample(rgb: np.ndarray, landmarks68: np.ndarray, inset: float = 0.0) -> np.ndarray:
+def sample(rgb: np.ndarray, landmarks68: np.ndarray, inset: float = 0.0,
+           size: tuple[int, int] = SIZE) -> np.ndarray:
     """(rows, cols, 3) float32: one photo ``rgb`` (h, w, 3) between its inner lips (its 68 landmarks
-    in its own pixels), resampled on the (s, t) rectangle (its rows from ``inset`` of the gap below the
-    upper lip to as far above the lower)."""
-    at = _positions(lip_curves(landmarks68), inset=inset).astype(np.float32)
+    in its own pixels), resampled on the (s, t) rectangle of ``size`` (its rows from ``inset`` of the gap
+    below the upper lip to as far above the lower)."""
+    at = _positions(lip_curves(landmarks68), size, inset=inset).astype(np.float32)
     return cv2.remap(np.asarray(rgb, np.float32), at[..., 0], at[..., 1], cv2.INTER_LINEAR,
                      borderMode=cv2.BORDER_REPLICATE)
 
 
-def from_frame(rgb: np.ndarray, landmarks68: np.ndarray, *, inset: float = 0.15, min_gap: float = 0.04,
-               min_px: float = 2.0) -> tuple[np.ndarray, float] | None:
+def from_frame(rgb: np.ndarray, landmarks68: np.ndarray, *, inset: float = 0.15, max_inset: float | None = 0.03,
+               min_gap: float = 0.04, min_px: float = 2.0) -> tuple[np.ndarray, float] | None:
     """The driver's own mouth interior in one frame (``mouth_choice: frame``): its :func:`sample`
-    between A's inner lips, ``inset`` inside them, and the height it spans, (1 - 2 ``inset``) of how far
-    apart A's lips are (frame px: the size at which :func:`draw` keeps its rows); None where A's lips
-    are under ``min_gap`` inter-ocular distances or ``min_px`` px apart, or a point is missing (the renderer
-    then draws no interior: B's own lips close over the gap). dlib's inner-lip points on closed lips lie a
-    little apart, by about as much at any resolution: a gap of a few px at HD is still lips, and drawn as
-    the interior it showed as a pale line or a patch of A's lip colour across B's mouth."""
+    between A's inner lips, ``inset`` of the gap inside each of them but at most ``max_inset``
+    inter-ocular distances (None: no cap), at the frame's own resolution (one row a pixel of the height
+    it spans, one column a pixel along the mouth; :data:`SIZE` at least), and that height, (1 - 2 x the
+    inset) of how far apart A's lips are (frame px: the size at which :func:`draw` keeps its rows); None
+    where A's lips are under ``min_gap`` inter-ocular distances or ``min_px`` px apart, or a point is
+    missing (the renderer then draws no interior: B's own lips close over the gap). dlib's inner-lip
+    points on closed lips lie a little apart, by about as much at any resolution: a gap of a few px at
+    HD is still lips, and drawn as the interior it showed as a pale line or a patch of A's lip colour
+    across B's mouth. The inset leaves A's lips out, on which the points sit; it is capped because their
+    edge is as sharp however wide the mouth opens, and a share of a wide gap cut off the rows of teeth
+    that hang from each lip."""
     lm = np.asarray(landmarks68, np.float64)
     if not np.isfinite(lm).all():
         return None
-    gap = lip_gap(lm[None], per_iod=False)[0]
-    if not (gap >= min_px and lip_gap(lm[None])[0] >= min_gap):
+    gap, per_iod = lip_gap(lm[None], per_iod=False)[0], lip_gap(lm[None])[0]
+    if not (gap >= min_px and per_iod >= min_gap):
         return None
-    return sample(rgb, lm, inset), float(gap) * (1 - 2 * inset)
+    if max_inset is not None:
+        inset = min(inset, max_inset / per_iod)  # max_inset IODs as a share of a gap of per_iod IODs
+    height = float(gap) * (1 - 2 * inset)
+    length = np.linalg.norm(np.diff(lip_curves(lm), axis=1), axis=2).max(axis=0).sum()
+    size = (max(SIZE[0], int(np.ceil(height))), max(SIZE[1], int(np.ceil(length))))
+    return sample(rgb, lm, inset, size), height
 
 
 def interior(samples) -> np.ndarray | None:

@@ -259,17 +259,20 @@ def test_the_drivers_own_interior_is_taken_inside_its_lips():
     """``mouth_choice: frame``: the driver's gap, sampled a little inside its inner-lip points, which sit
     on the lips' edge: a red lip line 2 px thick along each of them lines the plain sample's first and
     last rows, not the driver's interior, whose middle is the gap's (black) and whose height is the
-    share of the lips' gap it spans (0.7 of 20 px, 0.15 of it left out along each lip)."""
+    share of the lips' gap it spans (0.7 of 20 px, 0.15 of it left out along each lip, under the cap of
+    0.03 inter-ocular distances when the eyes are 200 px apart)."""
     rgb, lm = open_photo(20.0)
+    lm[42:48, 0] += 150  # the eyes 200 px apart: the cap (6 px) is above 15 % of the gap (3 px)
     for y in (100, 120):  # the upper and lower inner-lip curves of a 20 px gap about y = 110
         rgb[y - 1:y + 2, 40:121] = (200, 30, 30)
     red = lambda rows: (rows[..., 0] > 120) & (rows[..., 1] < 80)
     plain = mouth.sample(rgb, lm)
     assert red(plain[0, 16:48]).all() and red(plain[-1, 16:48]).all()
     interior, gap = mouth.from_frame(rgb, lm)
-    assert interior.shape == (*mouth.SIZE, 3)
-    assert not red(interior[:, 16:48]).any()
-    assert interior[2:-2, 16:48].max() < 40
+    assert interior.shape[0] == mouth.SIZE[0]  # 14 rows of frame px: SIZE's 32 at least
+    middle = interior[:, interior.shape[1] // 3:2 * interior.shape[1] // 3]  # the gap's black spans its middle
+    assert not red(middle).any()
+    assert middle[2:-2].max() < 40
     assert gap == 14.0
     assert mouth.from_frame(*open_photo(1.0)) is None  # lips under 2 px apart: no interior is drawn
     # at HD (the eyes 150 px apart) lips 4 px apart are closed lips as dlib reads them (0.027 of the
@@ -281,6 +284,26 @@ def test_the_drivers_own_interior_is_taken_inside_its_lips():
         assert mouth.from_frame(rgb, hd, min_gap=0.0) is not None  # 2 px alone, at any resolution
     lm[66] = np.nan
     assert mouth.from_frame(rgb, lm) is None
+
+
+def test_a_wide_open_mouth_keeps_the_teeth_that_hang_from_its_lips():
+    """A mouth open 60 px with the eyes 100 px apart (0.6 of their distance), a row of teeth 6 px tall
+    (white) under the upper lip's points and over the lower's, dark between: the interior is taken 3 px
+    (0.03 inter-ocular distances) inside each lip, not 15 % of the gap (9 px, past the teeth), so both
+    rows of teeth are in it; its rows and columns are the frame's pixels (54 tall, 129 along the lips),
+    not SIZE's 32 x 64. Without the cap (``max_inset`` None) the teeth are cut off."""
+    rgb, lm = open_photo(60.0, width=100.0)
+    lm[42:48, 0] += 50  # the eyes 100 px apart
+    rgb[80:87, 55:106] = 255  # upper teeth, from the upper lip's points at y = 80 down
+    rgb[134:141, 55:106] = 255  # lower teeth, up from the lower lip's at y = 140
+    white = lambda rows: rows[..., 1].mean() > 200
+    interior, gap = mouth.from_frame(rgb, lm)
+    assert gap == 54.0 and interior.shape == (54, 129, 3)  # 54 px tall; the lip curves 128.1 px long
+    middle = interior[:, 50:80]  # the middle of the mouth, between the middle lip points
+    assert white(middle[:2]) and white(middle[-2:]) and middle[20:34].max() < 40
+    interior, gap = mouth.from_frame(rgb, lm, max_inset=None)
+    assert gap == 42.0
+    assert interior[:, 40:60].max() < 40  # 9 px inside each lip: no tooth left
 
 
 def test_lips_closer_than_the_interiors_own_keep_its_teeth_at_their_size():
