@@ -205,8 +205,11 @@ def from_frame(rgb: np.ndarray, landmarks68: np.ndarray, *, inset: float = 0.15,
     """The driver's own mouth interior in one frame (``mouth_choice: frame``): its :func:`sample`
     between A's inner lips, ``inset`` of the gap inside each of them but at most ``max_inset``
     inter-ocular distances (None: no cap), at the frame's own resolution (one row a pixel of the height
-    it spans, one column a pixel along the mouth; :data:`SIZE` at least), and that height, (1 - 2 x the
-    inset) of how far apart A's lips are (frame px: the size at which :func:`draw` keeps its rows); None
+    it spans, one column a pixel along the mouth; :data:`SIZE` at least), and how far apart A's lips are
+    (frame px: :func:`draw` fits its rows to B's gap from that). The whole gap, not the part the sample
+    spans: where B's lips are as far apart as A's, the sample fills the gap from lip to lip as A's teeth
+    do, rather than the rows left out at the lips going in as dark at the darkest row, a dark bar between
+    the teeth of a smile; None
     where A's lips are under ``min_gap`` inter-ocular distances or ``min_px`` px apart, or a point is
     missing (the renderer then draws no interior: B's own lips close over the gap). dlib's inner-lip
     points on closed lips lie a little apart, by about as much at any resolution: a gap of a few px at
@@ -222,10 +225,9 @@ def from_frame(rgb: np.ndarray, landmarks68: np.ndarray, *, inset: float = 0.15,
         return None
     if max_inset is not None:
         inset = min(inset, max_inset / per_iod)  # max_inset IODs as a share of a gap of per_iod IODs
-    height = float(gap) * (1 - 2 * inset)
     length = np.linalg.norm(np.diff(lip_curves(lm), axis=1), axis=2).max(axis=0).sum()
-    size = (max(SIZE[0], int(np.ceil(height))), max(SIZE[1], int(np.ceil(length))))
-    return sample(rgb, lm, inset, size), height
+    size = (max(SIZE[0], int(np.ceil(gap * (1 - 2 * inset)))), max(SIZE[1], int(np.ceil(length))))
+    return sample(rgb, lm, inset, size), float(gap)
 
 
 def interior(samples) -> np.ndarray | None:

@@ -258,9 +258,9 @@ def test_a_mouth_opened_further_than_its_photos_shows_the_cavity_between_its_tee
 def test_the_drivers_own_interior_is_taken_inside_its_lips():
     """``mouth_choice: frame``: the driver's gap, sampled a little inside its inner-lip points, which sit
     on the lips' edge: a red lip line 2 px thick along each of them lines the plain sample's first and
-    last rows, not the driver's interior, whose middle is the gap's (black) and whose height is the
-    share of the lips' gap it spans (0.7 of 20 px, 0.15 of it left out along each lip, under the cap of
-    0.03 inter-ocular distances when the eyes are 200 px apart)."""
+    last rows, not the driver's interior, whose middle is the gap's (black): 0.15 of the gap left out
+    along each lip (under the cap of 0.03 inter-ocular distances when the eyes are 200 px apart), the
+    whole gap (20 px) given as the height it is drawn from."""
     rgb, lm = open_photo(20.0)
     lm[42:48, 0] += 150  # the eyes 200 px apart: the cap (6 px) is above 15 % of the gap (3 px)
     for y in (100, 120):  # the upper and lower inner-lip curves of a 20 px gap about y = 110
@@ -269,11 +269,11 @@ def test_the_drivers_own_interior_is_taken_inside_its_lips():
     plain = mouth.sample(rgb, lm)
     assert red(plain[0, 16:48]).all() and red(plain[-1, 16:48]).all()
     interior, gap = mouth.from_frame(rgb, lm)
-    assert interior.shape[0] == mouth.SIZE[0]  # 14 rows of frame px: SIZE's 32 at least
+    assert interior.shape[0] == mouth.SIZE[0]  # 14 px spanned: SIZE's 32 rows at least
     middle = interior[:, interior.shape[1] // 3:2 * interior.shape[1] // 3]  # the gap's black spans its middle
     assert not red(middle).any()
     assert middle[2:-2].max() < 40
-    assert gap == 14.0
+    assert gap == 20.0
     assert mouth.from_frame(*open_photo(1.0)) is None  # lips under 2 px apart: no interior is drawn
     # at HD (the eyes 150 px apart) lips 4 px apart are closed lips as dlib reads them (0.027 of the
     # eyes' distance, under 0.04); 8 px apart (0.053) they part
@@ -290,7 +290,7 @@ def test_a_wide_open_mouth_keeps_the_teeth_that_hang_from_its_lips():
     """A mouth open 60 px with the eyes 100 px apart (0.6 of their distance), a row of teeth 6 px tall
     (white) under the upper lip's points and over the lower's, dark between: the interior is taken 3 px
     (0.03 inter-ocular distances) inside each lip, not 15 % of the gap (9 px, past the teeth), so both
-    rows of teeth are in it; its rows and columns are the frame's pixels (54 tall, 129 along the lips),
+    rows of teeth are in it; its rows and columns are the frame's pixels (54 spanned, 129 along the lips),
     not SIZE's 32 x 64. Without the cap (``max_inset`` None) the teeth are cut off."""
     rgb, lm = open_photo(60.0, width=100.0)
     lm[42:48, 0] += 50  # the eyes 100 px apart
@@ -298,11 +298,11 @@ def test_a_wide_open_mouth_keeps_the_teeth_that_hang_from_its_lips():
     rgb[134:141, 55:106] = 255  # lower teeth, up from the lower lip's at y = 140
     white = lambda rows: rows[..., 1].mean() > 200
     interior, gap = mouth.from_frame(rgb, lm)
-    assert gap == 54.0 and interior.shape == (54, 129, 3)  # 54 px tall; the lip curves 128.1 px long
+    assert gap == 60.0 and interior.shape == (54, 129, 3)  # 54 px spanned; the lip curves 128.1 px long
     middle = interior[:, 50:80]  # the middle of the mouth, between the middle lip points
     assert white(middle[:2]) and white(middle[-2:]) and middle[20:34].max() < 40
     interior, gap = mouth.from_frame(rgb, lm, max_inset=None)
-    assert gap == 42.0
+    assert gap == 60.0 and interior.shape[0] == 42
     assert interior[:, 40:60].max() < 40  # 9 px inside each lip: no tooth left
 
 
@@ -324,6 +324,27 @@ def test_lips_closer_than_the_interiors_own_keep_its_teeth_at_their_size():
     assert middle_row(False, 20.0) < 40
     assert middle_row(True, 20.0) > 215
     assert middle_row(True, 10.0) < 40  # the interior's own gap: nothing left out
+
+
+def test_a_smile_drawn_into_lips_as_far_apart_keeps_its_teeth_meeting():
+    """A driver's smile, lips 20 px apart (eyes 100 px apart: the inset is 15 % of the gap, 3 px): upper
+    teeth from the upper lip's points down to 1 px above the middle, lower teeth from 1 px below it, a
+    dark line 2 px tall between. Drawn into B's lips as far apart, with the rows kept at their size, the
+    teeth meet as they did: the dark between them is the driver's 2 px, not the 6 px the inset leaves out
+    put in at the darkest row (a dark bar across the teeth)."""
+    rgb, lm = open_photo(20.0)
+    lm[42:48, 0] += 50  # the eyes 100 px apart
+    rgb[100:121, 40:121] = 255
+    rgb[109:111, 40:121] = 0  # the dark line where the teeth meet, about y = 110
+    interior, gap = mouth.from_frame(rgb, lm)
+    xs = np.linspace(20, 80, 5)
+    curves = np.stack([np.c_[xs, np.full(5, 20.0)], np.c_[xs, np.full(5, 40.0)]])  # 20 px apart, as A's
+    out = np.full((60, 100, 3), 128, np.uint8)
+    mouth.draw(out, np.ones((60, 100), np.float32), interior, curves, gap=gap, keep_rows=True)
+    column = out[:, 45:56].astype(float).mean(axis=(1, 2))
+    dark = np.flatnonzero(column[20:40] < 128)
+    assert 1 <= len(dark) <= 3, column[20:40].round()
+    assert column[22:27].min() > 215 and column[33:38].min() > 215  # teeth from each lip to the line
 
 
 def test_lips_further_apart_than_the_drivers_keep_its_teeth_on_their_lip():
