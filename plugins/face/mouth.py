@@ -202,21 +202,21 @@ def sample(rgb: np.ndarray, landmarks68: np.ndarray, inset: float = 0.0,
 
 def from_frame(rgb: np.ndarray, landmarks68: np.ndarray, *, inset: float = 0.15, max_inset: float | None = 0.03,
                min_gap: float = 0.04, min_px: float = 2.0) -> tuple[np.ndarray, float] | None:
-    """The driver's own mouth interior in one frame (``mouth_choice: frame``): its :func:`sample`
-    between A's inner lips, ``inset`` of the gap inside each of them but at most ``max_inset``
-    inter-ocular distances (None: no cap), at the frame's own resolution (one row a pixel of the height
-    it spans, one column a pixel along the mouth; :data:`SIZE` at least), and how far apart A's lips are
-    (frame px: :func:`draw` fits its rows to B's gap from that). The whole gap, not the part the sample
-    spans: where B's lips are as far apart as A's, the sample fills the gap from lip to lip as A's teeth
-    do, rather than the rows left out at the lips going in as dark at the darkest row, a dark bar between
-    the teeth of a smile; None
-    where A's lips are under ``min_gap`` inter-ocular distances or ``min_px`` px apart, or a point is
-    missing (the renderer then draws no interior: B's own lips close over the gap). dlib's inner-lip
-    points on closed lips lie a little apart, by about as much at any resolution: a gap of a few px at
-    HD is still lips, and drawn as the interior it showed as a pale line or a patch of A's lip colour
-    across B's mouth. The inset leaves A's lips out, on which the points sit; it is capped because their
-    edge is as sharp however wide the mouth opens, and a share of a wide gap cut off the rows of teeth
-    that hang from each lip."""
+    """The driver's own mouth interior in one frame (``mouth_choice: frame``) and how far apart A's lips
+    are (frame px; :func:`draw` fits the interior's rows to B's gap from it); None where A's lips are under
+    ``min_gap`` inter-ocular distances or ``min_px`` px apart, or a point is missing (the renderer then
+    draws no interior: B's own lips close over the gap).
+
+    The interior is A's frame between A's inner lips (:func:`sample`) at the frame's own resolution (a
+    row a pixel of the height it spans, a column a pixel along the lips; :data:`SIZE` at least), from
+    ``inset`` of the gap inside each lip, but at most ``max_inset`` inter-ocular distances (None: no cap).
+    The inset leaves out A's lips, on whose edge dlib's points sit; it is capped because that edge is as
+    sharp however far the mouth opens, and a share of a wide gap cut off the rows of teeth that hang from
+    each lip. The gap given is the whole of A's, not the part the sample spans: where B's lips are as far
+    apart as A's the sample fills B's gap from lip to lip, as A's teeth do, where the rows left out went in
+    as dark at its darkest row (a dark bar between a smile's teeth). dlib's inner-lip points on closed lips
+    lie a little apart, by about as much at any resolution: a gap of a few px at HD is still lips, and drawn
+    as the interior it showed as a pale line or a patch of A's lip colour across B's mouth."""
     lm = np.asarray(landmarks68, np.float64)
     if not np.isfinite(lm).all():
         return None
