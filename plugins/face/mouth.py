@@ -155,6 +155,12 @@ def place_corners(curves: np.ndarray, outer: np.ndarray, inset: np.ndarray) -> n
     return curves
 
 
+def along(curves: np.ndarray) -> float:
+    """How long a mouth is along its inner-lip ``curves`` (2, n, 2): per step between nodes the longer of
+    the two lips', summed (in the curves' units)."""
+    return float(np.linalg.norm(np.diff(curves, axis=1), axis=2).max(axis=0).sum())
+
+
 def rounded(curves: np.ndarray, steps: int = STEPS) -> np.ndarray:
     """(2, (nodes - 1) · steps + 1, 2): the inner-lip curves (2, nodes, 2) as one closed, smooth outline
     of the opening, sampled ``steps`` times from each node to the next.
@@ -225,7 +231,7 @@ def from_frame(rgb: np.ndarray, landmarks68: np.ndarray, *, inset: float = 0.15,
         return None
     if max_inset is not None:
         inset = min(inset, max_inset / per_iod)  # max_inset IODs as a share of a gap of per_iod IODs
-    length = np.linalg.norm(np.diff(lip_curves(lm), axis=1), axis=2).max(axis=0).sum()
+    length = along(lip_curves(lm))
     size = (max(SIZE[0], int(np.ceil(gap * (1 - 2 * inset)))), max(SIZE[1], int(np.ceil(length))))
     return sample(rgb, lm, inset, size), float(gap)
 
@@ -421,7 +427,7 @@ def draw(out: np.ndarray, face: np.ndarray, image: np.ndarray, curves: np.ndarra
     rows, cols = image.shape[:2]
     nodes = curves.shape[1]
     split = dark_row(image) if keep_rows else None
-    length = np.linalg.norm(np.diff(curves, axis=1), axis=2).max(axis=0).sum()  # along the mouth, px
+    length = along(curves)  # px
     cols_px = int(np.clip(np.ceil(length), 2, cols))
     paint = np.zeros((y1 - y0, x1 - x0, 3), np.float32)
     cover = np.zeros((y1 - y0, x1 - x0), np.float32)
