@@ -25,8 +25,10 @@ def default_camera(image_size: tuple[int, int], focal_factor: float) -> np.ndarr
 #: hold the mouth, the lids and the brows, which the expression moves: on a video of a woman opening her
 #: mouth, PnP on them pitches her head back by 51° per inter-ocular distance of opening. "rigid" is
 #: the nose and the eyes' corners (docs/expression.md, "The head's pose from the nose and the eyes' corners:
-#: tried, a switch")
+#: tried, a switch"); "weighted" is the 49 with those rigid points listed three times, which a least-squares
+#: fit weighs three times
 POINTS = {"fiducials49": list(IDX49), "all68": list(range(68)), "rigid": [36, 39, 42, 45, *range(27, 36)]}
+POINTS["weighted"] = POINTS["fiducials49"] + 2 * POINTS["rigid"]
 
 
 def solve_pose(points3d: np.ndarray, points2d: np.ndarray, camera: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -50,19 +52,22 @@ class PnPPose(PoseBackend):
     class Params(Params):
         focal_factor: float = Field(1.2, gt=0.2, le=10, description="focal length as a multiple "
                                     "of the photo's longer side (unknown Internet cameras)")
-        points: Literal["fiducials49", "rigid", "all68"] = Field(
+        points: Literal["fiducials49", "rigid", "weighted", "all68"] = Field(
             "fiducials49", description="landmarks the pose is solved from: the paper's 49 fiducials (no jaw "
             "contour, which slides with the view), whose mouth and brows tilt the head as they move; 'rigid', the "
             "nose and the eyes' corners, which the expression moves least (not in the paper; steadier drives by a "
-            "woman's open mouth, but worse from tight 112-px crops: docs/expression.md); or all 68 (POINTS)")
+            "woman's open mouth, but worse from tight 112-px crops: docs/expression.md); 'weighted', the 49 with "
+            "the rigid ones counted three times (not in the paper; better self-reenactments of HD clips, smaller "
+            "mouths and eyes on puppets from photo collections: docs/expression.md); or all 68 (POINTS)")
         max_rms: float = Field(0.2, gt=0, description="reject poses whose landmark reprojection "
                                "RMS exceeds this fraction of the inter-ocular distance")
 
     def estimate(self, landmarks, image_size):
         template = generic_template()
-        idx = POINTS[self.params.points]
+        fitted = POINTS[self.params.points]
+        idx = sorted(set(fitted))  # each point once: what the checks below judge
         camera = default_camera(image_size, self.params.focal_factor)
-        rvec, tvec = solve_pose(template.landmarks3d[idx], landmarks[idx], camera)
+        rvec, tvec = solve_pose(template.landmarks3d[fitted], landmarks[fitted], camera)
         rotation = cv2.Rodrigues(rvec)[0]
         depth = template.landmarks3d[idx] @ rotation.T + tvec
         if np.any(depth[:, 2] <= 0):
