@@ -57,8 +57,8 @@ class PnPPose(PoseBackend):
             "contour, which slides with the view), whose mouth and brows tilt the head as they move; 'rigid', the "
             "nose and the eyes' corners, which the expression moves least (not in the paper; steadier drives by a "
             "woman's open mouth, but worse from tight 112-px crops: docs/expression.md); 'weighted', the 49 with "
-            "the rigid ones counted three times (not in the paper; better self-reenactments of HD clips, smaller "
-            "mouths and eyes on puppets from photo collections: docs/expression.md); or all 68 (POINTS)")
+            "the rigid ones counted three times (not in the paper; better self-reenactments of HD clips, but a "
+            "mouth that opens less when another person drives: docs/expression.md); or all 68 (POINTS)")
         max_rms: float = Field(0.2, gt=0, description="reject poses whose landmark reprojection "
                                "RMS exceeds this fraction of the inter-ocular distance")
 
