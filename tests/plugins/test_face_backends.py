@@ -39,12 +39,16 @@ def posed_landmarks(yaw, pitch, roll, size=(250, 250), distance=900.0, focal_fac
     return points, rvec, tvec, camera
 
 
+def _turned(pose: Pose, rvec: np.ndarray) -> float:
+    """Degrees between the estimated head rotation and the true one, ``rvec``."""
+    return np.degrees(np.linalg.norm(cv2.Rodrigues(cv2.Rodrigues(pose.rvec)[0].T @ cv2.Rodrigues(rvec)[0])[0]))
+
+
 @pytest.mark.parametrize("yaw, pitch, roll", [(0, 0, 0), (25, -10, 5), (-30, 12, -8)])
 def test_pnp_recovers_the_pose_of_the_template(yaw, pitch, roll):
     points, rvec, tvec, camera = posed_landmarks(yaw, pitch, roll)
     pose = PnPPose().estimate(points, (250, 250))
-    error = cv2.Rodrigues(cv2.Rodrigues(pose.rvec)[0].T @ cv2.Rodrigues(rvec)[0])[0]
-    assert np.degrees(np.linalg.norm(error)) < 0.1
+    assert _turned(pose, rvec) < 0.1
     np.testing.assert_allclose(pose.tvec, tvec, rtol=1e-3)
     assert pose.rms < 0.01
     np.testing.assert_allclose(Pose.from_vector(pose.as_vector()).camera, camera)
@@ -58,12 +62,9 @@ def test_an_open_mouth_tilts_the_pose_from_49_fiducials_but_not_from_the_rigid_p
     iod = np.linalg.norm(points[36:42].mean(0) - points[42:48].mean(0))
     points[[*range(5, 12), *range(55, 60), 65, 66, 67], 1] += iod / 3
 
-    def error(pose):
-        return np.degrees(np.linalg.norm(cv2.Rodrigues(cv2.Rodrigues(pose.rvec)[0].T @ cv2.Rodrigues(rvec)[0])[0]))
-
-    assert error(PnPPose().estimate(points, (250, 250))) > 4.0
+    assert _turned(PnPPose().estimate(points, (250, 250)), rvec) > 4.0
     pose = PnPPose({"points": "rigid"}).estimate(points, (250, 250))
-    assert error(pose) < 0.1 and pose.rms < 0.01
+    assert _turned(pose, rvec) < 0.1 and pose.rms < 0.01
     np.testing.assert_allclose(pose.tvec, tvec, rtol=1e-3)
 
 
@@ -75,12 +76,8 @@ def test_weighted_points_turn_the_head_half_as_much_for_a_smile():
     iod = np.linalg.norm(points[36:42].mean(0) - points[42:48].mean(0))
     points[[48, 49, 59, 60, 67], 0] -= 0.12 * iod
     points[[54, 53, 55, 64, 65], 0] += 0.12 * iod
-
-    def error(pose):
-        return np.degrees(np.linalg.norm(cv2.Rodrigues(cv2.Rodrigues(pose.rvec)[0].T @ cv2.Rodrigues(rvec)[0])[0]))
-
-    paper = error(PnPPose().estimate(points, (250, 250)))
-    weighted = error(PnPPose({"points": "weighted"}).estimate(points, (250, 250)))
+    paper = _turned(PnPPose().estimate(points, (250, 250)), rvec)
+    weighted = _turned(PnPPose({"points": "weighted"}).estimate(points, (250, 250)), rvec)
     assert paper > 1.4 and weighted < 0.55 * paper
     assert len(POINTS["weighted"]) == 49 + 2 * 13
 
