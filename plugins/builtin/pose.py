@@ -27,8 +27,8 @@ def default_camera(image_size: tuple[int, int], focal_factor: float) -> np.ndarr
 #: the nose and the eyes' corners (docs/expression.md, "The head's pose from the nose and the eyes' corners:
 #: tried, a switch"); "weighted" is the 49 with those rigid points listed three times, which a least-squares
 #: fit weighs three times
-POINTS = {"fiducials49": list(IDX49), "all68": list(range(68)), "rigid": [36, 39, 42, 45, *range(27, 36)]}
-POINTS["weighted"] = POINTS["fiducials49"] + 2 * POINTS["rigid"]
+RIGID = [36, 39, 42, 45, *range(27, 36)]
+POINTS = {"fiducials49": list(IDX49), "all68": list(range(68)), "rigid": RIGID, "weighted": list(IDX49) + 2 * RIGID}
 
 
 def solve_pose(points3d: np.ndarray, points2d: np.ndarray, camera: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
