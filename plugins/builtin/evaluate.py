@@ -26,6 +26,7 @@ import numpy as np
 from pydantic import Field
 
 from ..base import Backend, Params, Rejected
+from ..face.composite import mask_box
 from ..face.template import IDX49, generic_template
 from ..face.warp import compose
 from ..hookspecs import hookimpl
@@ -782,16 +783,6 @@ def ssim_map(a, b, data_range: float = 255.0) -> np.ndarray:
     ua, ub = ua + centre, ub + centre
     c1, c2 = np.float32((SSIM_K1 * data_range) ** 2), np.float32((SSIM_K2 * data_range) ** 2)
     return (2 * ua * ub + c1) * (2 * vab + c2) / ((ua * ua + ub * ub + c1) * (va + vb + c2))
-
-
-def mask_box(mask: np.ndarray, margin: int = 0) -> tuple[slice, slice] | None:
-    """The bounding box of ``mask`` (h, w) bool widened by ``margin`` px and cut to the image, as slices;
-    None for an empty mask. A figure over a face's pixels need not read the rest of an HD frame."""
-    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
-    if not len(rows):
-        return None
-    return (slice(max(rows[0] - margin, 0), min(rows[-1] + margin + 1, mask.shape[0])),
-            slice(max(cols[0] - margin, 0), min(cols[-1] + margin + 1, mask.shape[1])))
 
 
 def masked_ssim(a, b, mask) -> float:

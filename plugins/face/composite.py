@@ -49,6 +49,16 @@ def _bounds(selected: np.ndarray) -> tuple[int, int, int, int] | None:
     return (y, y + h, x, x + w) if w else None
 
 
+def mask_box(selected: np.ndarray, margin: int = 0) -> tuple[slice, slice] | None:
+    """The bounding box of the True pixels of ``selected`` (h, w) widened by ``margin`` px and cut to
+    the image, as slices; None for none. Work on a face's pixels need not touch the rest of an HD frame."""
+    bounds = _bounds(selected)
+    if bounds is None:
+        return None
+    (y0, y1, x0, x1), (h, w) = bounds, np.shape(selected)[:2]
+    return slice(max(y0 - margin, 0), min(y1 + margin, h)), slice(max(x0 - margin, 0), min(x1 + margin, w))
+
+
 def levels_for(mask: np.ndarray) -> int:
     """Pyramid levels for a face mask: until the coarsest level's pixel is about a quarter of the
     face's smaller side (at least 1)."""
@@ -410,8 +420,13 @@ def seam(image: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, reach: int 
     (h, w[, 3])): ``colour_step`` — |mean colour on a ring ``reach`` px inside the edge minus that
     ``reach`` px outside|, in grey levels (Euclidean over RGB), minus the same in ``frame``;
     ``gradient_ratio`` — the mean squared gradient on the edge's ring (±``reach`` px) in the image
-    over the frame's there. None when the mask has no edge."""
+    over the frame's there. None when the mask has no edge. Measured on the mask's box widened beyond
+    the widest ring below: the same figures as on the whole frame."""
     face = (np.asarray(alpha) > 0.5).astype(np.uint8)
+    box = mask_box(face, 2 * reach + 2)
+    if box is None:
+        return None
+    face, image, frame = face[box], np.asarray(image)[box], np.asarray(frame)[box]
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * reach + 1, 2 * reach + 1))
     grown, shrunk = cv2.dilate(face, kernel), cv2.erode(face, kernel)
     inner = (shrunk > 0) & (cv2.erode(face, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (4 * reach + 1,) * 2)) == 0)
@@ -444,9 +459,15 @@ def alone(face: np.ndarray, alpha: np.ndarray) -> np.ndarray:
 
 
 def paste(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray) -> np.ndarray:
-    """The plain composite through the soft mask, ``face α + frame (1 - α)``, uint8 (for comparison)."""
-    a = np.clip(np.asarray(alpha, np.float32), 0, 1)[..., None]
-    return np.round(np.asarray(face, np.float32) * a + np.asarray(frame, np.float32) * (1 - a)).astype(np.uint8)
+    """The plain composite of uint8 images through the soft mask, ``face α + frame (1 - α)``, uint8 (for
+    comparison): the frame itself outside the box of α > 0."""
+    a = np.clip(np.asarray(alpha, np.float32), 0, 1)
+    out = np.array(frame, np.uint8)
+    box = mask_box(a > 0)
+    if box is not None:
+        a = a[box][..., None]
+        out[box] = np.round(np.asarray(face)[box].astype(np.float32) * a + out[box].astype(np.float32) * (1 - a))
+    return out
 
 
 def seams(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, blended: np.ndarray) -> dict[str, dict | None]:

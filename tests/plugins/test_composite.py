@@ -63,6 +63,23 @@ def test_seam_of_the_frame_itself_and_edge_cases():
     assert composite.levels_for(alpha) == 4  # a 120-px face: down to about 30 px
 
 
+def test_paste_and_seam_on_the_masks_box_are_the_whole_frames(monkeypatch):
+    """paste and seam work on the mask's box only: the same image and the same figures to the bit as
+    on the whole frame, for a face in the middle and one cut by the frame's corner."""
+    rng = np.random.default_rng(5)
+    face, frame = (rng.integers(0, 256, (90, 120, 3), dtype=np.uint8) for _ in range(2))
+    ys, xs = np.mgrid[0:90, 0:120]
+    for cy, cx in ((45, 60), (5, 112)):
+        alpha = np.clip((30 - np.hypot(ys - cy, xs - cx)) / 3, 0, 1).astype(np.float32)  # feathered 3 px
+        boxed = composite.paste(face, frame, alpha), composite.seam(face, frame, alpha)
+        with monkeypatch.context() as m:  # the box as the whole frame
+            m.setattr(composite, "mask_box", lambda sel, margin=0: (slice(None),) * 2 if np.any(sel) else None)
+            whole = composite.paste(face, frame, alpha), composite.seam(face, frame, alpha)
+        assert np.array_equal(boxed[0], whole[0]) and boxed[1] == whole[1]
+        a = alpha[..., None]
+        assert np.array_equal(boxed[0], np.round(face * a + frame * (1 - a)).astype(np.uint8))
+
+
 def lit_scene(size=200, radius=60):
     """A's frame: A's skin lit from the right (0.7 to 1.3 across the frame); B's face: a lighter skin
     with a checker detail, evenly lit; a disk mask feathered over 3 px."""
