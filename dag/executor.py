@@ -195,14 +195,19 @@ class WorkerSetup(WorkerPlugin):
     run's choice of third-party plugins (``PERSONA_PLUGINS``, :func:`persona.plugins.manager.select`),
     OpenCV on one thread (Dask runs a task per worker thread already; OpenCV's own pool of a thread
     per core on top oversubscribes the cores, as Dask's nanny says of OpenMP and BLAS),
-    :func:`malloc_for_arrays` and :func:`no_profile`; in the workers of the run's own local cluster, whose
-    scheduler is in the run's process, :class:`_LostConnections`."""
+    :func:`malloc_for_arrays`, :func:`no_profile` and dask.array imported; in the workers of the run's
+    own local cluster, whose scheduler is in the run's process, :class:`_LostConnections`."""
 
     def __init__(self, options: dict | None, local: bool = False):
         self.options, self.local = options, local
         self.plugins = selected()
 
     def setup(self, worker) -> None:
+        # dask.array imported whole before any task runs: when a worker first imports it in one thread
+        # (a graph of dask.array's arriving: the subspace's SVD, the texture basis's), a task's scipy in another,
+        # which looks dask.array up in sys.modules, failed on the half-imported module (AttributeError)
+        import dask.array  # noqa: F401
+
         one_thread()  # for the worker's life
         malloc_for_arrays()
         storage.configure(self.options)
