@@ -776,10 +776,14 @@ def ssim_map(a, b, data_range: float = 255.0) -> np.ndarray:
     def mean(x):
         return cv2.boxFilter(x, -1, (SSIM_WINDOW, SSIM_WINDOW), normalize=True, borderType=cv2.BORDER_REFLECT)
 
-    ua, ub = mean(a), mean(b)
     n = SSIM_WINDOW * SSIM_WINDOW
     sample = np.float32(n / (n - 1))
-    va, vb, vab = (sample * (mean(x * y) - ux * uy) for x, y, ux, uy in ((a, a, ua, ua), (b, b, ub, ub), (a, b, ua, ub)))
+
+    def covariance(x, y, ux, uy):
+        return sample * (mean(x * y) - ux * uy)
+
+    ua, ub = mean(a), mean(b)
+    va, vb, vab = covariance(a, a, ua, ua), covariance(b, b, ub, ub), covariance(a, b, ua, ub)
     ua, ub = ua + centre, ub + centre
     c1, c2 = np.float32((SSIM_K1 * data_range) ** 2), np.float32((SSIM_K2 * data_range) ** 2)
     return (2 * ua * ub + c1) * (2 * vab + c2) / ((ua * ua + ub * ub + c1) * (va + vb + c2))
