@@ -40,8 +40,8 @@ def aligned_collection(args):
 
         coll = Collection(open_store(args.store, mode="r"), "puppet")
         ok = np.flatnonzero(coll.state("align") == OK)[: args.photos]
-        return (coll.array("collection/rgb").oindex[ok].astype(np.float32), coll.array("collection/mask").oindex[ok],
-                coll.array("aligned/fiducials").oindex[ok].astype(np.float64), f"{args.store} ({len(ok)} photos)")
+        return (coll.rows("collection/rgb", ok).astype(np.float32), coll.rows("collection/mask", ok),
+                coll.rows("aligned/fiducials", ok).astype(np.float64), f"{args.store} ({len(ok)} photos)")
     from persona.plugins.face.template import generic_template
 
     rng = np.random.default_rng(0)

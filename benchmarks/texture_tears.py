@@ -40,7 +40,7 @@ def main() -> None:
     puppet = Collection(root, "puppet")
     ok = np.flatnonzero(puppet.state("align") == OK)
     target = puppet.array("aligned/mean_fiducials")[...].astype(np.float64)
-    fiducials = puppet.array("aligned/fiducials").oindex[ok].astype(np.float64)
+    fiducials = puppet.rows("aligned/fiducials", ok).astype(np.float64)
     reference = own_photos(puppet)[3]
     face = generic_template().mask
     textures = []

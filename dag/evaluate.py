@@ -334,8 +334,8 @@ def own_photos(puppet: Collection, sample: int = 100):
     photos: what its textures are measured against; masks are the face inside each photo's view."""
     chosen = _sample(accepted(puppet), sample)
     face = generic_template().mask
-    photos = puppet.array("aligned/rgb").oindex[chosen]
-    inside = [face & ev.inner(v) for v in puppet.array("aligned/mask").oindex[chosen]]
+    photos = puppet.rows("aligned/rgb", chosen)
+    inside = [face & ev.inner(v) for v in puppet.rows("aligned/mask", chosen)]
     return chosen, photos, inside, ev.tear_reference(photos, inside)
 
 
@@ -352,8 +352,8 @@ def texture_figures(root, cast: Cast, sample: int = 100, every: int = 8) -> dict
     chosen, photos, inside, reference = own_photos(puppet, sample)
     face = generic_template().mask
     aligned = puppet.has("collection/rgb")  # not when the collection was too small for a collection flow
-    warped = puppet.array("collection/rgb").oindex[chosen] if aligned else []
-    warped_inside = [face & ev.inner(v) for v in puppet.array("collection/mask").oindex[chosen]] if aligned else []
+    warped = puppet.rows("collection/rgb", chosen) if aligned else []
+    warped_inside = [face & ev.inner(v) for v in puppet.rows("collection/mask", chosen)] if aligned else []
     frames = [drive.array("texture/rgb")[t] for t in range(0, drive.n, every)]
     neutral = [puppet.array("texture/neutral")[...]] if puppet.has("texture/neutral") else []
     out = {}

@@ -228,7 +228,7 @@ def photo_looks(url: str, path: str, start: int, stop: int) -> np.ndarray:
     rows = _shard_photos(coll, start, stop)
     out = np.full((stop - start, 2), np.nan)
     if len(rows):
-        out[rows - start] = photo_gazes(coll.array("aligned/rgb").oindex[rows], coll.array("aligned/mean_fiducials")[...])
+        out[rows - start] = photo_gazes(coll.rows("aligned/rgb", rows), coll.array("aligned/mean_fiducials")[...])
     return out
 
 
@@ -398,8 +398,8 @@ def run_mouth(runner: RunContext, stage: st.Stage, target: Target) -> None:
         return
     ok = np.flatnonzero(st.accepted(coll))
     made = st.default_registry().get("mouth", name)(params).interior(
-        MouthPhotos(_Photos(coll, ok), coll.array("landmarks/points").oindex[ok].astype(np.float64),
-                    coll.array("aligned/landmarks").oindex[ok].astype(np.float64)),
+        MouthPhotos(_Photos(coll, ok), coll.rows("landmarks/points", ok).astype(np.float64),
+                    coll.rows("aligned/landmarks", ok).astype(np.float64)),
         count=settings["photos"], min_gap=settings["min_gap"], choice=choice)
     for array in ("texture/mouth", "texture/mouth_gap", "texture/mouth_cavity", "texture/mouth_cavity_gap"):
         coll.remove(array)  # an earlier run's
@@ -417,7 +417,7 @@ class _Photos:
     """The photos ``rows`` of a collection, each read (and cut to its size) when indexed."""
 
     def __init__(self, coll: Collection, rows: np.ndarray):
-        self.coll, self.rows, self.sizes = coll, rows, coll.array("photos/size").oindex[rows]
+        self.coll, self.rows, self.sizes = coll, rows, coll.rows("photos/size", rows)
 
     def __len__(self) -> int:
         return len(self.rows)

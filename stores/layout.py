@@ -191,10 +191,20 @@ class Collection:
         return self._arrays[name]
 
     def rows(self, name: str, rows: np.ndarray) -> np.ndarray:
-        """The photos ``rows`` of a per-photo array: read whole, then indexed. For most of a
-        collection this is far faster than zarr's orthogonal indexing (Bush's 530-photo texture
-        cache: 2.1 s against 8.1 s), which reads and decodes chunk by chunk."""
-        return self.array(name)[:][np.asarray(rows)]
+        """The photos ``rows`` (in that order) of a per-photo array, read a shard at a time: in each
+        shard that holds some, the one slice from the first to the last of them. zarr's orthogonal
+        indexing (``.oindex``) reads a sharded array chunk by chunk, 10-15 times slower (100 of Obama's
+        252 aligned photos: 0.63 s against 0.09 s), and reading the whole array takes memory in
+        proportion to the collection."""
+        array, rows = self.array(name), np.asarray(rows, np.int64).reshape(-1)
+        out = np.empty((len(rows), *array.shape[1:]), array.dtype)
+        per = (array.shards or array.chunks)[0]
+        shard = rows // per
+        for s in np.unique(shard):
+            where = np.flatnonzero(shard == s)
+            lo, hi = int(rows[where].min()), int(rows[where].max()) + 1
+            out[where] = array[lo:hi][rows[where] - lo]
+        return out
 
     def remove(self, *names: str) -> None:
         """Delete the arrays or groups ``names`` that exist: an earlier run's outputs that this run

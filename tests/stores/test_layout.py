@@ -32,6 +32,19 @@ def test_shards_are_the_write_unit_and_photos_the_chunk(tmp_path):
         coll.create("bad", (2,), "float32", ("photo",), prov())
 
 
+def test_rows_are_read_a_shard_at_a_time_in_the_order_asked(tmp_path):
+    _, coll = make(tmp_path)
+    values = np.arange(10 * 8 * 8 * 3, dtype=np.uint8).reshape(10, 8, 8, 3)
+    coll.create("aligned/rgb", (8, 8, 3), "uint8", ("photo", "y", "x", "channel"), prov())[:] = values
+    coll.create("landmarks/points", (68, 2), "float32", ("photo", "point", "xy"), prov())[:] = \
+        np.arange(10 * 68 * 2, dtype=np.float32).reshape(10, 68, 2)  # one chunk a shard, not sharded
+    for rows in ([9, 0, 5, 5, 3], [6], np.arange(10), np.zeros(0, int)):
+        for name in ("aligned/rgb", "landmarks/points"):
+            got = coll.rows(name, rows)
+            assert got.dtype == coll.array(name).dtype
+            assert np.array_equal(got, coll.array(name)[:][np.asarray(rows, int)])
+
+
 def test_provenance_is_validated_and_keys_are_stable(tmp_path):
     _, coll = make(tmp_path)
     coll.create("x", (2,), "float32", ("photo", "v"), prov(a=1))
