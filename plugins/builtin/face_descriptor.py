@@ -123,17 +123,26 @@ def network() -> Network:
     return read_network(face_recognition_models.face_recognition_model_location())
 
 
+def _reach(size: int, offset: int, stride: int, out: int) -> tuple[int, int, int]:
+    """Along one axis of a window's pixel ``offset`` (its place in the window less the padding): the
+    first and last + 1 outputs whose pixel lies inside the input's ``size``, and the first such pixel."""
+    first = max(0, -(offset // stride))  # ceil(-offset / stride)
+    last = min(out, (size - 1 - offset) // stride + 1)
+    return first, last, first * stride + offset
+
+
 def _convolve(x: np.ndarray, conv: Conv) -> np.ndarray:
-    """(h, w, channels) float32 -> (h', w', filters): every window's pixels side by side, times the weights."""
-    if conv.pad:
-        x = np.pad(x, ((conv.pad, conv.pad), (conv.pad, conv.pad), (0, 0)))
+    """(h, w, channels) float32 -> (h', w', filters): every window's pixels side by side, times the weights.
+    The zero padding is the windows' own zeros, not a padded copy of ``x``."""
     h, w, channels = x.shape
-    n, s = conv.size, conv.stride
-    oh, ow = (h - n) // s + 1, (w - n) // s + 1
-    windows = np.empty((oh, ow, n, n, channels), np.float32)
+    n, s, p = conv.size, conv.stride, conv.pad
+    oh, ow = (h + 2 * p - n) // s + 1, (w + 2 * p - n) // s + 1
+    windows = (np.zeros if p else np.empty)((oh, ow, n, n, channels), np.float32)
     for dy in range(n):
+        i0, i1, y0 = _reach(h, dy - p, s, oh)
         for dx in range(n):
-            windows[:, :, dy, dx] = x[dy:dy + s * (oh - 1) + 1:s, dx:dx + s * (ow - 1) + 1:s]
+            j0, j1, x0 = _reach(w, dx - p, s, ow)
+            windows[i0:i1, j0:j1, dy, dx] = x[y0:y0 + s * (i1 - i0 - 1) + 1:s, x0:x0 + s * (j1 - j0 - 1) + 1:s]
     return (windows.reshape(oh * ow, -1) @ conv.weights + conv.bias).reshape(oh, ow, -1)
 
 
