@@ -198,8 +198,7 @@ class Collection:
         proportion to the collection."""
         array, rows = self.array(name), np.asarray(rows, np.int64).reshape(-1)
         out = np.empty((len(rows), *array.shape[1:]), array.dtype)
-        per = (array.shards or array.chunks)[0]
-        shard = rows // per
+        shard = rows // self.shard
         for s in np.unique(shard):
             where = np.flatnonzero(shard == s)
             lo, hi = int(rows[where].min()), int(rows[where].max()) + 1
