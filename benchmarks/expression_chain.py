@@ -8,7 +8,8 @@ openness, brow height; dlib's landmarks on A's frames are the reference), prints
 - B's meshes M_P^t after the transfer (B's mean fiducials moved): what the transfer kept;
 - the same seen at each frame's pose, as the renderer draws them: what a perfect reader of the
   rendered face would find;
-- B's meshes re-transferred here with variants of the transfer (``--variants``), on every
+- B's meshes transferred again here, as the run's transfer backend prepares them (``default``: the
+  run's own, which the row above must match) and with variants of it (``--variants``), on every
   ``--every``-th frame, to locate the loss inside the transfer;
 - the rendered output (dlib's landmarks on the output frames), read from the run's
   ``metrics.json`` when its evaluation is there;
@@ -18,6 +19,10 @@ openness, brow height; dlib's landmarks on A's frames are the reference), prints
 
     python benchmarks/expression_chain.py workflows/obama_self_reenactment.yaml --every 4
     python benchmarks/expression_chain.py workflows/obama_driven_by_mead_happy.yaml --variants default --worst 6
+    python benchmarks/expression_chain.py workflows/hd_gaze_drives.yaml --drive frontal_fringe_woman_gaze_fringe_400-end
+
+A workflow with several drives (version 2) names one with ``--drive`` (its name, as its output folder is
+called); without it, the first.
 """
 
 from __future__ import annotations
@@ -31,7 +36,7 @@ import numpy as np
 from persona.dag.evaluate import driver_frame_landmarks, mesh_expression
 from persona.dag.workflow import load_workflow
 from persona.plugins.builtin import evaluate as ev
-from persona.plugins.face.transfer import DeformationTransfer
+from persona.plugins.kinds import MotionPair
 from persona.plugins.manager import default_registry
 from persona.stores.layout import Collection, open_store
 
@@ -48,13 +53,13 @@ def row(name: str, figures: dict) -> str:
     return f"| {name} | " + " | ".join(cells) + " |"
 
 
-def worst(root, driver: dict, output: dict, count: int) -> None:
+def worst(root, cast, driver: dict, output: dict, count: int) -> None:
     """For each signal, the ``count`` frames furthest from the output's least-squares line on the
     driver's (the output's ``series.json``), with each step of the chain there, and the gain without them."""
-    steps = {"A's meshes": ("drive/motion/driver_mesh", "driver", False),
-             "B's meshes": ("drive/mesh", "puppet", False), "as drawn": ("drive/mesh", "puppet", True)}
-    fiducials = {actor: root[f"{actor}/aligned/mean_fiducials"][...] for actor in ("driver", "puppet")}
-    poses = root["drive/pose"]
+    steps = {"A's meshes": (f"{cast.drive}/motion/driver_mesh", cast.driver, False),
+             "B's meshes": (f"{cast.drive}/mesh", cast.puppet, False), "as drawn": (f"{cast.drive}/mesh", cast.puppet, True)}
+    fiducials = {actor: root[f"{actor}/aligned/mean_fiducials"][...] for actor in (cast.driver, cast.puppet)}
+    poses = root[f"{cast.drive}/pose"]
     for k in SIGNALS:
         ours = np.asarray(output[f"output_{k}"], np.float64)
         ok = np.isfinite(driver[k]) & np.isfinite(ours)
@@ -87,54 +92,64 @@ def main() -> None:
                         "tv=W (Huber-ROF with TV weight W)")
     parser.add_argument("--worst", type=int, default=0, help="list the N frames furthest from the output's "
                         "line on the driver's, each step there (needs the run's series.json)")
+    parser.add_argument("--drive", help="which drive of the workflow (its output folder's name; default: the first)")
     args = parser.parse_args()
     wf = load_workflow(args.workflow)
+    plans = {plan.name: plan for plan in wf.drive_plans()}
+    if not plans:
+        parser.error(f"{args.workflow} has no drive")
+    if args.drive is not None and args.drive not in plans:
+        parser.error(f"{args.workflow} has no drive {args.drive!r}; its drives: {', '.join(plans)}")
+    plan = plans[args.drive] if args.drive is not None else next(iter(plans.values()))
+    cast = plan.cast
     root = open_store(wf.store, mode="r")
-    drive = Collection(root, "drive")
-    landmarks = driver_frame_landmarks(root)
+    drive = Collection(root, cast.drive)
+    landmarks = driver_frame_landmarks(root, cast.frames)
     driver = ev.expression_signals(landmarks)
-    print(f"{wf.name}: {drive.n} frames; driver ranges (5-95 %, / IOD): "
+    print(f"{wf.name}, {cast.drive}: {drive.n} frames; driver ranges (5-95 %, / IOD): "
           + ", ".join(f"{k} {np.subtract(*np.nanpercentile(driver[k], [95, 5])):.3f}" for k in SIGNALS))
     print("| step | " + " | ".join(f"{k} gain / r" for k in SIGNALS) + " |")
     print("|---|" + "---|" * len(SIGNALS))
-    print(row("A's meshes", mesh_expression(root, "drive/motion/driver_mesh", "driver", landmarks)[0]))
-    puppet, posed = mesh_expression(root, "drive/mesh", "puppet", landmarks, poses=drive.array("pose")[:])
-    print(row("B's meshes (the run)", puppet))
+    print(row("A's meshes", mesh_expression(root, f"{cast.drive}/motion/driver_mesh", cast.driver, landmarks)[0]))
+    moved, posed = mesh_expression(root, f"{cast.drive}/mesh", cast.puppet, landmarks, poses=drive.array("pose")[:])
+    print(row("B's meshes (the run)", moved))
     print(row("B's meshes at the frames' poses", posed))
 
     chosen = np.arange(0, drive.n, args.every)
     sub = {k: v[chosen] for k, v in driver.items()}
-    source = root["drive/motion/driver_mesh"]
-    a_meshes = np.stack([source[int(t)] for t in chosen]).astype(np.float64)
-    mean = root["drive/motion/driver_mean"][...].astype(np.float64)
-    phi = root["drive/motion/correspondence"][...].astype(np.float64)
-    mask = root["puppet/shape/mask"][...]
-    depth = root["puppet/shape/depth"][...]
+    source = drive.array("motion/driver_mesh")
+    a_meshes = [source[int(t)].astype(np.float64) for t in chosen]
+    puppet = Collection(root, cast.puppet)
+    depth = puppet.array("shape/depth")[...]
     ys, xs = np.mgrid[0:depth.shape[0], 0:depth.shape[1]]
-    puppet_mean = np.stack([xs, ys, depth], axis=-1)
-    driver_mask = root["driver/shape/mask"][...]
-    params = dict(drive.group.attrs["motion"]["transfer"])
     registry = default_registry()
+    name, params = wf.stage("transfer")
+    run_denoiser = registry.get("denoise", wf.stage("denoise")[0])(wf.stage("denoise")[1]) \
+        if "denoise" in wf.stages else None
     for variant in args.variants.split(","):
-        p, denoiser = dict(params), None
+        p, denoiser = dict(params), run_denoiser
         if variant in ("naive", "normal"):
             p["method"] = variant
         elif variant == "none":
             denoiser = registry.get("denoise", "none")({})
         elif variant.startswith("tv="):
             denoiser = registry.get("denoise", "huber_rof")({"weight": float(variant[3:]), "outside": "exclude"})
-        transfer = DeformationTransfer(mean, phi, puppet_mean, mask, driver_mask, params=p, denoiser=denoiser)
-        meshes = np.stack([transfer(m) for m in a_meshes])
-        moved = ev.moved_landmarks(meshes, root["puppet/aligned/mean_fiducials"][...])
+        pair = MotionPair(drive.array("motion/driver_mean")[...], drive.array("motion/correspondence")[...],
+                          np.stack([xs, ys, depth], axis=-1), puppet.array("shape/mask")[...],
+                          Collection(root, cast.driver).array("shape/mask")[...],
+                          puppet.array("aligned/mean_fiducials")[...], drive.array("target")[:], denoiser)
+        mesh = registry.get("transfer", name)(p).prepare(pair)  # as the run's motion stage prepares it
+        meshes = np.stack([mesh(int(t), m) for t, m in zip(chosen, a_meshes)])
+        moved = ev.moved_landmarks(meshes, puppet.array("aligned/mean_fiducials")[...])
         print(row(f"B's meshes, transfer {variant} (every {args.every}th frame)", gains(moved, sub)))
-    metrics = Path(wf.output) / "metrics.json"
+    metrics = Path(plan.output) / "metrics.json"
     if metrics.is_file():
         amp = json.loads(metrics.read_text()).get("evaluation", {}).get("amplitude")
         if amp:
             print(row("output (the run's evaluation)", amp))
-    series = Path(wf.output) / "series.json"
+    series = Path(plan.output) / "series.json"
     if args.worst and series.is_file():
-        worst(root, driver, json.loads(series.read_text()), args.worst)
+        worst(root, cast, driver, json.loads(series.read_text()), args.worst)
 
 
 if __name__ == "__main__":
