@@ -306,6 +306,7 @@ def evaluate(store: str, executor, *, identity: tuple[str, dict], threshold: flo
             **distances,
             **{f"driver_{k}": v for k, v in ev.expression_signals(driver_landmarks).items()},
             **{f"output_{k}": v for k, v in ev.expression_signals(joined["landmarks"]).items()},
+            **{f"composite_{k}": v for k, v in ev.expression_signals(joined["composite_landmarks"]).items()},
         },
     }
     if pieces["motion"] is not None:  # rendered from the motion step's meshes

@@ -169,6 +169,30 @@ def test_report_is_one_self_contained_page(drive_run):
     assert page.count("data:image/png;base64,") >= 6
 
 
+def test_the_series_carry_the_composites_signals_for_a_paired_comparison(drive_run, capsys):
+    """series.json holds composite.mp4's expression signals beside the face alone's, whose gains are the
+    evaluation's amplitude_composite; benchmarks/gain_difference.py --composite judges them (a run against
+    itself: no difference)."""
+    import importlib.util
+
+    from persona.plugins.builtin.evaluate import amplitude
+
+    folder, _, report = drive_run
+    series = json.loads((folder / "output" / "series.json").read_text())
+    driver, composited = (np.asarray(series[f"{who}_mouth_width"], float) for who in ("driver", "composite"))
+    assert len(composited) == len(series["output_mouth_width"])
+    figures = report["evaluation"]["amplitude_composite"]["mouth_width"]
+    assert amplitude(driver, composited)["gain"] == pytest.approx(figures["gain"], nan_ok=True)
+    script = Path(__file__).resolve().parents[2] / "benchmarks" / "gain_difference.py"
+    spec = importlib.util.spec_from_file_location("gain_difference", script)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    capsys.readouterr()
+    assert module.main([str(folder / "output"), str(folder / "output"), "--composite"]) == 0
+    lines = capsys.readouterr().out.splitlines()[1:]
+    assert len(lines) == 4 and all("+0.000 [+0.000, +0.000]" in line for line in lines)
+
+
 def test_evaluate_command_prints_json(drive_run, capsys):
     _, path, report = drive_run
     capsys.readouterr()
