@@ -34,10 +34,9 @@ from pathlib import Path
 import numpy as np
 
 from persona.dag.evaluate import driver_frame_landmarks, mesh_expression
+from persona.dag.motion import prepared_transfer
 from persona.dag.workflow import load_workflow
 from persona.plugins.builtin import evaluate as ev
-from persona.plugins.kinds import MotionPair
-from persona.plugins.manager import default_registry
 from persona.stores.layout import Collection, open_store
 
 SIGNALS = ("mouth_open", "mouth_width", "eye_open", "brow_height")
@@ -118,27 +117,19 @@ def main() -> None:
     chosen = np.arange(0, drive.n, args.every)
     sub = {k: v[chosen] for k, v in driver.items()}
     source = drive.array("motion/driver_mesh")
-    a_meshes = [source[int(t)].astype(np.float64) for t in chosen]
+    a_meshes = [source[int(t)] for t in chosen]
     puppet = Collection(root, cast.puppet)
-    depth = puppet.array("shape/depth")[...]
-    ys, xs = np.mgrid[0:depth.shape[0], 0:depth.shape[1]]
-    registry = default_registry()
-    name, params = wf.stage("transfer")
-    run_denoiser = registry.get("denoise", wf.stage("denoise")[0])(wf.stage("denoise")[1]) \
-        if "denoise" in wf.stages else None
+    transfer = wf.stage("transfer")
+    run_denoise = wf.stage("denoise") if "denoise" in wf.stages else None
     for variant in args.variants.split(","):
-        p, denoiser = dict(params), run_denoiser
+        (name, params), denoise = transfer, run_denoise
         if variant in ("naive", "normal"):
-            p["method"] = variant
+            params = {**params, "method": variant}
         elif variant == "none":
-            denoiser = registry.get("denoise", "none")({})
+            denoise = ("none", {})
         elif variant.startswith("tv="):
-            denoiser = registry.get("denoise", "huber_rof")({"weight": float(variant[3:]), "outside": "exclude"})
-        pair = MotionPair(drive.array("motion/driver_mean")[...], drive.array("motion/correspondence")[...],
-                          np.stack([xs, ys, depth], axis=-1), puppet.array("shape/mask")[...],
-                          Collection(root, cast.driver).array("shape/mask")[...],
-                          puppet.array("aligned/mean_fiducials")[...], drive.array("target")[:], denoiser)
-        mesh = registry.get("transfer", name)(p).prepare(pair)  # as the run's motion stage prepares it
+            denoise = ("huber_rof", {"weight": float(variant[3:]), "outside": "exclude"})
+        mesh, _ = prepared_transfer(root, drive, puppet, (name, params), denoise)  # as the run's motion stage
         meshes = np.stack([mesh(int(t), m) for t, m in zip(chosen, a_meshes)])
         moved = ev.moved_landmarks(meshes, puppet.array("aligned/mean_fiducials")[...])
         print(row(f"B's meshes, transfer {variant} (every {args.every}th frame)", gains(moved, sub)))

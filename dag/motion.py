@@ -128,14 +128,16 @@ def transfer_meshes(url: str, path: str, start: int, stop: int, key: str, puppet
     ``transfer`` backend (name, params) moves them; each worker prepares it once."""
     root = open_store(url)
     drive = Collection(root, path)
-    mesh, mask = st.per_process(key, lambda: _prepared(root, drive, Collection(root, puppet), transfer, denoise))
+    mesh, mask = st.per_process(key, lambda: prepared_transfer(root, drive, Collection(root, puppet), transfer, denoise))
     block = np.stack([mesh(t, m) for t, m in zip(range(start, stop), drive.array("motion/driver_mesh")[start:stop])])
     block[:, ~mask] = np.nan
     drive.array("mesh")[start:stop] = block.astype(np.float32)
 
 
-def _prepared(root, drive: Collection, puppet: Collection, transfer: tuple[str, dict], denoise) -> tuple:
-    """The transfer backend prepared for this drive (its function of a frame and A's mesh), and B's mask."""
+def prepared_transfer(root, drive: Collection, puppet: Collection, transfer: tuple[str, dict],
+                      denoise: tuple[str, dict] | None) -> tuple:
+    """The transfer backend (name, params) prepared for this drive, with the denoiser (name, params; None: the
+    backend's own): its function of a frame and A's mesh there; and B's mask."""
     depth = puppet.array("shape/depth")[...]
     ys, xs = np.mgrid[0:depth.shape[0], 0:depth.shape[1]]
     mask = puppet.array("shape/mask")[...]
