@@ -56,7 +56,8 @@ def worst(root, cast, driver: dict, output: dict, count: int) -> None:
     """For each signal, the ``count`` frames furthest from the output's least-squares line on the
     driver's (the output's ``series.json``), with each step of the chain there, and the gain without them."""
     steps = {"A's meshes": (f"{cast.drive}/motion/driver_mesh", cast.driver, False),
-             "B's meshes": (f"{cast.drive}/mesh", cast.puppet, False), "as drawn": (f"{cast.drive}/mesh", cast.puppet, True)}
+             "B's meshes": (f"{cast.drive}/mesh", cast.puppet, False),
+             "as drawn": (f"{cast.drive}/mesh", cast.puppet, True)}
     fiducials = {actor: root[f"{actor}/aligned/mean_fiducials"][...] for actor in (cast.driver, cast.puppet)}
     poses = root[f"{cast.drive}/pose"]
     for k in SIGNALS:
@@ -91,7 +92,8 @@ def main() -> None:
                         "tv=W (Huber-ROF with TV weight W)")
     parser.add_argument("--worst", type=int, default=0, help="list the N frames furthest from the output's "
                         "line on the driver's, each step there (needs the run's series.json)")
-    parser.add_argument("--drive", help="which drive of the workflow (its output folder's name; default: the first)")
+    parser.add_argument("--drive", help="which drive of a version-2 workflow, by name (as its output folder is "
+                        "called); default: the first")
     args = parser.parse_args()
     wf = load_workflow(args.workflow)
     plans = {plan.name: plan for plan in wf.drive_plans()}

@@ -128,7 +128,8 @@ def transfer_meshes(url: str, path: str, start: int, stop: int, key: str, puppet
     ``transfer`` backend (name, params) moves them; each worker prepares it once."""
     root = open_store(url)
     drive = Collection(root, path)
-    mesh, mask = st.per_process(key, lambda: prepared_transfer(root, drive, Collection(root, puppet), transfer, denoise))
+    mesh, mask = st.per_process(key, lambda: prepared_transfer(root, drive, Collection(root, puppet), transfer,
+                                                                denoise))
     block = np.stack([mesh(t, m) for t, m in zip(range(start, stop), drive.array("motion/driver_mesh")[start:stop])])
     block[:, ~mask] = np.nan
     drive.array("mesh")[start:stop] = block.astype(np.float32)
