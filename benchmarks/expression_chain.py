@@ -121,6 +121,7 @@ def main() -> None:
     source = drive.array("motion/driver_mesh")
     a_meshes = [source[int(t)] for t in chosen]
     puppet = Collection(root, cast.puppet)
+    fiducials = puppet.array("aligned/mean_fiducials")[...]
     transfer = wf.stage("transfer")
     run_denoise = wf.stage("denoise") if "denoise" in wf.stages else None
     for variant in args.variants.split(","):
@@ -133,7 +134,7 @@ def main() -> None:
             denoise = ("huber_rof", {"weight": float(variant[3:]), "outside": "exclude"})
         mesh, _ = prepared_transfer(root, drive, puppet, (name, params), denoise)  # as the run's motion stage
         meshes = np.stack([mesh(int(t), m) for t, m in zip(chosen, a_meshes)])
-        moved = ev.moved_landmarks(meshes, puppet.array("aligned/mean_fiducials")[...])
+        moved = ev.moved_landmarks(meshes, fiducials)
         print(row(f"B's meshes, transfer {variant} (every {args.every}th frame)", gains(moved, sub)))
     metrics = Path(plan.output) / "metrics.json"
     if metrics.is_file():

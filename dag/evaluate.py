@@ -304,9 +304,9 @@ def evaluate(store: str, executor, *, identity: tuple[str, dict], threshold: flo
         "bridged_frames": int(drive.array("bridged")[:].sum()),
         "series": {
             **distances,
-            **{f"driver_{k}": v for k, v in ev.expression_signals(driver_landmarks).items()},
-            **{f"output_{k}": v for k, v in ev.expression_signals(joined["landmarks"]).items()},
-            **{f"composite_{k}": v for k, v in ev.expression_signals(joined["composite_landmarks"]).items()},
+            **{f"{who}_{k}": v for who, points in (("driver", driver_landmarks), ("output", joined["landmarks"]),
+                                                     ("composite", joined["composite_landmarks"]))
+               for k, v in ev.expression_signals(points).items()},
         },
     }
     if pieces["motion"] is not None:  # rendered from the motion step's meshes
