@@ -494,6 +494,36 @@ def test_a_worker_loads_the_cache_totals_and_the_photos_gazes_once(drive_run, mo
     assert calls == {"_totals": 1, "photo_looks": 0}
 
 
+def test_a_workers_dynamics_shards_share_one_driver_model(drive_run, tmp_path, monkeypatch):
+    """Two shards of the driver's dynamics made again in one process load the driver's model once (it
+    was loaded for every shard, with its landmark spline and shading operators: 0.3 s a shard), and make
+    the same flows to the bit."""
+    import dataclasses
+
+    from persona.dag import stages as st
+    from persona.stores.layout import PENDING, Collection, open_store
+
+    folder, _, _ = drive_run
+    shutil.copytree(folder / "run.zarr", tmp_path / "run.zarr")
+    url = str(tmp_path / "run.zarr")
+    drive = Collection(open_store(url), "drive")
+    before = drive.array("dynamics/flow")[0:8]
+    loads = []
+
+    def counted(root, path):
+        loads.append(path)
+        return st.driver_model(root, path)
+    monkeypatch.setitem(st.PHOTO_STAGES, "dynamics", dataclasses.replace(st.DYNAMICS, context=counted))
+    drive.write_status("dynamics", 0, np.full(8, PENDING, np.int8), [""] * 8)
+    drive.array("dynamics/flow")[0:8] = 0
+    st._loaded.clear()
+    backend = drive.provenance("status/dynamics/state").backend
+    for start, stop in ((0, 4), (4, 8)):
+        st.run_chain(url, "drive", start, stop, [("dynamics", backend, drive.provenance("dynamics/flow").params)])
+    assert loads == ["drive"]
+    np.testing.assert_array_equal(drive.array("dynamics/flow")[0:8], before)
+
+
 def test_a_shape_from_fewer_photos_than_the_collection_reads_only_those(drive_run):
     """With ``max_images`` 8 of the 10 photos, the shape's task reads 8 (the others get no lights),
     and the run goes on; back at the default, all 10 again."""
