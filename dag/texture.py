@@ -296,12 +296,11 @@ CACHE_BYTES = 1 << 30
 _shards: dict[tuple[str, int], tuple[list, list]] = {}
 
 
-def _read_shard(coll: Collection, key: str, start: int, rows: np.ndarray) -> tuple[list, list]:
-    """The cache levels (weighted, detail) of the photos ``rows`` of the shard from ``start`` of the cache
-    ``key`` (:func:`_cache_id`), kept between tasks while all kept shards fit in :data:`CACHE_BYTES`
+def _read_shard(coll: Collection, key: str, start: int, rows: np.ndarray, levels: int) -> tuple[list, list]:
+    """The ``levels`` cache levels (weighted, detail) of the photos ``rows`` of the shard from ``start`` of the
+    cache ``key`` (:func:`_cache_id`), kept between tasks while all kept shards fit in :data:`CACHE_BYTES`
     (the oldest dropped first)."""
     if (key, start) not in _shards:
-        levels = _levels(coll)
         _shards[(key, start)] = tuple([coll.rows(f"texture/{kind}_{k}", rows) for k in range(levels)]
                                       for kind in ("weighted", "detail"))
         for old in [k for k in _shards if k[0] != key]:  # another puppet's or an earlier cache's
@@ -375,7 +374,7 @@ def stored_textures(url: str, path: str, name: str, params: dict, targets, start
     for begin, end in source.shard_ranges():
         a, b = np.searchsorted(ok, [begin, end])
         if weights[:, a:b].any():
-            sums.add(*_read_shard(source, key, begin, ok[a:b]), weights[:, a:b])
+            sums.add(*_read_shard(source, key, begin, ok[a:b], len(totals.weighted)), weights[:, a:b])
     return backend.finish(sums, totals, fiducials, around[keep], gaze=gaze)
 
 

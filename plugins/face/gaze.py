@@ -236,6 +236,11 @@ def _white_behind(texture: np.ndarray, hole: np.ndarray, opening: np.ndarray) ->
     return out
 
 
+#: how far beyond an eye's points (in its widths) :func:`look` reads and changes the texture: past the measure's
+#: crop (1.5 widths square about the eye's middle, turned with it) and the furthest an iris moves
+EYE_MARGIN = 1.2
+
+
 def look(texture: np.ndarray, neutral: np.ndarray, shift: np.ndarray) -> np.ndarray:
     """``texture`` (H, W, 3) at the geometry of the fiducials ``neutral`` (49, 2) with each eye looking
     ``shift`` (2, 2) away from where it does: per eye, along and across it, in its widths (:func:`gaze_shift`).
@@ -254,31 +259,47 @@ def look(texture: np.ndarray, neutral: np.ndarray, shift: np.ndarray) -> np.ndar
     if not np.any(shift):
         return texture
     out = np.array(texture, np.float32)
-    h, w = out.shape[:2]
     for eye, wanted in zip(EYES49, shift):
         points = np.asarray(neutral, np.float64)[list(eye)]
         if not np.any(wanted) or not np.isfinite(points).all():
             continue
-        origin, axis, width = _frame(points)
-        frame = _axes(axis) * width  # rows: one eye width along it, and across (down)
-        found = iris_offset(np.clip(out, 0, 255).round().astype(np.uint8), points)
-        start = np.nan_to_num(found)
-        opening = _coverage((h, w), _almond(points))
-        iris = _disc((h, w), origin + start @ frame, DISC * IRIS * width / 2)
-        bare = _white_behind(out, cv2.dilate((iris * opening > 0).astype(np.uint8), np.ones((3, 3), np.uint8)) > 0,
-                             opening > 0.5)
-        wanted = np.asarray(wanted, np.float64)
-        move, best, least = wanted, None, np.inf
-        for _ in range(PASSES if np.abs(wanted).max() >= MEASURED_FROM and np.isfinite(found).all() else 1):
-            turned = _turned(out, opening, bare, iris, move @ frame)
-            best = turned if best is None else best  # the first pass, as asked, unless a later one does better
-            seen = iris_offset(np.clip(turned, 0, 255).round().astype(np.uint8), points) - start
-            if np.isnan(seen).any() or seen @ wanted < 0.5 * (wanted @ wanted):
-                break  # a measure that does not follow the iris (a light iris, dark lashes): keep what was asked
-            miss = wanted - seen
-            if np.abs(miss).max() >= least:
-                break
-            best, least = turned, np.abs(miss).max()
-            move = np.clip(move + miss, -1.5 * np.abs(wanted) - 0.02, 1.5 * np.abs(wanted) + 0.02)
-        out = best
+        out = _look_eye(out, points, np.asarray(wanted, np.float64))
+    return out
+
+
+def _look_eye(out: np.ndarray, points: np.ndarray, wanted: np.ndarray) -> np.ndarray:
+    """:func:`look` of one eye, its six points ``points``: ``out`` (H, W, 3) float32 with the eye turned, its
+    texels changed in a crop about the eye (``EYE_MARGIN``) and only read there but by the measure."""
+    origin, axis, width = _frame(points)
+    frame = _axes(axis) * width  # rows: one eye width along it, and across (down)
+    x0, y0 = np.maximum(np.floor(points.min(axis=0) - EYE_MARGIN * width), 0).astype(int)
+    x1, y1 = np.ceil(points.max(axis=0) + EYE_MARGIN * width).astype(int) + 1
+    corner, crop = np.array([x0, y0]), out[y0:y1, x0:x1]
+    image = np.clip(out, 0, 255).round().astype(np.uint8)
+
+    def measured(texels):
+        """:func:`iris_offset` of the texture with the crop's texels ``texels``."""
+        image[y0:y1, x0:x1] = np.clip(texels, 0, 255).round().astype(np.uint8)
+        return iris_offset(image, points)
+
+    found = measured(crop)
+    start = np.nan_to_num(found)
+    opening = _coverage(crop.shape[:2], _almond(points) - corner)
+    iris = _disc(crop.shape[:2], origin + start @ frame - corner, DISC * IRIS * width / 2)
+    bare = _white_behind(crop, cv2.dilate((iris * opening > 0).astype(np.uint8), np.ones((3, 3), np.uint8)) > 0,
+                         opening > 0.5)
+    move, best, least = wanted, None, np.inf
+    for _ in range(PASSES if np.abs(wanted).max() >= MEASURED_FROM and np.isfinite(found).all() else 1):
+        turned = _turned(crop, opening, bare, iris, move @ frame)
+        best = turned if best is None else best  # the first pass, as asked, unless a later one does better
+        seen = measured(turned) - start
+        if np.isnan(seen).any() or seen @ wanted < 0.5 * (wanted @ wanted):
+            break  # a measure that does not follow the iris (a light iris, dark lashes): keep what was asked
+        miss = wanted - seen
+        if np.abs(miss).max() >= least:
+            break
+        best, least = turned, np.abs(miss).max()
+        move = np.clip(move + miss, -1.5 * np.abs(wanted) - 0.02, 1.5 * np.abs(wanted) + 0.02)
+    out = out.astype(best.dtype)  # a copy, in the turned texels' precision
+    out[y0:y1, x0:x1] = best
     return out

@@ -38,7 +38,7 @@ def test_rows_are_read_a_shard_at_a_time_in_the_order_asked(tmp_path):
     coll.create("aligned/rgb", (8, 8, 3), "uint8", ("photo", "y", "x", "channel"), prov())[:] = values
     coll.create("landmarks/points", (68, 2), "float32", ("photo", "point", "xy"), prov())[:] = \
         np.arange(10 * 68 * 2, dtype=np.float32).reshape(10, 68, 2)  # one chunk a shard, not sharded
-    for rows in ([9, 0, 5, 5, 3], [6], np.arange(10), np.zeros(0, int)):
+    for rows in ([9, 0, 5, 5, 3], [6], [3, 4, 5], np.arange(10), np.zeros(0, int)):  # [3, 4, 5]: one run, two shards
         for name in ("aligned/rgb", "landmarks/points"):
             got = coll.rows(name, rows)
             assert got.dtype == coll.array(name).dtype
