@@ -151,9 +151,9 @@ def build_cache(runner: RunContext, coll: Collection, cache: Provenance, chosen:
     levels = backend.params.levels
     for k, level in enumerate(gaussian_pyramid(np.zeros((H, W), np.float32), levels)):
         coll.create(f"texture/weighted_{k}", (*level.shape, 3), np.float32, ("photo", *_level_dims(k), "channel"),
-                    cache, pending=True)
+                    cache, pending=True, by_shard=True)
         coll.create(f"texture/detail_{k}", (*level.shape, 1), np.float32, ("photo", *_level_dims(k), "weight"),
-                    cache, pending=True)
+                    cache, pending=True, by_shard=True)
     totals = runner.tasks.fold_shards(coll, "tex. cache", cache_shard, operator.add, name, params, fill, basis)
     coll.remove("texture/warped_grey", "texture/warped_valid")
     for k in range(levels):  # what every target's blend takes of all photos (small)

@@ -138,21 +138,24 @@ class Collection:
 
     # -- arrays ------------------------------------------------------------------
     def create(self, name: str, tail: tuple[int, ...], dtype, dims: tuple[str, ...],
-               provenance: Provenance, fill_value: Any = None, *, pending: bool = False) -> zarr.Array:
+               provenance: Provenance, fill_value: Any = None, *, pending: bool = False,
+               by_shard: bool = False) -> zarr.Array:
         """(Re)create a per-photo array of shape (n, *tail).
 
         Images get one photo per chunk, ``photos_per_shard`` chunks per shard; small
         per-photo values get one chunk per shard. Either way a shard of photos is one file.
-        ``pending``: the array is filled later and counts as done (has its provenance) only
-        once :meth:`mark_done` is called after the last write, so that a run killed half-way
-        leaves an array the next run recomputes rather than trusts.
+        ``by_shard``: images only ever written and read a whole shard at a time get one chunk per
+        shard too (each chunk costs a decode: B's texture cache, read by every worker of a drive,
+        reads 2-3 times faster so). ``pending``: the array is filled later and counts as done
+        (has its provenance) only once :meth:`mark_done` is called after the last write, so that
+        a run killed half-way leaves an array the next run recomputes rather than trusts.
         """
         if len(dims) != 1 + len(tail):
             raise ValueError(f"{name}: {len(dims)} dimension names for {1 + len(tail)} dimensions")
         shape = (self.n, *tail)
         if dtype is str or np.dtype(dtype).kind in "OTU":
             dtype, chunks, shards = str, (self.shard,), None
-        elif np.dtype(dtype).itemsize * int(np.prod(tail)) >= IMAGE_BYTES:
+        elif np.dtype(dtype).itemsize * int(np.prod(tail)) >= IMAGE_BYTES and not by_shard:
             chunks, shards = (1, *tail), (self.shard, *tail)
         else:
             chunks, shards = (self.shard, *tail), None

@@ -28,6 +28,9 @@ def test_shards_are_the_write_unit_and_photos_the_chunk(tmp_path):
     assert arr.metadata.dimension_names == ("photo", "y", "x", "channel")
     small = coll.create("landmarks/points", (68, 2), "float32", ("photo", "point", "xy"), prov())
     assert small.chunks == (4, 68, 2) and small.shards is None  # small values: a chunk per shard
+    whole = coll.create("texture/weighted_0", (64, 64, 3), "float32", ("photo", "y", "x", "channel"), prov(),
+                        by_shard=True)
+    assert whole.chunks == (4, 64, 64, 3) and whole.shards is None  # read a shard at a time: a chunk per shard
     with pytest.raises(ValueError, match="dimension names"):
         coll.create("bad", (2,), "float32", ("photo",), prov())
 
