@@ -76,8 +76,7 @@ def iris_offset(image: np.ndarray, points: np.ndarray) -> np.ndarray:
     side = int(MEASURE_WIDTH * 1.5)
     rotation = np.array([[axis[0], axis[1]], [-axis[1], axis[0]]]) * scale
     affine = np.hstack([rotation, (side / 2 - rotation @ origin)[:, None]])
-    grey = image if image.ndim == 2 else cv2.cvtColor(np.ascontiguousarray(image), cv2.COLOR_RGB2GRAY)
-    crop = cv2.warpAffine(grey.astype(np.float32), affine, (side, side), flags=cv2.INTER_AREA,
+    crop = cv2.warpAffine(_grey_near(image, origin, side / scale + 2), affine, (side, side), flags=cv2.INTER_AREA,
                           borderMode=cv2.BORDER_CONSTANT, borderValue=-1)
     inside = np.zeros((side, side), np.uint8)
     cv2.fillPoly(inside, [np.round((points @ rotation.T + affine[:, 2]) * 4).astype(np.int32)], 1, shift=2)
@@ -100,6 +99,19 @@ def iris_offset(image: np.ndarray, points: np.ndarray) -> np.ndarray:
         curve = before - 2 * score[y, x] + after  # a parabola through the best and its two neighbours
         refined.append(here + (0.5 * (before - after) / curve if np.isfinite(curve) and curve < 0 else 0.0))
     return (np.array(refined) - side / 2) / MEASURE_WIDTH
+
+
+def _grey_near(image: np.ndarray, centre: np.ndarray, reach: float) -> np.ndarray:
+    """(h, w) float32: ``image`` (h, w, 3) or (h, w) as grey within ``reach`` px of ``centre`` (x, y), 0 beyond,
+    where the eye's crop never reads (converting all of an HD frame for each eye was most of the measure)."""
+    h, w = image.shape[:2]
+    x0, y0 = np.clip(np.floor(centre - reach).astype(int), 0, [w, h])
+    x1, y1 = np.clip(np.ceil(centre + reach).astype(int) + 1, 0, [w, h])
+    grey = np.zeros((h, w), np.float32)
+    part = image[y0:y1, x0:x1]
+    if part.size:
+        grey[y0:y1, x0:x1] = part if part.ndim == 2 else cv2.cvtColor(np.ascontiguousarray(part), cv2.COLOR_RGB2GRAY)
+    return grey
 
 
 def iris_offsets(image: np.ndarray, landmarks: np.ndarray) -> np.ndarray:
