@@ -240,7 +240,8 @@ def evaluate(store: str, executor, *, identity: tuple[str, dict], threshold: flo
         else:
             wanted[actor] = (path, made)
             tasks += [(actor, "photos", store, path, chosen[i::2], identity) for i in range(2)]
-    tasks += [("texture", "texture", store, cast, collection_sample), ("motion", "motion", store, cast)]
+    # the drive's two single pieces first: each is several shards' work, and started last they ran alone
+    tasks = [("motion", "motion", store, cast), ("texture", "texture", store, cast, collection_sample), *tasks]
     parts, described, pieces = [], {actor: [] for actor in wanted}, {}
     for tag, result in executor.run(_piece, tasks):
         if tag == "frames":
