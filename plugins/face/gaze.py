@@ -280,8 +280,8 @@ def look(texture: np.ndarray, neutral: np.ndarray, shift: np.ndarray) -> np.ndar
 
 
 def _look_eye(out: np.ndarray, points: np.ndarray, wanted: np.ndarray) -> np.ndarray:
-    """:func:`look` of one eye, its six points ``points``: ``out`` (H, W, 3) float32 with the eye turned, its
-    texels changed in a crop about the eye (``EYE_MARGIN``) and only read there but by the measure."""
+    """:func:`look` of one eye, its six points ``points``: a copy of ``out`` (H, W, 3) with the eye turned, its
+    texels changed in a crop about the eye (``EYE_MARGIN``) and read only there but by the measure."""
     origin, axis, width = _frame(points)
     frame = _axes(axis) * width  # rows: one eye width along it, and across (down)
     x0, y0 = np.maximum(np.floor(points.min(axis=0) - EYE_MARGIN * width), 0).astype(int)
