@@ -22,7 +22,7 @@ from persona.plugins.face.fiducials import rest_shape
 from persona.plugins.face.tracks import bridge, steadied
 from persona.plugins.face.warp import retarget
 from persona.stores import media, storage
-from persona.stores.layout import OK, PENDING, Cast, Collection, open_store
+from persona.stores.layout import OK, PENDING, Cast, Collection
 
 from . import stages as st
 from .context import RunContext
@@ -172,11 +172,7 @@ def _retarget(runner: RunContext, cast, drive, frames, puppet, found, prov, sigm
     fiducials = frames.array("aligned/fiducials")[:].astype(np.float64)
     pose = bridge(frames.array("pose")[:], found)
     pose[:, :6] = smooth_in_time(pose[:, :6], sigma)  # rvec, tvec
-    steady_fiducials = fiducials
-    if steady:  # each shard's frames on the workers, read with ``steady`` frames either side
-        parts = runner.tasks.map_shards(frames, "steady", steady_shard, steady)
-        steady_fiducials = np.concatenate([parts[start] for start, _ in frames.shard_ranges()])
-    driver_fiducials = bridge(steady_fiducials, found)
+    driver_fiducials = bridge(steadied(fiducials, frames.array("aligned/rgb"), found, steady), found)
     collection = Collection(runner.root, cast.driver)
     driver_neutral = rest_shape(fiducials[found] if neutral == "clip" else _photo_fiducials(collection), share)
     puppet_neutral = rest_shape(_photo_fiducials(puppet), share)
@@ -189,15 +185,6 @@ def _retarget(runner: RunContext, cast, drive, frames, puppet, found, prov, sigm
     drive.create("photos/ids", (), str, ("frame",), prov)[:] = frames.array("photos/ids")[:]
     drive.create_status("retarget", prov)
     drive.write_status("retarget", 0, np.full(n, OK, np.int8), [""] * n)
-
-
-def steady_shard(url: str, path: str, start: int, stop: int, radius: int) -> np.ndarray:
-    """One shard's task of the retargeting: the fiducials (f, 49, 2) of the driver's frames [start, stop)
-    steadied by their ``radius`` neighbours either side (:func:`steadied`), as they are over the whole clip."""
-    frames = Collection(open_store(url, mode="r"), path)
-    lo, hi = max(start - radius, 0), min(stop + radius, frames.n)
-    points = frames.array("aligned/fiducials")[lo:hi].astype(np.float64)
-    return steadied(points, frames.array("aligned/rgb")[lo:hi], st.accepted(frames)[lo:hi], radius)[start - lo:stop - lo]
 
 
 def _photo_fiducials(coll: Collection) -> np.ndarray:

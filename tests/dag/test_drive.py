@@ -524,25 +524,6 @@ def test_a_workers_dynamics_shards_share_one_driver_model(drive_run, tmp_path, m
     np.testing.assert_array_equal(drive.array("dynamics/flow")[0:8], before)
 
 
-def test_the_drivers_landmarks_steadied_a_shard_at_a_time_are_those_of_the_whole_clip(drive_run):
-    """The retargeting steadies the driver's landmarks in tasks over shards of frames, each read with its
-    neighbours either side: the same points to the bit as over the whole clip at once."""
-    from persona.dag import stages as st
-    from persona.dag.drive import steady_shard
-    from persona.plugins.face.tracks import steadied
-    from persona.stores.layout import Collection, open_store
-
-    folder, _, _ = drive_run
-    url = str(folder / "run.zarr")
-    frames = Collection(open_store(url, mode="r"), "driver/frames")
-    assert len(frames.shard_ranges()) > 1
-    whole = steadied(frames.array("aligned/fiducials")[:].astype(np.float64), frames.array("aligned/rgb"),
-                     st.accepted(frames), 2)
-    shards = np.concatenate([steady_shard(url, "driver/frames", start, stop, 2) for start, stop in frames.shard_ranges()])
-    np.testing.assert_array_equal(shards, whole)
-    assert not np.array_equal(whole, frames.array("aligned/fiducials")[:])  # steadying moved the points
-
-
 def test_a_shape_from_fewer_photos_than_the_collection_reads_only_those(drive_run):
     """With ``max_images`` 8 of the 10 photos, the shape's task reads 8 (the others get no lights),
     and the run goes on; back at the default, all 10 again."""
