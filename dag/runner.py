@@ -125,7 +125,8 @@ class Runner:
         """Every stage of the workflow on its resolved ``inputs`` (:func:`resolve_inputs`).
 
         Chunks of finished arrays that are lost or damaged (checked before the stages start: every
-        chunk listed and read back against its checksum, as ``persona inspect --verify`` does) or found
+        chunk listed and read back against its checksum, as ``persona inspect --verify`` does, by the
+        workers) or found
         damaged on the way (a :class:`ChunkError`) are recomputed, with everything made from them:
         :mod:`persona.stores.verify`, one logged line per problem. A run that ends well leaves a store
         that verifies, the arrays no stage reads again (a drive's composite) included. The temporary
@@ -133,7 +134,7 @@ class Runner:
         if left := verify.clear_unfinished_writes(self.root):
             log.warning("%d unfinished write(s) a stopped run left in the store deleted (%s)", len(left),
                         ", ".join(left[:3]) + (", ..." if len(left) > 3 else ""))
-        self.recover(verify.check(self.root, read=True))
+        self.recover(verify.check(self.root, read=True, run=self.executor.run, url=self.wf.store))
         met = set()
         while True:
             try:

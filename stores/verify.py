@@ -19,13 +19,14 @@ from __future__ import annotations
 import functools
 import math
 from dataclasses import dataclass, field
+from typing import Callable
 
 import numpy as np
 import zarr
 from zarr.core.sync import sync
 
 from .chunks import ChunkError, has_checksums
-from .layout import OK
+from .layout import OK, open_store
 from .paths import array_of, item
 
 #: how many photo ids a problem names before "and N more"
@@ -136,25 +137,66 @@ def _problem(scan: _Scan, path: str, coords: tuple[int, ...], chunk: str, what: 
     return Problem(path, what, chunk, coords[0] if coords else 0, items, prov.get("stage"))
 
 
-def check(root: zarr.Group, *, read: bool = False) -> list[Problem]:
+def check(root: zarr.Group, *, read: bool = False, run: Callable | None = None,
+          url: str | None = None) -> list[Problem]:
     """Every node whose metadata cannot be read and every missing chunk of every done array (the
     store's keys listed, no chunk read); with ``read``, also every chunk of every array that cannot
-    be decoded (each read, its checksum checked)."""
+    be decoded (each read, its checksum checked): here, one after another, or, given ``run``
+    (``run(fn, argument_lists)`` yielding each call's result, as a run's executor does), by its
+    workers from the store at ``url``, :data:`READ_BATCH` bytes a task."""
     scan = _scan(root)
-    problems = [Problem(path, f"metadata cannot be read ({why})") for path, why in scan.broken.items()]
+    found: dict[str, list[tuple[tuple[int, ...], Problem]]] = {path: [] for path in scan.arrays}
+    reads = []  # (array path, coords, chunk key, region) of every chunk to read back
     for path, array in scan.arrays.items():
         done = scan.provenance(path) is not None and has_checksums(array)
         accepted = _accepted_rows(scan, path) if done else None
         for coords, chunk, region in _blocks(array):
             present = chunk in scan.keys
             if done and not present and (accepted is None or accepted[region[0]].any()):
-                problems.append(_problem(scan, path, coords, chunk, "missing"))
+                found[path].append((coords, _problem(scan, path, coords, chunk, "missing")))
             elif read and present:
-                try:
-                    array[region]
-                except ChunkError as exc:
-                    problems.append(_problem(scan, path, coords, chunk, f"damaged ({exc.reason})"))
-    return problems
+                reads.append((path, coords, chunk, region))
+    batches = list(_batches(scan, reads))
+    results = (unreadable(root, batch) for batch in batches) if run is None else \
+        run(unreadable, [(url, batch) for batch in batches])
+    for damaged in results:
+        for path, coords, chunk, reason in damaged:
+            found[path].append((coords, _problem(scan, path, coords, chunk, f"damaged ({reason})")))
+    return [Problem(path, f"metadata cannot be read ({why})") for path, why in scan.broken.items()] + \
+        [problem for path in scan.arrays for _, problem in sorted(found[path], key=lambda f: f[0])]
+
+
+#: bytes of decoded chunks one task of :func:`check` reads back (with ``run``)
+READ_BATCH = 64 << 20
+
+
+def _batches(scan: _Scan, reads: list[tuple]):
+    """``reads`` (array path, coords, chunk key, region) in order, cut into lists of about
+    :data:`READ_BATCH` decoded bytes."""
+    batch, size = [], 0
+    for path, coords, chunk, region in reads:
+        batch.append((path, coords, chunk, region))
+        size += math.prod(r.stop - r.start for r in region) * max(np.dtype(scan.arrays[path].dtype).itemsize, 1)
+        if size >= READ_BATCH:
+            yield batch
+            batch, size = [], 0
+    if batch:
+        yield batch
+
+
+def unreadable(store: zarr.Group | str, reads: list[tuple]) -> list[tuple[str, tuple[int, ...], str, str]]:
+    """Which chunks of ``reads`` (array path, coords, chunk key, region) cannot be decoded, with why: (array
+    path, coords, chunk key, reason). ``store``: the store's root group, or its URL (a worker's task)."""
+    root = store if isinstance(store, zarr.Group) else open_store(store, mode="r")
+    out, arrays = [], {}
+    for path, coords, chunk, region in reads:
+        if path not in arrays:
+            arrays[path] = root[path]
+        try:
+            arrays[path][region]
+        except ChunkError as exc:
+            out.append((path, coords, chunk, exc.reason))
+    return out
 
 
 def problem_of(root: zarr.Group, error: ChunkError) -> Problem:
