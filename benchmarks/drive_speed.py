@@ -2,6 +2,7 @@
 
     .venv/bin/python benchmarks/drive_speed.py [--frames 300] [--runs 3] [--render mesh3d] [--workers 2]
     .venv/bin/python benchmarks/drive_speed.py --workflow WORKFLOW [--runs 3] [--workers 2]
+    .venv/bin/python benchmarks/drive_speed.py --keep FOLDER --slurm [--workers 2]
 
 By default runs the Bush-driven-by-Obama workflow on the first --frames frames of the Obama address
 (256x256) into a temporary store (or --keep FOLDER, whose people are then built once and reused); with
@@ -44,6 +45,8 @@ def main():
     ap.add_argument("--runs", type=int, default=3)
     ap.add_argument("--render", default="mesh3d")
     ap.add_argument("--workers", type=int, default=2, help="local Dask workers (frames/s per worker: run 1 and 2)")
+    ap.add_argument("--slurm", action="store_true", help="the workers as one SLURM job of --workers cores "
+                    "instead of local ones")
     ap.add_argument("--keep", type=Path, help="keep the run here (default: a temporary folder); when a "
                     "kept run is there already, its people (photos, shapes, texture cache) are reused and "
                     "only the drive is made again")
@@ -51,7 +54,7 @@ def main():
                     "people an earlier run built (the drive is made again in its store)")
     args = ap.parse_args()
     if args.workflow:
-        time_drive(args.workflow, args.runs, args.workers, args.render)
+        time_drive(args.workflow, args.runs, args.workers, args.render, args.slurm)
         return
     with tempfile.TemporaryDirectory() as tmp:
         folder = args.keep or Path(tmp)
@@ -63,18 +66,20 @@ def main():
               "stages": {"render": {"backend": args.render}}}
         path = folder / "wf.yaml"
         path.write_text(yaml.safe_dump(wf))
-        time_drive(path, args.runs, args.workers, args.render)
+        time_drive(path, args.runs, args.workers, args.render, args.slurm)
 
 
-def time_drive(path: Path, runs: int, workers: int, render: str) -> None:
+def time_drive(path: Path, runs: int, workers: int, render: str, slurm: bool = False) -> None:
     """Make the first drive of the workflow at ``path`` again ``runs`` times (its people as they are in the
-    store) and print its timings."""
+    store) and print its timings; with ``slurm``, on one SLURM job of ``workers`` cores."""
     from persona.dag.runner import run_workflow
     from persona.dag.workflow import load_workflow
     from persona.stores import storage
     from persona.stores.layout import Collection, open_store
 
-    wf = load_workflow(path, [f"stages.render.backend={render}"])
+    cluster = ["cluster.kind=slurm", "cluster.jobs=1", f"cluster.cores={workers}",
+               f"cluster.memory={3 * workers}GiB", "cluster.start_timeout=300"] if slurm else []
+    wf = load_workflow(path, [f"stages.render.backend={render}", *cluster])
     plan = wf.drive_plans()[0]
     walls, steps = [], {}
     for run in range(runs):
@@ -83,7 +88,8 @@ def time_drive(path: Path, runs: int, workers: int, render: str) -> None:
         metrics = Path(storage.join(plan.output, "metrics.json"))
         if metrics.is_file():
             metrics.unlink()  # else the videos and the evaluation of the same frames are kept, not made
-        report = run_workflow(wf, scheduler="local", workers=workers, progress=False)
+        report = run_workflow(wf, scheduler=None if slurm else "local", workers=None if slurm else workers,
+                              progress=False)
         rows = [r for r in report["stages"] if r["collection"] == plan.cast.drive]
         walls.append(sum(r["wall_seconds"] for r in rows if r["stage"] not in APART))
         for r in rows:
@@ -95,7 +101,8 @@ def time_drive(path: Path, runs: int, workers: int, render: str) -> None:
     h, w = frames.array("photos/size")[0]
     wall = statistics.median(walls)
     ms = 1000 * wall / n
-    print(f"{plan.name}: {n} driver frames of {w}x{h}, render {render}, {workers} workers, median of {runs} "
+    where = " (one SLURM job)" if slurm else ""
+    print(f"{plan.name}: {n} driver frames of {w}x{h}, render {render}, {workers} workers{where}, median of {runs} "
           f"(drive {', '.join(f'{x:.1f}' for x in walls)} s)")
     print(f"  the drive (retarget to composite): {ms:.1f} ms/frame wall = {1000 / ms:.2f} frames/s; "
           f"the paper's {PAPER_MS:.0f} ms/frame on one core is {PAPER_MS / ms:.1f}x that")

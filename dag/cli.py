@@ -5,7 +5,10 @@ from __future__ import annotations
 import argparse
 import json
 import shlex
+import signal
 import sys
+import threading
+from contextlib import contextmanager
 from pathlib import Path
 
 from persona.plugins.base import Rejected
@@ -17,6 +20,29 @@ from persona.stores.output import OutputTaken
 from persona.stores.paths import item
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM: what a batch system sends to cancel a job or at its time limit, as do `kill` and timeouts."""
+
+
+@contextmanager
+def _terminate_as_interrupt():
+    """SIGTERM stops the run as Ctrl-C does, for as long as it runs: its batch jobs cancelled, its local
+    workers stopped, the store's lock let go and the line to resume with printed. Python's default ends the
+    process at once, and a SLURM run's worker jobs stayed in the queue, to start later with no scheduler."""
+    if threading.current_thread() is not threading.main_thread():  # only the main thread takes signals
+        yield
+        return
+
+    def stop(signum, frame):
+        raise Terminated()
+
+    before = signal.signal(signal.SIGTERM, stop)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, before)
+
+
 def _cmd_run(args) -> int:
     from . import api
 
@@ -25,11 +51,12 @@ def _cmd_run(args) -> int:
         print(_plan(wf))
         return 0
     try:
-        report = api.run(wf, scheduler=args.scheduler, workers=args.workers, progress=not args.quiet,
-                         force=args.force)
-    except KeyboardInterrupt:
+        with _terminate_as_interrupt():
+            report = api.run(wf, scheduler=args.scheduler, workers=args.workers, progress=not args.quiet,
+                             force=args.force)
+    except KeyboardInterrupt as exc:
         _resume_hint(args)
-        return 130
+        return 128 + signal.SIGTERM if isinstance(exc, Terminated) else 130
     except (InputError, Rejected, StoreLocked, OutputTaken, StoreUnreadable):  # running again cannot help: no hint
         raise
     except Exception:  # a full disk (api.run's StorageError), a lost cluster, ...: finished work is kept

@@ -229,6 +229,27 @@ def test_resume_after_sigkill_recomputes_nothing_finished(tmp_path, twelve_photo
     assert_same_store(tmp_path / "run.zarr", reference)
 
 
+def test_sigterm_stops_a_run_as_ctrl_c_does(tmp_path, twelve_photos):
+    """SIGTERM (a batch system's cancel or time limit, `kill`, a timeout) to a run on local workers: it stops
+    as on Ctrl-C, with exit status 143 and the line to resume with, and lets the store's lock go (Python's
+    default ended the process at once and left it); resumed, it ends with the store of a run never stopped."""
+    photos, reference = twelve_photos
+    write_workflow(tmp_path, str(photos))
+    proc = subprocess.Popen([PERSONA, "run", str(tmp_path / "wf.yaml"), "--scheduler", "local", "--workers", "1",
+                             "--quiet"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    try:
+        assert _wait_for(lambda: (tmp_path / "run.zarr" / ".persona-lock.json").exists(), timeout=120)
+        proc.send_signal(signal.SIGTERM)
+        err = proc.communicate(timeout=120)[1]
+    finally:
+        proc.kill()
+    assert proc.returncode == 143, err
+    assert "The run stopped. Finished work is kept in the store; resume with:" in err
+    assert not (tmp_path / "run.zarr" / ".persona-lock.json").exists()
+    run_workflow(load_workflow(tmp_path / "wf.yaml"), scheduler="sync", progress=False)
+    assert_same_store(tmp_path / "run.zarr", reference)
+
+
 def test_inspect_json(tmp_path, synthetic_photos, capsys):
     write_photos(tmp_path / "photos", synthetic_photos[:4])
     path = write_workflow(tmp_path, "photos", stages={"landmarks": {"backend": "sidecar"}})

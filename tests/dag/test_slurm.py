@@ -7,8 +7,11 @@ CI starts a single-node SLURM with .ci/slurm-up.sh (called by `bash setup.sh tes
 import json
 import os
 import shutil
+import signal
 import subprocess
 import sys
+import time
+from pathlib import Path
 
 import pytest
 
@@ -96,6 +99,37 @@ def test_a_refused_job_and_a_job_that_never_starts_stop_the_run_with_what_to_do(
     job = err.value.args[0].split("slurm jobs ")[1].split(":")[0]
     assert str(tmp_path / "out" / "worker-logs") in str(err.value)
     listed = subprocess.run(["squeue", "-h", "-j", job, "-o", "%i %T"], capture_output=True, text=True).stdout
+    assert "PENDING" not in listed, listed  # cancelled (squeue may still show it CANCELLED for a moment)
+
+
+def _queued() -> set[str]:
+    """The ids of the jobs in SLURM's queue."""
+    return set(subprocess.run(["squeue", "-h", "-o", "%i"], capture_output=True, text=True).stdout.split())
+
+
+@needs_slurm
+def test_a_terminated_run_cancels_its_worker_jobs_and_says_how_to_resume(tmp_path, synthetic_photos):
+    """SIGTERM to `persona run` (SLURM's own when the run is itself a job that is cancelled or reaches its
+    time limit, `kill`, a timeout) stops it as Ctrl-C does: its worker job, held in the queue here, is
+    cancelled, not left there to start later with no scheduler, and the run says how to resume (exit
+    status 143)."""
+    photos = write_photos(tmp_path / "photos", synthetic_photos[:1])
+    workflow = write_workflow(tmp_path, str(photos), cluster={**SLURM, "job_extra_directives": ["--begin=now+3600"]})
+    before = _queued()
+    run = subprocess.Popen([str(Path(sys.executable).with_name("persona")), "run", str(workflow), "--quiet"],
+                           stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.time() + 60
+        while not (ours := _queued() - before) and time.time() < deadline and run.poll() is None:
+            time.sleep(0.2)
+        assert ours, "the run submitted no job"
+        run.send_signal(signal.SIGTERM)
+        err = run.communicate(timeout=120)[1]
+    finally:
+        run.kill()
+    assert run.returncode == 143, err
+    assert "The run stopped" in err and "resume with" in err
+    listed = subprocess.run(["squeue", "-h", "-j", ",".join(ours), "-o", "%i %T"], capture_output=True, text=True).stdout
     assert "PENDING" not in listed, listed  # cancelled (squeue may still show it CANCELLED for a moment)
 
 
