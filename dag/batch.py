@@ -12,6 +12,7 @@ from __future__ import annotations
 import logging
 import shutil
 import socket
+import subprocess
 import time
 from pathlib import Path
 
@@ -108,14 +109,51 @@ def _job_ids(cluster) -> list[str]:
     return [job.job_id for job in cluster.workers.values() if getattr(job, "job_id", None)]
 
 
+#: why SLURM holds a pending job (squeue's %r) when it will never start it as it was submitted, and what that means
+NEVER_STARTS = {
+    "PartitionConfig": "it asks more than the partition allows: more CPUs or memory than any of its nodes has",
+    "PartitionNodeLimit": "it asks more nodes than the partition allows",
+    "PartitionTimeLimit": "its walltime is over the partition's time limit",
+    "BadConstraints": "no node satisfies its constraints",
+}
+
+
+def never_starts(kind: str, ids: list[str]) -> str | None:
+    """Why the batch system will never start any of the jobs ``ids`` as submitted (SLURM only: the reason
+    every one of them waits for, from `squeue`); None when one of them may yet start, or it cannot tell."""
+    if kind != "slurm" or not ids:
+        return None
+    try:
+        listed = subprocess.run(["squeue", "-h", "-j", ",".join(ids), "-o", "%T %r"], capture_output=True,
+                                text=True, timeout=30).stdout.split("\n")
+    except (OSError, subprocess.SubprocessError):
+        return None
+    reasons = {line.split()[1] for line in listed if line.startswith("PENDING ") and len(line.split()) == 2}
+    pending = sum(line.startswith("PENDING ") for line in listed)
+    if pending < len(ids) or len(reasons) != 1 or next(iter(reasons)) not in NEVER_STARTS:
+        return None
+    reason = reasons.pop()
+    return f"{reason}: {NEVER_STARTS[reason]}"
+
+
 def _wait_for_a_worker(cluster, client, config: Cluster, show_jobs: str, submit: str, script: Path) -> None:
     deadline = time.monotonic() + config.start_timeout
+    asked = 0.0  # when the batch system was last asked why the jobs wait
     while not client.scheduler_info(n_workers=1)["workers"]:
         submitted = len(cluster.workers) == config.jobs  # every submission returned, with or without a job id
         if submitted and not _job_ids(cluster):
             raise RunError(f"`{submit}` refused every worker job (its error is printed above). The job script "
                            f"is {script}; fix cluster.queue, cores, memory, walltime or job_extra_directives, "
                            f"or try it by hand: {submit} {script}")
+        if submitted and time.monotonic() - asked > 2:
+            asked = time.monotonic()
+            if why := never_starts(config.kind, _job_ids(cluster)):
+                raise RunError(
+                    f"{config.kind} will never start the worker jobs {','.join(_job_ids(cluster))} as they are: they "
+                    f"wait for {why}. Ask for what a node of the partition has (cluster.cores {config.cores}, "
+                    f"memory {config.memory}, walltime {config.walltime}, queue, job_extra_directives; "
+                    "`sinfo -o '%P %c %m %l'` gives each partition's CPUs, memory and time limit). "
+                    f"The job script is {script}. The jobs are cancelled now.")
         if time.monotonic() > deadline:
             ids = ",".join(_job_ids(cluster))
             raise RunError(

@@ -102,6 +102,25 @@ def test_a_refused_job_and_a_job_that_never_starts_stop_the_run_with_what_to_do(
     assert "PENDING" not in listed, listed  # cancelled (squeue may still show it CANCELLED for a moment)
 
 
+@needs_slurm
+def test_a_job_larger_than_any_node_stops_the_run_at_once_with_what_to_ask(tmp_path, synthetic_photos):
+    """A worker job of more cores than any node of the partition has: SLURM queues it, to wait for ever
+    ("PartitionConfig"); the run stops within seconds, not after cluster.start_timeout, saying what to
+    change, and cancels the job."""
+    cpus = max(int(c.rstrip("+")) for c in subprocess.run(["sinfo", "-h", "-o", "%c"], capture_output=True,
+                                                          text=True).stdout.split())
+    photos = write_photos(tmp_path / "photos", synthetic_photos[:1])
+    wf = load_workflow(write_workflow(tmp_path, str(photos), cluster={**SLURM, "cores": cpus + 1}))
+    start = time.monotonic()
+    with pytest.raises(RunError, match=r"slurm will never start the worker jobs (\d+) as they are: they wait for "
+                                       r"PartitionConfig: .* than any of its nodes has\. .*cluster\.cores") as err:
+        run_workflow(wf, progress=False)
+    assert time.monotonic() - start < SLURM["start_timeout"] / 2
+    job = err.value.args[0].split("worker jobs ")[1].split(" ")[0]
+    listed = subprocess.run(["squeue", "-h", "-j", job, "-o", "%i %T"], capture_output=True, text=True).stdout
+    assert "PENDING" not in listed, listed
+
+
 def _queued() -> set[str]:
     """The ids of the jobs in SLURM's queue."""
     return set(subprocess.run(["squeue", "-h", "-o", "%i"], capture_output=True, text=True).stdout.split())
