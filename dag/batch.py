@@ -120,19 +120,18 @@ NEVER_STARTS = {
 
 def never_starts(kind: str, ids: list[str]) -> str | None:
     """Why the batch system will never start any of the jobs ``ids`` as submitted (SLURM only: the reason
-    every one of them waits for, from `squeue`); None when one of them may yet start, or it cannot tell."""
+    each of them waits for, from `squeue`); None when one of them may yet start, or it cannot tell."""
     if kind != "slurm" or not ids:
         return None
     try:
         listed = subprocess.run(["squeue", "-h", "-j", ",".join(ids), "-o", "%T %r"], capture_output=True,
-                                text=True, timeout=30).stdout.split("\n")
+                                text=True, timeout=30).stdout
     except (OSError, subprocess.SubprocessError):
         return None
-    reasons = {line.split()[1] for line in listed if line.startswith("PENDING ") and len(line.split()) == 2}
-    pending = sum(line.startswith("PENDING ") for line in listed)
-    if pending < len(ids) or len(reasons) != 1 or next(iter(reasons)) not in NEVER_STARTS:
+    rows = [line.split() for line in listed.splitlines() if line.strip()]
+    if len(rows) < len(ids) or not all(row[0] == "PENDING" and row[-1] in NEVER_STARTS for row in rows):
         return None
-    reason = reasons.pop()
+    reason = rows[0][-1]
     return f"{reason}: {NEVER_STARTS[reason]}"
 
 
