@@ -125,9 +125,8 @@ class Runner:
         """Every stage of the workflow on its resolved ``inputs`` (:func:`resolve_inputs`).
 
         Chunks of finished arrays that are lost or damaged (checked before the stages start: every
-        chunk listed and read back against its checksum, as ``persona inspect --verify`` does, by the
-        workers) or found
-        damaged on the way (a :class:`ChunkError`) are recomputed, with everything made from them:
+        chunk listed and read back by the workers against its checksum, as ``persona inspect --verify``
+        does) or found damaged on the way (a :class:`ChunkError`) are recomputed, with everything made from them:
         :mod:`persona.stores.verify`, one logged line per problem. A run that ends well leaves a store
         that verifies, the arrays no stage reads again (a drive's composite) included. The temporary
         files of writes a killed run left unfinished are deleted first."""
