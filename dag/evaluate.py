@@ -74,14 +74,6 @@ def _identity(spec: tuple[str, dict]):
     return default_registry().get("identity", spec[0])(spec[1])
 
 
-def load_models(identity: tuple[str, dict]) -> None:
-    """Load what analysing a frame needs (dlib's detector and shape predictor, the identity backend's
-    model; 0.65 s of a worker's first shard) into this process: each worker does it while the client
-    writes a drive's videos (:func:`persona.dag.outputs.drive_outputs`) and it would otherwise wait."""
-    DlibLandmarks().load()
-    _identity(identity).load()
-
-
 def describe_photos(url: str, path: str, indices: list[int], identity: tuple[str, dict]) -> np.ndarray:
     """Descriptors (k, 128) of accepted photos ``indices`` of a collection, from their stored landmarks."""
     coll = Collection(open_store(url, mode="r"), path)

@@ -109,15 +109,6 @@ class Executor:
             self.client.cancel(list(pending))  # the tasks not started yet; a run that goes on must not race them
             raise
 
-    def on_every_worker(self, fn, *args) -> list:
-        """fn(*args) sent once to each worker now, not waited for (a worker's warm-up while the client
-        works); keep what it returns until the work it prepares has started. Nothing without a cluster."""
-        if self.client is None:
-            return []
-        workers = self.client.scheduler_info(n_workers=-1)["workers"]
-        return [self.client.submit(fn, *args, workers=[address], allow_other_workers=False, pure=False)
-                for address in workers]
-
     def compute(self, *collections):
         import dask
 

@@ -16,7 +16,6 @@ from persona.stores.layout import Cast, Collection
 
 from .context import RunContext
 from .drive import write_videos
-from .evaluate import load_models
 from .export import write_drive_glb
 from .graph import outputs_key
 from .report import write_run_report
@@ -36,7 +35,6 @@ def drive_outputs(runner: RunContext, plan, speed: dict) -> dict:
         kept["speed"].update(speed)  # a drive made again (the same bytes) was timed again
         return kept
     out = {"outputs_key": key, "speed": {**last_speed(plan.output), **speed}}  # a drive not made again: its last timing
-    loading = runner.executor.on_every_worker(load_models, runner.wf.stage("identity"))  # while the videos are written
     with runner.tasks.step("videos", plan.cast.drive):  # and a 3D drive's puppet.glb (about 4 s for 269 frames)
         out["videos"] = write_videos(drive, Collection(runner.root, plan.cast.frames), plan.output)
         if drive.has("mesh"):
@@ -47,7 +45,6 @@ def drive_outputs(runner: RunContext, plan, speed: dict) -> dict:
             runner.tasks.progress_bar(f"{plan.cast.drive:>13} {'analyse':<10}", drive.n) as bar:
         evaluation = runner.evaluate(plan.cast, progress=bar.update)
     out["speed"]["evaluate_seconds"] = time.perf_counter() - t0
-    del loading  # done before the evaluation's first task on each worker
     out["series"] = evaluation.pop("series")
     out["evaluation"] = evaluation
     return out

@@ -54,9 +54,5 @@ class Backend:
         else:
             self.params = self.Params.model_validate(params or {})
 
-    def load(self) -> None:
-        """Load what the backend's calls need (a model, a network) now rather than on the first call, so
-        that a worker can do it while it would otherwise wait. By default nothing: loaded on first use."""
-
     def __repr__(self) -> str:
         return f"{type(self).__name__}({self.params!r})"

@@ -31,7 +31,7 @@ from ..face.template import IDX49, generic_template
 from ..face.warp import compose
 from ..hookspecs import hookimpl
 from ..kinds import Pose
-from .face_descriptor import describe_chip, network
+from .face_descriptor import describe_chip
 from .render3d import project
 
 # iBUG 68 indices
@@ -92,12 +92,6 @@ class DlibIdentity(IdentityBackend):
                              "and is run by dlib itself)")
         padding: float = Field(0.25, ge=0, le=1, description="padding of dlib's aligned 150x150 "
                                "face chip around the landmarks (dlib's default 0.25, as trained)")
-
-    def load(self) -> None:
-        if self.params.jitters:
-            dlib_face_recognition_model()
-        else:
-            network()
 
     def describe(self, image, landmarks):
         image = np.asarray(image)

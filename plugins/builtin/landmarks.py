@@ -87,9 +87,6 @@ class DlibLandmarks(LandmarkBackend):
             out.append((1.0, False, p.retry_upsample, p.threshold))
         return out + ([padded] if p.retry_padded else [])
 
-    def load(self) -> None:
-        dlib_models()
-
     def detect(self, image, hint=None):
         import dlib
 

@@ -334,33 +334,6 @@ def test_the_local_cluster_listens_on_loopback_only():
         ex.close()
 
 
-def _models_loaded() -> bool:
-    from persona.plugins.builtin.face_descriptor import network
-    from persona.plugins.builtin.landmarks import dlib_models
-
-    return dlib_models.cache_info().currsize == 1 and network.cache_info().currsize == 1
-
-
-def test_every_worker_loads_the_evaluations_models_while_the_client_works():
-    """What analysing a frame loads on first use (dlib's detector and predictor, the descriptor network) is
-    sent to every worker at once, not waited for (a drive's videos are written meanwhile); without a
-    cluster nothing is sent."""
-    from persona.dag.evaluate import load_models
-    from persona.dag.executor import Executor
-
-    assert Executor("sync", None).on_every_worker(load_models, ("dlib_resnet", {})) == []
-    ex = Executor("local", 2)
-    try:
-        assert not any(ex.client.run(_models_loaded).values())
-        loading = ex.on_every_worker(load_models, ("dlib_resnet", {}))
-        assert len(loading) == 2
-        ex.client.gather(loading)
-        loaded = ex.client.run(_models_loaded)
-        assert len(loaded) == 2 and all(loaded.values()), loaded
-    finally:
-        ex.close()
-
-
 def test_the_workers_sample_no_profile():
     """Dask's workers sample every thread's stack (sys._current_frames()) every 10 ms; on CPython
     3.11 before 3.11.9 that can deadlock the worker for good against a thread being started (GC
