@@ -145,10 +145,10 @@ def _wait_for_a_worker(cluster, client, config: Cluster, show_jobs: str, submit:
                            f"is {script}; fix cluster.queue, cores, memory, walltime or job_extra_directives, "
                            f"or try it by hand: {submit} {script}")
         if submitted and time.monotonic() - asked > 2:
-            asked = time.monotonic()
-            if why := never_starts(config.kind, _job_ids(cluster)):
+            asked, ids = time.monotonic(), _job_ids(cluster)
+            if why := never_starts(config.kind, ids):
                 raise RunError(
-                    f"{config.kind} will never start the worker jobs {','.join(_job_ids(cluster))} as they are: they "
+                    f"{config.kind} will never start the worker jobs {','.join(ids)} as they are: they "
                     f"wait for {why}. Ask for what a node of the partition has (cluster.cores {config.cores}, "
                     f"memory {config.memory}, walltime {config.walltime}, queue, job_extra_directives; "
                     "`sinfo -o '%P %c %m %l'` gives each partition's CPUs, memory and time limit). "

@@ -18,8 +18,8 @@ from __future__ import annotations
 
 import functools
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable
 
 import numpy as np
 import zarr
@@ -156,10 +156,9 @@ def check(root: zarr.Group, *, read: bool = False, run: Callable | None = None,
                 found[path].append((coords, _problem(scan, path, coords, chunk, "missing")))
             elif read and present:
                 reads.append((path, coords, chunk, region))
-    batches = list(_batches(scan, reads))
-    results = (unreadable(root, batch) for batch in batches) if run is None else \
-        run(unreadable, [(url, batch) for batch in batches])
-    for damaged in results:
+    here = run is None  # one after another in this process, on the arrays the scan opened
+    tasks = [(scan.arrays if here else url, batch) for batch in _batches(scan, reads)]
+    for damaged in (unreadable(*task) for task in tasks) if here else run(unreadable, tasks):
         for path, coords, chunk, reason in damaged:
             found[path].append((coords, _problem(scan, path, coords, chunk, f"damaged ({reason})")))
     return [Problem(path, f"metadata cannot be read ({why})") for path, why in scan.broken.items()] + \
@@ -184,11 +183,11 @@ def _batches(scan: _Scan, reads: list[tuple]):
         yield batch
 
 
-def unreadable(store: zarr.Group | str, reads: list[tuple]) -> list[tuple[str, tuple[int, ...], str, str]]:
+def unreadable(store: dict[str, zarr.Array] | str, reads: list[tuple]) -> list[tuple[str, tuple[int, ...], str, str]]:
     """Which chunks of ``reads`` (array path, coords, chunk key, region) cannot be decoded, with why: (array
-    path, coords, chunk key, reason). ``store``: the store's root group, or its URL (a worker's task)."""
-    root = store if isinstance(store, zarr.Group) else open_store(store, mode="r")
-    out, arrays = [], {}
+    path, coords, chunk key, reason). ``store``: the store's arrays by path, open, or its URL (a worker's task)."""
+    arrays, root = (store, None) if isinstance(store, dict) else ({}, open_store(store, mode="r"))
+    out = []
     for path, coords, chunk, region in reads:
         if path not in arrays:
             arrays[path] = root[path]

@@ -11,7 +11,6 @@ import signal
 import subprocess
 import sys
 import time
-from pathlib import Path
 
 import pytest
 
@@ -23,7 +22,7 @@ from persona.dag.inputs import resolve_inputs
 from persona.dag.runner import Runner, run_workflow
 from persona.dag.workflow import Cluster, WorkflowError, load_workflow, parse_workflow
 
-from pipeline import assert_same_store, write_photos, write_workflow
+from pipeline import PERSONA, assert_same_store, write_photos, write_workflow
 
 
 def _slurm_problem() -> str | None:
@@ -40,6 +39,16 @@ _PROBLEM = _slurm_problem()
 needs_slurm = pytest.mark.skipif(_PROBLEM is not None, reason=str(_PROBLEM))
 
 SLURM = {"kind": "slurm", "jobs": 1, "cores": 1, "memory": "2GiB", "start_timeout": 120}
+
+
+def _queued() -> set[str]:
+    """The ids of the jobs in SLURM's queue."""
+    return set(subprocess.run(["squeue", "-h", "-o", "%i"], capture_output=True, text=True).stdout.split())
+
+
+def _listed(jobs: str) -> str:
+    """`squeue`'s lines (id, state) for the jobs ``jobs`` (ids, comma-separated)."""
+    return subprocess.run(["squeue", "-h", "-j", jobs, "-o", "%i %T"], capture_output=True, text=True).stdout
 
 
 @pytest.mark.parametrize("kind, line", [("slurm", "#SBATCH -A faces"), ("pbs", "#PBS -A faces"),
@@ -98,7 +107,7 @@ def test_a_refused_job_and_a_job_that_never_starts_stop_the_run_with_what_to_do(
         run_workflow(queued, progress=False)
     job = err.value.args[0].split("slurm jobs ")[1].split(":")[0]
     assert str(tmp_path / "out" / "worker-logs") in str(err.value)
-    listed = subprocess.run(["squeue", "-h", "-j", job, "-o", "%i %T"], capture_output=True, text=True).stdout
+    listed = _listed(job)
     assert "PENDING" not in listed, listed  # cancelled (squeue may still show it CANCELLED for a moment)
 
 
@@ -117,13 +126,8 @@ def test_a_job_larger_than_any_node_stops_the_run_at_once_with_what_to_ask(tmp_p
         run_workflow(wf, progress=False)
     assert time.monotonic() - start < SLURM["start_timeout"] / 2
     job = err.value.args[0].split("worker jobs ")[1].split(" ")[0]
-    listed = subprocess.run(["squeue", "-h", "-j", job, "-o", "%i %T"], capture_output=True, text=True).stdout
+    listed = _listed(job)
     assert "PENDING" not in listed, listed
-
-
-def _queued() -> set[str]:
-    """The ids of the jobs in SLURM's queue."""
-    return set(subprocess.run(["squeue", "-h", "-o", "%i"], capture_output=True, text=True).stdout.split())
 
 
 @needs_slurm
@@ -135,7 +139,7 @@ def test_a_terminated_run_cancels_its_worker_jobs_and_says_how_to_resume(tmp_pat
     photos = write_photos(tmp_path / "photos", synthetic_photos[:1])
     workflow = write_workflow(tmp_path, str(photos), cluster={**SLURM, "job_extra_directives": ["--begin=now+3600"]})
     before = _queued()
-    run = subprocess.Popen([str(Path(sys.executable).with_name("persona")), "run", str(workflow), "--quiet"],
+    run = subprocess.Popen([PERSONA, "run", str(workflow), "--quiet"],
                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     try:
         deadline = time.time() + 60
@@ -148,7 +152,7 @@ def test_a_terminated_run_cancels_its_worker_jobs_and_says_how_to_resume(tmp_pat
         run.kill()
     assert run.returncode == 143, err
     assert "The run stopped" in err and "resume with" in err
-    listed = subprocess.run(["squeue", "-h", "-j", ",".join(ours), "-o", "%i %T"], capture_output=True, text=True).stdout
+    listed = _listed(",".join(ours))
     assert "PENDING" not in listed, listed  # cancelled (squeue may still show it CANCELLED for a moment)
 
 
