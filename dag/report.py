@@ -158,6 +158,11 @@ SIGNAL_RANGE = 0.05
 GAZE_RANGE = 0.1
 
 
+#: what each gaze signal (persona.plugins.builtin.evaluate.gaze_signals) is, in the report's words
+GAZE_SIGNALS = {"along": "along the eye", "across": "across the eye",
+                "apart": "the eyes apart (the right one's offset along less the left one's)"}
+
+
 def _gaze_rows(figures: dict) -> list[tuple]:
     """Where the eyes look, output on driver: a row per place (face alone, composite.mp4) and signal."""
     rows = []
@@ -166,8 +171,8 @@ def _gaze_rows(figures: dict) -> list[tuple]:
             counted = a.get("driver_range", 0.0) > GAZE_RANGE
             guide = (f"1 = the driver's amplitude; r {a['r']:.2f}; target 0.7-1.4" if counted else
                      f"1 = the driver's amplitude; no target: the driver's irises range over {a['driver_range']:.3f} "
-                     f"eye widths {k}, under {GAZE_RANGE}")
-            rows.append((f"gaze gain ({where.replace('_', ' ')}): {k} the eye", a["gain"], guide,
+                     f"eye widths ({k}), under {GAZE_RANGE}")
+            rows.append((f"gaze gain ({where.replace('_', ' ')}): {GAZE_SIGNALS.get(k, k)}", a["gain"], guide,
                          (0.7, 1.4) if counted else None))
     return rows
 

@@ -818,13 +818,14 @@ def masked_ssim(a, b, mask) -> float:
 def gaze_signals(offsets) -> dict[str, np.ndarray]:
     """Per frame, where the eyes look: the iris offsets (n, 2 eyes, 2) of
     :func:`persona.plugins.face.gaze.iris_offsets`, the two eyes' mean along the eye (``along``, positive
-    towards the image's right) and across it (``across``, positive down), in eye widths; NaN where neither
-    eye was measured."""
+    towards the image's right) and across it (``across``, positive down), in eye widths, NaN where neither
+    eye was measured; and how far they turn apart (``apart``: the image's right eye's offset along less the
+    left one's, positive as they diverge, negative as they converge or cross), NaN where either was not."""
     offsets = np.asarray(offsets, np.float64).reshape(-1, 2, 2)
     seen = np.isfinite(offsets[..., 0]).sum(axis=1)
     total = np.nansum(offsets, axis=1)
     mean = np.where(seen[:, None] > 0, total / np.maximum(seen, 1)[:, None], np.nan)
-    return {"along": mean[:, 0], "across": mean[:, 1]}
+    return {"along": mean[:, 0], "across": mean[:, 1], "apart": offsets[:, 1, 0] - offsets[:, 0, 0]}
 
 
 #: the regions of dlib's 68 points the landmark registration is given for (iBUG indices)

@@ -19,7 +19,7 @@ from pydantic import Field, model_validator
 
 from ..base import Params
 from ..face import eyes, texture as align
-from ..face.gaze import ahead, look
+from ..face.gaze import ahead, look, together
 from ..face.blend import BlendCache, BlendSums, BlendTotals, chosen, expression_weights
 from ..face.dynamics import smooth_in_time, time_radius
 from ..face.fiducials import mean_shape
@@ -126,7 +126,8 @@ class MultiscaleTexture(TextureBackend):
     version = "12"
     #: what :meth:`weights` and :meth:`finish` read and :meth:`cache` does not (``tau`` is read by both)
     frame_params = frozenset({"sigma", "eye_sigma", "eye_gaze", "min_share", "skip", "time_sigma", "detail_share",
-                              "finest_share", "detail_from", "close_eyes", "shut_from", "shut_at", "gaze"})
+                              "finest_share", "detail_from", "close_eyes", "shut_from", "shut_at", "gaze",
+                              "gaze_together"})
 
     class Params(_Alignment):
         levels: int = Field(5, ge=2, le=8, description="pyramid levels p (the paper does not say; 5 gives a "
@@ -192,6 +193,9 @@ class MultiscaleTexture(TextureBackend):
                            "where they usually are as the driver's are from where the driver's usually are in the "
                            "clip, in eye widths (persona.plugins.face.gaze): the eyes look where the driver's look. "
                            "Not in the paper (false: B's irises stay where B's photos have them; docs/gaze.md)")
+        gaze_together: bool = Field(True, description="gaze: both of B's eyes turn by the mean of the driver's two, "
+                                    "never apart; false: each eye turns as the driver's same eye does, so eyes that "
+                                    "converge on something near or cross do so on B's face too (docs/gaze.md)")
         shut_at: float = Field(0.45, ge=0, lt=1, description="close_eyes: the distance at which it is fully shut "
                                "(dlib's lid points of a shut eye stay 40-50 % of their open distance apart)")
         stretch_scale: float = Field(0.3, ge=0, description="s of the alignment confidence's flow term "
@@ -293,6 +297,8 @@ class MultiscaleTexture(TextureBackend):
             own = np.clip(sums.finish(totals, gains=gains, rows=range(f, 2 * f)), 0, 255)
             where = eyes.region(neutral, textures.shape[1:3])[..., None]
             textures += where * (own - textures)
+        if gaze is not None and p.gaze_together:
+            gaze = together(gaze)
         return _eyes_moved(textures, targets, neutral, p, gaze if p.gaze else None,
                            p.close_eyes if close_eyes is None else close_eyes)
 

@@ -142,17 +142,26 @@ def ahead(gazes: np.ndarray, sigma: float) -> np.ndarray:
 
 
 def gaze_shift(offsets: np.ndarray) -> np.ndarray:
-    """(T, 2, 2) a clip's iris offsets (:func:`iris_offsets` of every frame) from its own usual gaze (their
-    median over the clip), both eyes moved together by the mean of the two (an eye that was not measured
-    takes the other's), clipped to MAX_SHIFT; 0 in a frame where neither eye was measured. Frame by frame,
-    not smoothed in time: the eyes glance for two or three frames, and a mean over time halved those
-    glances on the fringe clip (σ 0.75 frames: gain 0.72; a running median of three, 0.76; none, 0.995)."""
+    """(T, 2, 2) a clip's iris offsets (:func:`iris_offsets` of every frame) from its own usual gaze, each eye's
+    from its own (its median over the clip), clipped to MAX_SHIFT: the eyes may turn apart, as they do when
+    they look at something near or cross. An eye not measured in a frame takes the other's shift; 0 in a
+    frame where neither was. Frame by frame, not smoothed in time: the eyes glance for two or three frames,
+    and a mean over time halved those glances on the fringe clip (σ 0.75 frames: gain 0.72; a running median
+    of three, 0.76; none, 0.995). :func:`together` moves both eyes by their mean."""
     offsets = np.asarray(offsets, np.float64)
-    with np.errstate(all="ignore"), warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)  # an eye or a frame never measured: NaN, then 0
-        moved = np.nanmean(offsets - np.nanmedian(offsets, axis=0), axis=1)  # (T, 2): the two eyes together
-    moved = np.clip(np.nan_to_num(moved), -np.asarray(MAX_SHIFT), MAX_SHIFT)
-    return np.repeat(moved[:, None], 2, axis=1)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # an eye never measured: NaN, then 0
+        moved = offsets - np.nanmedian(offsets, axis=0)  # (T, 2 eyes, 2)
+    moved = np.where(np.isnan(moved), moved[:, ::-1], moved)  # an eye not seen: the other's
+    return np.clip(np.nan_to_num(moved), -np.asarray(MAX_SHIFT), MAX_SHIFT)
+
+
+def together(shift: np.ndarray) -> np.ndarray:
+    """(..., 2, 2) the gaze shifts of both eyes (:func:`gaze_shift`) replaced by their mean: the eyes move as
+    one, never apart (the measure's noise in each eye is halved, a real turn of one eye against the other is
+    lost)."""
+    shift = np.asarray(shift, np.float64)
+    return np.repeat(shift.mean(axis=-2, keepdims=True), 2, axis=-2)
 
 
 #: what :func:`look` draws, as a version: a drive's frame textures record it and are made again when it changes

@@ -367,12 +367,14 @@ def test_masked_ssim_on_the_masks_box_is_skimages_figure_on_the_whole_image():
     assert np.abs(ssim_map(grey, smooth) - full).max() < 1e-4
 
 
-def test_gaze_signals_are_the_two_eyes_mean_and_one_eye_when_the_other_is_not_seen():
+def test_gaze_signals_are_the_two_eyes_mean_one_eye_when_the_other_is_not_seen_and_how_far_apart():
     offsets = np.array([[[0.1, 0.02], [0.2, 0.04]], [[np.nan, np.nan], [-0.1, 0.0]], [[np.nan] * 2] * 2])
     signals = ev.gaze_signals(offsets)
     np.testing.assert_allclose(signals["along"][:2], [0.15, -0.1])
     np.testing.assert_allclose(signals["across"][:2], [0.03, 0.0])
     assert np.isnan(signals["along"][2]) and np.isnan(signals["across"][2])
+    np.testing.assert_allclose(signals["apart"][0], 0.1)  # the right eye 0.1 further right: apart
+    assert np.isnan(signals["apart"][1:]).all()  # one eye or none seen: how far apart is not known
 
 
 def test_registration_per_region_in_percent_of_the_eye_distance():

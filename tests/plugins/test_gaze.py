@@ -102,15 +102,21 @@ def test_the_white_behind_a_turned_iris_is_white_beside_a_dark_inner_corner():
     assert abs(found[0] - 0.3) < 0.05, found
 
 
-def test_a_clips_gaze_is_taken_from_its_usual_one_and_clipped():
-    """Offsets (T, 2 eyes, 2) of a clip that looks ahead, at 0.05 eye widths right, in most frames: the shift is the
-    mean of the two eyes less the clip's median (0.07 and 0.05: 0.01), clipped to MAX_SHIFT (0.5 and 0.5: 0.45 is
-    more); a frame without either eye measured moves nothing."""
+def test_a_clips_gaze_is_taken_from_its_usual_one_each_eye_from_its_own_and_clipped():
+    """Offsets (T, 2 eyes, 2) of a clip that looks ahead, at 0.05 eye widths right, in most frames: each eye's
+    shift is its offset less its own median over the clip (frame 3: the left eye 0.07: 0.02, the right 0.05:
+    0), clipped to MAX_SHIFT (0.5: 0.45 is more); an eye not measured takes the other's shift (frame 4's right
+    eye); a frame without either eye measured moves nothing; ``together`` gives both eyes their mean."""
     offsets = np.zeros((6, 2, 2))
     offsets[:, 0, 0] = [0.05, 0.05, 0.05, 0.07, 0.5, np.nan]
-    offsets[:, 1, 0] = [0.05, 0.05, 0.05, 0.05, 0.5, np.nan]
+    offsets[:, 1, 0] = [0.05, 0.05, 0.05, 0.05, np.nan, np.nan]
+    offsets[4, 1] = np.nan
     offsets[5] = np.nan
     shift = gaze.gaze_shift(offsets)
     assert shift.shape == (6, 2, 2)
-    assert np.abs(shift[:3]).max() < 1e-12 and shift[3, 1, 0] == pytest.approx(0.01)
-    assert shift[4, 0, 0] == pytest.approx(gaze.MAX_SHIFT[0]) and not shift[5].any()
+    assert np.abs(shift[:3]).max() < 1e-12
+    assert shift[3, 0, 0] == pytest.approx(0.02) and shift[3, 1, 0] == pytest.approx(0.0)
+    assert shift[4, 0, 0] == pytest.approx(gaze.MAX_SHIFT[0]) and np.array_equal(shift[4, 1], shift[4, 0])
+    assert not shift[5].any()
+    both = gaze.together(shift)
+    assert both[3, 0, 0] == pytest.approx(0.01) and np.array_equal(both[:, 0], both[:, 1])
