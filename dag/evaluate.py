@@ -308,6 +308,8 @@ def evaluate(store: str, executor, *, identity: tuple[str, dict], threshold: flo
             **{f"{who}_{k}": v for who, points in (("driver", driver_landmarks), ("output", joined["landmarks"]),
                                                      ("composite", joined["composite_landmarks"]))
                for k, v in ev.expression_signals(points).items()},
+            **{f"{who}_gaze_{k}": v for i, who in enumerate(("driver", "output", "composite"))
+               for k, v in ev.gaze_signals(joined["irises"][:, i]).items()},
         },
     }
     if pieces["motion"] is not None:  # rendered from the motion step's meshes

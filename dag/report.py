@@ -55,7 +55,8 @@ def _img(src: str, alt: str, width: int | None = None) -> str:
 
 
 def plots(series: dict, threshold: float, fps: float) -> dict[str, str]:
-    """Per-frame identity distances and expression signals, driver against output."""
+    """Per-frame identity distances, expression signals and, where the series has them, gaze, driver against
+    output."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -85,6 +86,17 @@ def plots(series: dict, threshold: float, fps: float) -> dict[str, str]:
     axes[-1].set_xlabel("seconds")
     out["expression"] = _figure(fig)
     plt.close(fig)
+    if "driver_gaze_along" in series:  # where the eyes look (evaluate.gaze_signals)
+        fig, axes = plt.subplots(2, 1, figsize=(9, 4.4), sharex=True)
+        for ax, name in zip(axes, ("along", "apart")):
+            ax.plot(t, series[f"driver_gaze_{name}"], label="driver (A)", lw=1)
+            ax.plot(t, series[f"output_gaze_{name}"], label="output (B)", lw=1)
+            ax.set_ylabel(f"gaze {name} / eye width", fontsize=8)
+        axes[0].legend(loc="upper right", fontsize=8)
+        axes[0].set_title("Gaze: the irises along the eye (+: the image's right) and the eyes apart (-: crossed)")
+        axes[-1].set_xlabel("seconds")
+        out["gaze"] = _figure(fig)
+        plt.close(fig)
     return out
 
 

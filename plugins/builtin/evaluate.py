@@ -231,16 +231,20 @@ def expression_signals(landmarks) -> dict[str, np.ndarray]:
     }
 
 
-#: the moments a viewer looks at to judge an expression: (what it shows, signal, +1 its highest / -1 its lowest)
+#: the moments a viewer looks at to judge an expression: (what it shows, signal of :func:`expression_signals` or,
+#: prefixed ``gaze_``, of :func:`gaze_signals`, +1 its highest / -1 its lowest)
 PEAKS = (("widest mouth", "mouth_open", 1), ("widest lips", "mouth_width", 1),
          ("corners highest", "mouth_corners", 1), ("corners lowest", "mouth_corners", -1),
          ("eyes widest", "eye_open", 1), ("eyes most closed", "eye_open", -1),
-         ("brows highest", "brow_height", 1), ("brows lowest", "brow_height", -1))
+         ("brows highest", "brow_height", 1), ("brows lowest", "brow_height", -1),
+         ("looks furthest to the image's left", "gaze_along", -1),
+         ("looks furthest to the image's right", "gaze_along", 1),
+         ("eyes most crossed", "gaze_apart", -1))
 
 
 def expression_peaks(signals: dict) -> list[tuple[str, int]]:
-    """The frame of each of :data:`PEAKS` in a face's :func:`expression_signals`: (what it shows, frame),
-    leaving out a signal that is missing or NaN in every frame."""
+    """The frame of each of :data:`PEAKS` in a face's :func:`expression_signals` and ``gaze_``-prefixed
+    :func:`gaze_signals`: (what it shows, frame), leaving out a signal that is missing or NaN in every frame."""
     peaks = []
     for label, name, sign in PEAKS:
         x = sign * np.asarray(signals.get(name, np.nan), np.float64)

@@ -652,3 +652,18 @@ def test_detail_is_measured_at_the_issues_scale():
     iod = ev.canonical_iod()
     assert iod == pytest.approx(65.6, abs=0.1)
     assert ev.detail_energy(big, inside_big, iod=2 * iod) == pytest.approx(ev.detail_energy(small, inside), rel=0.05)
+
+
+def test_the_peaks_a_viewer_looks_at_include_where_the_eyes_look_furthest_and_cross():
+    """Each of PEAKS at its signal's highest or lowest frame; the gaze signals (gaze_signals, prefixed) give the
+    furthest look each way along the eye and the most crossed eyes; a signal missing or NaN throughout is left
+    out."""
+    t = np.arange(10, dtype=float)
+    signals = {"mouth_open": np.sin(t), "eye_open": np.full(10, np.nan),
+               "gaze_along": np.where(t == 3, -0.3, np.where(t == 7, 0.25, 0.0)),
+               "gaze_apart": np.where(t == 5, -0.2, 0.01)}
+    peaks = dict(ev.expression_peaks(signals))
+    assert peaks["widest mouth"] == int(np.argmax(np.sin(t)))
+    assert peaks["looks furthest to the image's left"] == 3 and peaks["looks furthest to the image's right"] == 7
+    assert peaks["eyes most crossed"] == 5
+    assert "eyes widest" not in peaks and "brows highest" not in peaks
