@@ -165,7 +165,7 @@ def together(shift: np.ndarray) -> np.ndarray:
 
 
 #: what :func:`look` draws, as a version: a drive's frame textures record it and are made again when it changes
-LOOK_VERSION = "4"
+LOOK_VERSION = "5"
 
 #: the disc moved as the iris (:func:`look`), over the iris the measure looks for, at least: it takes the iris' dark
 #: rim and the blur around it along, so that none of it is left behind in the white; a texel beyond the iris'
@@ -224,8 +224,10 @@ def _iris_radius(crop: np.ndarray, opening: np.ndarray, centre: np.ndarray, widt
     wide whose opening covers ``opening`` (h, w): the inner radius of the first one-texel ring, within the
     opening, whose darkness (the opening's brightest tenth less the grey, as :func:`iris_offset` measures it)
     falls under ``IRIS_EDGE`` of the iris' core's (its middle, half the iris the measure looks for). Irises
-    differ, and a blend of photos whose irises sit in slightly different places widens one. At most 0.4 eye
-    widths; half of ``IRIS`` of them where nothing can be read."""
+    differ, and a blend of photos whose irises sit in slightly different places widens one. Half of ``IRIS``
+    eye widths (the measure's own) where no such ring lies within 0.4 eye widths: a light or low-contrast
+    iris, whose edge does not show against the white (a disc as wide as the eye then moved its lids and
+    lashes with it)."""
     nominal = IRIS * width / 2
     grey, inside = crop.mean(axis=2), opening > 0.5
     ys, xs = np.mgrid[0:grey.shape[0], 0:grey.shape[1]]
@@ -239,7 +241,7 @@ def _iris_radius(crop: np.ndarray, opening: np.ndarray, centre: np.ndarray, widt
         ring = inside & (r >= k) & (r < k + 1)
         if ring.any() and np.mean(dark[ring]) < level:
             return float(k)
-    return 0.4 * width
+    return nominal
 
 
 def _turned(texture: np.ndarray, opening: np.ndarray, bare: np.ndarray, iris: np.ndarray,
