@@ -179,7 +179,7 @@ def together(shift: np.ndarray) -> np.ndarray:
 
 
 #: what :func:`look` draws, as a version: a drive's frame textures record it and are made again when it changes
-LOOK_VERSION = "5"
+LOOK_VERSION = "6"
 
 #: the disc moved as the iris (:func:`look`), over the iris the measure looks for, at least: it takes the iris' dark
 #: rim and the blur around it along, so that none of it is left behind in the white; a texel beyond the iris'
@@ -232,6 +232,10 @@ MEASURED_FROM = 0.05
 #: of its core's
 IRIS_EDGE = 0.25
 
+#: an iris whose edge :func:`_iris_radius` reads: its middle darker than the white by at least this share of the
+#: white's grey (dark and brown irises 0.7-0.85 on the example puppets, the frontal man's light ones 0.3)
+IRIS_DARK = 0.5
+
 
 def _iris_radius(crop: np.ndarray, opening: np.ndarray, centre: np.ndarray, width: float) -> float:
     """How far (texels) the iris about ``centre`` (x, y) reaches in ``crop`` (h, w, 3), an eye ``width`` texels
@@ -239,9 +243,9 @@ def _iris_radius(crop: np.ndarray, opening: np.ndarray, centre: np.ndarray, widt
     opening, whose darkness (the opening's brightest tenth less the grey, as :func:`iris_offset` measures it)
     falls under ``IRIS_EDGE`` of the iris' core's (its middle, half the iris the measure looks for). Irises
     differ, and a blend of photos whose irises sit in slightly different places widens one. Half of ``IRIS``
-    eye widths (the measure's own) where no such ring lies within 0.4 eye widths: a light or low-contrast
-    iris, whose edge does not show against the white (a disc as wide as the eye then moved its lids and
-    lashes with it)."""
+    eye widths (the measure's own) for a light iris (its middle darker than the white by less than
+    ``IRIS_DARK`` of the white's grey) or where no such ring lies within 0.4 eye widths: there the edge does
+    not show against the white, and a disc grown as wide as the eye moved its lids and lashes with it."""
     nominal = IRIS * width / 2
     grey, inside = crop.mean(axis=2), opening > 0.5
     ys, xs = np.mgrid[0:grey.shape[0], 0:grey.shape[1]]
@@ -249,7 +253,10 @@ def _iris_radius(crop: np.ndarray, opening: np.ndarray, centre: np.ndarray, widt
     core = inside & (r < nominal / 2)
     if not core.any():
         return nominal
-    dark = np.percentile(grey[inside], 90) - grey
+    white = np.percentile(grey[inside], 90)
+    dark = white - grey
+    if np.mean(dark[core]) < IRIS_DARK * white:  # a light iris: its edge does not show
+        return nominal
     level = IRIS_EDGE * np.mean(dark[core])
     for k in range(int(nominal / 2), int(np.ceil(0.4 * width))):
         ring = inside & (r >= k) & (r < k + 1)

@@ -9,10 +9,12 @@ import pytest
 from persona.plugins.face import gaze
 
 
-def drawn_eye(width: float, u: float, v: float, seed: int = 0, iris: float = 0.42):
+def drawn_eye(width: float, u: float, v: float, seed: int = 0, iris: float = 0.42, colour=(90, 60, 40),
+              pupil: bool = True):
     """(image, the eye's six iBUG points): an almond eye ``width`` px from corner to corner on skin, with a lash
-    line along its upper lid and an iris ``iris`` of its width across whose centre is (u, v) eye widths from the
-    middle of its corners (u right, v down), drawn 4 times finer and averaged down, with noise (σ 3)."""
+    line along its upper lid and an iris ``iris`` of its width across, of ``colour``, with a black ``pupil``, whose
+    centre is (u, v) eye widths from the middle of its corners (u right, v down), drawn 4 times finer and
+    averaged down, with noise (σ 3)."""
     fine, side = 4, int(width * 3)
     image = np.full((side * fine, side * fine, 3), (200, 160, 140), np.uint8)
     cx = cy = side / 2
@@ -24,8 +26,9 @@ def drawn_eye(width: float, u: float, v: float, seed: int = 0, iris: float = 0.4
     cv2.fillPoly(opening, [np.round(np.vstack([upper, lower]) * fine).astype(np.int32)], 1)
     eye = np.full_like(image, 235)
     centre = (int((cx + u * width) * fine), int((cy + v * width) * fine))
-    cv2.circle(eye, centre, int(iris / 2 * width * fine), (90, 60, 40), -1)
-    cv2.circle(eye, centre, int(0.08 * width * fine), (15, 10, 10), -1)
+    cv2.circle(eye, centre, int(iris / 2 * width * fine), colour, -1)
+    if pupil:
+        cv2.circle(eye, centre, int(0.08 * width * fine), (15, 10, 10), -1)
     image = np.where(opening[..., None] > 0, eye, image)
     cv2.polylines(image, [np.round(upper * fine).astype(np.int32)], False, (30, 25, 25), max(1, int(0.04 * width * fine)))
     image = cv2.resize(image, (side, side), interpolation=cv2.INTER_AREA)
@@ -98,6 +101,20 @@ def test_a_wide_iris_turned_a_little_stays_whole(width, iris):
         return int((t.mean(axis=-1)[opening] < (235 + 63) / 2).sum())  # nearer the iris' grey than the white's
 
     assert dark(turned) >= 0.96 * dark(texture), (dark(texture), dark(turned))
+
+
+@pytest.mark.parametrize("width", [40, 25])
+def test_the_turned_disc_reaches_a_dark_iris_edge_and_keeps_its_size_on_a_light_one(width):
+    """The disc a turned iris moves in: a texel beyond a dark iris 0.56 of the eye wide (its drawn radius 0.28
+    eye widths, within 1.5 texels), and the measure's own (IRIS / 2) on a light one (grey-blue, its middle less
+    than IRIS_DARK of the white darker, its pupil washed out as in a blend of photos), whose edge does not
+    show."""
+    for colour, pupil, expected in (((90, 60, 40), True, 0.28 * width), ((150, 165, 180), False, gaze.IRIS * width / 2)):
+        image, points = drawn_eye(width, 0.0, 0.0, iris=0.56, colour=colour, pupil=pupil)
+        opening = gaze._coverage(image.shape[:2], gaze._almond(points))
+        centre = (points[0] + points[3]) / 2
+        found = gaze._iris_radius(image.astype(np.float32), opening, centre, width)
+        assert abs(found - expected) <= 1.5, (colour, found, expected)
 
 
 def test_the_white_behind_a_turned_iris_is_white_beside_a_dark_inner_corner():
