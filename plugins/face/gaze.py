@@ -141,33 +141,19 @@ def ahead(gazes: np.ndarray, sigma: float) -> np.ndarray:
     return np.where(np.isfinite(d2), np.exp(-np.nan_to_num(d2) / (2 * sigma ** 2)), 1.0)
 
 
-#: frames over which how far the two eyes turn apart is taken, a running median (:func:`gaze_shift`): eyes converge
-#: or cross for a second or more, while each eye's own measure is noisy from frame to frame, the more so on a small
-#: eye, and that noise, given to each of B's eyes, turned them apart at random
-APART_FRAMES = 9
-
-
 def gaze_shift(offsets: np.ndarray) -> np.ndarray:
     """(T, 2, 2) a clip's iris offsets (:func:`iris_offsets` of every frame) from its own usual gaze, each eye's
-    from its own (its median over the clip), clipped to MAX_SHIFT. Where both eyes look is their mean, frame by
-    frame, not smoothed in time: the eyes glance for two or three frames, and a mean over time halved those
-    glances on the fringe clip (σ 0.75 frames: gain 0.72; a running median of three, 0.76; none, 0.995). How
-    far they turn apart from each other (as they do when they look at something near, or cross) is the
-    running median of its value over ``APART_FRAMES`` frames, and each eye is half of it either side of the
-    mean. An eye not measured in a frame takes the other's shift; 0 in a frame where neither was.
-    :func:`together` moves both eyes by their mean alone."""
+    from its own (its median over the clip), clipped to MAX_SHIFT: the eyes may turn apart, as they do when
+    they look at something near or cross. An eye not measured in a frame takes the other's shift; 0 in a
+    frame where neither was. Frame by frame, not smoothed in time: the eyes glance for two or three frames,
+    and a mean over time halved those glances on the fringe clip (σ 0.75 frames: gain 0.72; a running median
+    of three, 0.76; none, 0.995). :func:`together` moves both eyes by their mean."""
     offsets = np.asarray(offsets, np.float64)
     with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)  # an eye never measured, a window without both: NaN
+        warnings.simplefilter("ignore", RuntimeWarning)  # an eye never measured: NaN, then 0
         moved = offsets - np.nanmedian(offsets, axis=0)  # (T, 2 eyes, 2)
-        apart = moved[:, 1] - moved[:, 0]  # (T, 2): NaN unless both eyes were measured
-        half = APART_FRAMES // 2
-        padded = np.pad(apart, ((half, half), (0, 0)), constant_values=np.nan)
-        apart = np.nanmedian(np.stack([padded[k:k + len(apart)] for k in range(2 * half + 1)]), axis=0)
-        mean = np.nanmean(moved, axis=1)  # (T, 2): the one eye's where only one was measured
-    apart = np.nan_to_num(apart)
-    each = mean[:, None, :] + np.array([-0.5, 0.5])[None, :, None] * apart[:, None, :]
-    return np.clip(np.nan_to_num(each), -np.asarray(MAX_SHIFT), MAX_SHIFT)
+    moved = np.where(np.isnan(moved), moved[:, ::-1], moved)  # an eye not seen: the other's
+    return np.clip(np.nan_to_num(moved), -np.asarray(MAX_SHIFT), MAX_SHIFT)
 
 
 def together(shift: np.ndarray) -> np.ndarray:

@@ -139,28 +139,21 @@ def test_the_white_behind_a_turned_iris_is_white_beside_a_dark_inner_corner():
     assert abs(found[0] - 0.3) < 0.05, found
 
 
-def test_a_clips_gaze_is_taken_from_its_usual_one_and_the_eyes_turn_apart_only_for_a_while():
-    """Offsets (T, 2 eyes, 2) of a clip that looks 0.05 eye widths right in most frames: where both eyes look is
-    their mean less the clip's usual, frame by frame (frame 5's glance of one frame, 0.2, kept whole); how far
-    they turn apart is its running median over APART_FRAMES frames, so eyes that converge for ten frames (12-17:
-    the left eye 0.1 right, the right one 0.1 left) do so, and one frame's difference (frame 25, 0.06 in one eye
-    alone, a measure's noise) turns neither eye apart but moves both by its half; an eye not measured takes the
-    other's shift, clipped to MAX_SHIFT (frame 28, 0.5); a frame without either eye moves nothing; ``together``
-    gives both eyes their mean."""
-    offsets = np.full((30, 2, 2), 0.05)
-    offsets[5, :, 0] = 0.25
-    offsets[10:20, 0, 0], offsets[10:20, 1, 0] = 0.15, -0.05
-    offsets[25, 0, 0] = 0.11
-    offsets[28, 0], offsets[28, 1] = 0.55, np.nan
-    offsets[29] = np.nan
+def test_a_clips_gaze_is_taken_from_its_usual_one_each_eye_from_its_own_and_clipped():
+    """Offsets (T, 2 eyes, 2) of a clip that looks ahead, at 0.05 eye widths right, in most frames: each eye's
+    shift is its offset less its own median over the clip (frame 3: the left eye 0.07: 0.02, the right 0.05:
+    0), clipped to MAX_SHIFT (0.5: 0.45 is more); an eye not measured takes the other's shift (frame 4's right
+    eye); a frame without either eye measured moves nothing; ``together`` gives both eyes their mean."""
+    offsets = np.zeros((6, 2, 2))
+    offsets[:, 0, 0] = [0.05, 0.05, 0.05, 0.07, 0.5, np.nan]
+    offsets[:, 1, 0] = [0.05, 0.05, 0.05, 0.05, np.nan, np.nan]
+    offsets[4, 1] = np.nan
+    offsets[5] = np.nan
     shift = gaze.gaze_shift(offsets)
-    assert shift.shape == (30, 2, 2)
-    np.testing.assert_allclose(shift[5, :, 0], 0.2, atol=1e-12)
-    np.testing.assert_allclose(shift[12:18, 0, 0], 0.1, atol=1e-12)
-    np.testing.assert_allclose(shift[12:18, 1, 0], -0.1, atol=1e-12)
-    np.testing.assert_allclose(shift[25, :, 0], 0.03, atol=1e-12)
-    np.testing.assert_allclose(shift[28, :, 0], gaze.MAX_SHIFT[0])
-    assert not shift[29].any() and np.abs(shift[:3]).max() < 1e-12
+    assert shift.shape == (6, 2, 2)
+    assert np.abs(shift[:3]).max() < 1e-12
+    assert shift[3, 0, 0] == pytest.approx(0.02) and shift[3, 1, 0] == pytest.approx(0.0)
+    assert shift[4, 0, 0] == pytest.approx(gaze.MAX_SHIFT[0]) and np.array_equal(shift[4, 1], shift[4, 0])
+    assert not shift[5].any()
     both = gaze.together(shift)
-    np.testing.assert_allclose(both[12:18], 0, atol=1e-12)
-    assert np.array_equal(both[:, 0], both[:, 1])
+    assert both[3, 0, 0] == pytest.approx(0.01) and np.array_equal(both[:, 0], both[:, 1])
