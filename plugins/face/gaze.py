@@ -231,7 +231,7 @@ def _iris_radius(crop: np.ndarray, opening: np.ndarray, centre: np.ndarray, widt
     differ, and a blend of photos whose irises sit in slightly different places widens one. Half of ``IRIS``
     eye widths (the measure's own) for a light iris (its middle darker than the white by less than
     ``IRIS_DARK`` of the white's grey) or where no such ring lies within 0.4 eye widths: there the edge does
-    not show against the white, and a disc grown as wide as the eye moved its lids and lashes with it."""
+    not show against the white, and a disc grown as wide as the eye would move its lids and lashes with it."""
     nominal = IRIS * width / 2
     grey, inside = crop.mean(axis=2), opening > 0.5
     ys, xs = np.mgrid[0:grey.shape[0], 0:grey.shape[1]]
