@@ -101,14 +101,27 @@ def _expression_mean(aligned: align.Aligned, fiducials: np.ndarray, target: np.n
     return _weighted_mean(aligned.rgb, e[:, None, None] * aligned.valid)
 
 
+def alignment_confidence(aligned: align.Aligned, stretch_scale: float, residual_scale: float) -> np.ndarray | None:
+    """Each photo's local alignment confidence (n, H, W) in [0, 1]: exp(-m / 2s²) of each misfit measure m of
+    ``aligned`` (its stretch, its residual) whose scale s is not 0, multiplied; None when the alignment carries
+    no misfit measures (video mode's collection flow) or both scales are 0."""
+    out = None
+    for misfit, scale in ((aligned.stretch, stretch_scale), (aligned.residual, residual_scale)):
+        if misfit is not None and scale > 0:
+            term = np.exp(-misfit / np.float32(2 * scale ** 2))
+            out = term if out is None else out * term
+    return out
+
+
 def _eyes_moved(textures: np.ndarray, targets: np.ndarray, neutral: np.ndarray, p, gaze: np.ndarray | None,
                 close_eyes: bool) -> np.ndarray:
     """The textures (f, H, W, 3) of the targets (f, 49, 2), whose geometry is B's ``neutral`` fiducials, in
-    place: with ``gaze`` (f, 2, 2), the irises turned (gaze.look); with ``close_eyes``, the eyes a target
-    shuts drawn shut (eyes.lower, between MultiscaleTexture's ``shut_from`` and ``shut_at`` in ``p``). The
-    eyes turn first, so that a closing lid comes down over them."""
-    if gaze is not None:
-        for texture, shift in zip(textures, gaze):
+    place: with ``gaze`` (f, 2, 2) and MultiscaleTexture's ``gaze`` in ``p``, the irises turned (gaze.look),
+    both eyes by their mean with its ``gaze_together``; with ``close_eyes``, the eyes a target shuts drawn
+    shut (eyes.lower, between its ``shut_from`` and ``shut_at``). The eyes turn first, so that a closing lid
+    comes down over them."""
+    if gaze is not None and p.gaze:
+        for texture, shift in zip(textures, together(gaze) if p.gaze_together else gaze):
             texture[:] = look(texture, neutral, shift)
     if close_eyes:
         for texture, target in zip(textures, targets):
@@ -215,15 +228,8 @@ class MultiscaleTexture(TextureBackend):
             return self
 
     def confidence(self, aligned: align.Aligned) -> np.ndarray | None:
-        """Each photo's local alignment confidence (n, H, W) in [0, 1], the product of the terms
-        whose scale is not 0; None when the alignment carries no misfit measures (video mode's
-        collection flow) or both terms are off."""
-        p, out = self.params, None
-        for misfit, scale in ((aligned.stretch, p.stretch_scale), (aligned.residual, p.residual_scale)):
-            if misfit is not None and scale > 0:
-                term = np.exp(-misfit / np.float32(2 * scale ** 2))
-                out = term if out is None else out * term
-        return out
+        """Each photo's local alignment confidence (:func:`alignment_confidence`) at the params' scales."""
+        return alignment_confidence(aligned, self.params.stretch_scale, self.params.residual_scale)
 
     def cache(self, aligned: align.Aligned, fill: np.ndarray | None = None) -> BlendCache:
         """The target-independent terms of Eq. 3 for an aligned collection (video mode), or for a
@@ -297,10 +303,7 @@ class MultiscaleTexture(TextureBackend):
             own = np.clip(sums.finish(totals, gains=gains, rows=range(f, 2 * f)), 0, 255)
             where = eyes.region(neutral, textures.shape[1:3])[..., None]
             textures += where * (own - textures)
-        if gaze is not None and p.gaze_together:
-            gaze = together(gaze)
-        return _eyes_moved(textures, targets, neutral, p, gaze if p.gaze else None,
-                           p.close_eyes if close_eyes is None else close_eyes)
+        return _eyes_moved(textures, targets, neutral, p, gaze, p.close_eyes if close_eyes is None else close_eyes)
 
     def blend(self, cache: BlendCache, fiducials: np.ndarray, targets: np.ndarray, *, close_eyes: bool | None = None,
               gaze: np.ndarray | None = None, gazes: np.ndarray | None = None) -> np.ndarray:
