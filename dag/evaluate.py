@@ -288,13 +288,14 @@ def evaluate(store: str, executor, *, identity: tuple[str, dict], threshold: flo
     stability["texture_change_output"] = _median(joined["texture_change"])
     stability["texture_change_driver"] = _median(joined["driver_change"])
     stability["texture_change_ratio"] = _ratio(stability["texture_change_output"], stability["texture_change_driver"])
+    gazes = {who: ev.gaze_signals(joined["irises"][:, i]) for i, who in enumerate(("driver", "output", "composite"))}
     result = {
         "identity": identity,
         "texture": pieces["texture"],
         "expression": video["expression"],
         "amplitude": video["amplitude"],
         "amplitude_composite": on_composite_video["amplitude"],
-        "gaze": gaze_figures(joined["irises"]),
+        "gaze": gaze_figures(gazes),
         "held": held_figures(root, cast, driver_landmarks, joined["landmarks"], joined["composite_landmarks"]),
         "stability": stability,
         "sharpness": {"face_alone": _median(joined["sharpness"][:, 0]),
@@ -308,8 +309,7 @@ def evaluate(store: str, executor, *, identity: tuple[str, dict], threshold: flo
             **{f"{who}_{k}": v for who, points in (("driver", driver_landmarks), ("output", joined["landmarks"]),
                                                      ("composite", joined["composite_landmarks"]))
                for k, v in ev.expression_signals(points).items()},
-            **{f"{who}_gaze_{k}": v for i, who in enumerate(("driver", "output", "composite"))
-               for k, v in ev.gaze_signals(joined["irises"][:, i]).items()},
+            **{f"{who}_gaze_{k}": v for who, signals in gazes.items() for k, v in signals.items()},
         },
     }
     if pieces["motion"] is not None:  # rendered from the motion step's meshes
@@ -324,13 +324,13 @@ def evaluate(store: str, executor, *, identity: tuple[str, dict], threshold: flo
     return result
 
 
-def gaze_figures(irises: np.ndarray) -> dict[str, dict[str, dict]]:
+def gaze_figures(signals: dict[str, dict[str, np.ndarray]]) -> dict[str, dict[str, dict]]:
     """Where the eyes look, output against driver: per signal of ev.gaze_signals (along and across the eye,
-    eye widths), the ev.amplitude (gain, interval, r, ranges) of the face alone and of composite.mp4's
-    frames, from the iris offsets (T, 3, 2, 2) of the driver's, the face alone's and the composite's frames."""
-    driver, alone, composited = (ev.gaze_signals(irises[:, k]) for k in range(3))
-    return {where: {k: ev.amplitude(driver[k], output[k]) for k in driver}
-            for where, output in (("face_alone", alone), ("composite", composited))}
+    apart, eye widths), the ev.amplitude (gain, interval, r, ranges) of the face alone and of composite.mp4's
+    frames, from the gaze signals of the driver's, the face alone's and the composite's frames (``signals``
+    keyed "driver", "output", "composite")."""
+    return {where: {k: ev.amplitude(signals["driver"][k], signals[who][k]) for k in signals["driver"]}
+            for where, who in (("face_alone", "output"), ("composite", "composite"))}
 
 
 def own_photos(puppet: Collection, sample: int = 100):

@@ -75,28 +75,24 @@ def plots(series: dict, threshold: float, fps: float) -> dict[str, str]:
         ax.legend(loc="upper right", fontsize=8)
         out["identity"] = _figure(fig)
         plt.close(fig)
-    names = ("mouth_open", "mouth_width", "mouth_corners", "eye_open", "brow_height")
-    fig, axes = plt.subplots(len(names), 1, figsize=(9, 10), sharex=True)
-    for ax, name in zip(axes, names):
-        ax.plot(t, series[f"driver_{name}"], label="driver (A)", lw=1)
-        ax.plot(t, series[f"output_{name}"], label="output (B)", lw=1)
-        ax.set_ylabel(name.replace("_", " ") + " / IOD", fontsize=8)
-    axes[0].legend(loc="upper right", fontsize=8)
-    axes[0].set_title("Expression: driver against output")
-    axes[-1].set_xlabel("seconds")
-    out["expression"] = _figure(fig)
-    plt.close(fig)
-    if "driver_gaze_along" in series:  # where the eyes look (evaluate.gaze_signals)
-        fig, axes = plt.subplots(2, 1, figsize=(9, 4.4), sharex=True)
-        for ax, name in zip(axes, ("along", "apart")):
-            ax.plot(t, series[f"driver_gaze_{name}"], label="driver (A)", lw=1)
-            ax.plot(t, series[f"output_gaze_{name}"], label="output (B)", lw=1)
-            ax.set_ylabel(f"gaze {name} / eye width", fontsize=8)
+    def driver_against_output(names, unit, title, height):
+        fig, axes = plt.subplots(len(names), 1, figsize=(9, height), sharex=True)
+        for ax, name in zip(axes, names):
+            ax.plot(t, series[f"driver_{name}"], label="driver (A)", lw=1)
+            ax.plot(t, series[f"output_{name}"], label="output (B)", lw=1)
+            ax.set_ylabel(f"{name.replace('_', ' ')} / {unit}", fontsize=8)
         axes[0].legend(loc="upper right", fontsize=8)
-        axes[0].set_title("Gaze: the irises along the eye (+: the image's right) and the eyes apart (-: crossed)")
+        axes[0].set_title(title)
         axes[-1].set_xlabel("seconds")
-        out["gaze"] = _figure(fig)
+        picture = _figure(fig)
         plt.close(fig)
+        return picture
+
+    out["expression"] = driver_against_output(("mouth_open", "mouth_width", "mouth_corners", "eye_open", "brow_height"),
+                                              "IOD", "Expression: driver against output", 10)
+    if "driver_gaze_along" in series:  # where the eyes look (evaluate.gaze_signals)
+        out["gaze"] = driver_against_output(("gaze_along", "gaze_apart"), "eye width", "Gaze: the irises along the "
+                                            "eye (+: the image's right) and the eyes apart (-: crossed)", 4.4)
     return out
 
 
