@@ -24,7 +24,7 @@ class DeformationTransferBackend(TransferBackend):
                    "moved onto their retargeted places and the skin below the mouth kept from folding")
     default = True
     key_name = "-"
-    version = "5"
+    version = "6"  # 6: the skin under the brows held up as the eyes shut (brow_hold)
     Params = TransferParams
 
     def prepare(self, pair):
@@ -36,7 +36,7 @@ class DeformationTransferBackend(TransferBackend):
         follow = targets = None
         if p.fiducials:
             follow = FiducialFollow(pair.fiducials, pair.puppet_mask, lam=p.fiducial_lambda,
-                                    corner_reach=p.corner_reach)
+                                    corner_reach=p.corner_reach, brow_hold=p.brow_hold)
             targets = smooth_in_time(np.asarray(pair.targets, np.float64), p.fiducial_sigma)
 
         def mesh(t: int, driver_mesh: np.ndarray) -> np.ndarray:

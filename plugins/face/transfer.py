@@ -67,7 +67,7 @@ from ..kinds import DenoiseBackend, FlowBackend
 from .mesh import rim_points
 from .subspace import project
 from .template import IDX49
-from .warp import TpsWarp, compose, pin, tps_map, tps_weights
+from .warp import FACING, TpsWarp, compose, gap, pin, tps_map, tps_weights
 
 #: the TV weight of the default denoiser (the paper's is 1; see DeformationTransfer)
 DEFAULT_TV_WEIGHT = 0.3
@@ -107,6 +107,11 @@ class TransferParams(Params):
         "Obama's face-alone mouth-width gain 0.70 -> 0.77 and the self-reenactment's 0.70 -> 0.74, and left the "
         "woman's drives within 0.01, which the two-sided hold of an earlier run lowered (Powell 0.72 -> 0.62): "
         "docs/expression.md, an earlier run")
+    brow_hold: float = Field(
+        0.5, ge=0, lt=1, description="share of the way from each upper lid up to its brow (0: off, the follower "
+        "alone) above which the skin goes no further down than the brow as the eye shuts: a lid that shuts does "
+        "not drag the brow down onto it. 0.5 took the frontal man <- fringe woman's face-alone eye gain 0.25 -> 0.36 "
+        "and left the self-reenactments within 0.01 dB (:class:`FiducialFollow`, docs/expression.md)")
     unfold: bool = Field(
         True, description="below the mouth's middle, a column of B's mesh that folds (the lower lip dropped over "
         "the skin under it, which the renderer drew as a ragged edge) is made to run down again: the lip's body "
@@ -342,6 +347,33 @@ class DeformationTransfer:
 #: the outer mouth corners among the 49 fiducials (iBUG 48 and 54)
 _MOUTH_CORNERS = (31, 37)
 
+#: per eye, its upper lid's points and its brow's among the 49 fiducials (iBUG 37, 38 under 17-21; 43, 44
+#: under 22-26)
+_LIDS_BROWS = (((20, 21), tuple(range(0, 5))), ((26, 27), tuple(range(5, 10))))
+
+#: an eye's lids as far apart as these shares of their distance at B's neutral: the brow hold starts, and is
+#: whole (the texture's default ``shut_from`` and ``shut_at``, between which it draws the upper lid down)
+_SHUTTING = (0.9, 0.45)
+
+
+def _under_brows(fiducials: np.ndarray, share: float) -> tuple[np.ndarray, np.ndarray]:
+    """Points ``share`` of the way from each upper lid's point up to its brow, straight above it (two an
+    eye, the face's right eye's first), and the (k, 49) weights that give each the brow's motion there
+    (linear along the brow, between the two of its points the lid's point lies between)."""
+    points, weights = [], []
+    for lids, brow in _LIDS_BROWS:
+        xs = fiducials[list(brow), 0]
+        order = np.argsort(xs)
+        for lid in lids:
+            x = fiducials[lid, 0]
+            w = np.zeros(len(fiducials))
+            at = np.interp(x, xs[order], np.arange(len(brow)))  # fractional index along the brow
+            i = min(int(at), len(brow) - 2)
+            w[brow[order[i]]], w[brow[order[i + 1]]] = 1 - (at - i), at - i
+            points.append(fiducials[lid] + share * (w @ fiducials - fiducials[lid]) * [0, 1])
+            weights.append(w)
+    return np.array(points), np.array(weights)
+
 
 class FiducialFollow:
     """B's transferred meshes moved so that their fiducials land on per-frame targets (not in the
@@ -368,10 +400,18 @@ class FiducialFollow:
     carries them further the corner's way than the follower alone would (which they otherwise keep,
     sideways and down): where the transfer already pulls the cheeks in further than the corners, as in
     an "O", holding them back to the corner's share stretched B's lip line outwards.
+    brow_hold : share of the way from each upper lid's point up to its brow (0: none). A lid that comes
+    down by a whole eye's height drags the skin above it down with it, over the short distance the
+    smooth spline has there: on a face whose brows sit close over the eyes, the brow's lower half came
+    down onto the shut lid, which then read (to dlib and to a viewer) as the upper lid of an eye still
+    open. A point that far up, above each of the lid's two points, moves as the follower alone would
+    move it, less the share of what it would go further down than the brow above it that the eye shuts:
+    none while the target's lids are at least _SHUTTING[0] of their neutral distance apart (the mesh is
+    the follower's alone), all of it at _SHUTTING[1] and below.
     """
 
     def __init__(self, fiducials: np.ndarray, mask: np.ndarray, *, lam: float = 0.1, spacing: int = 12,
-                 step: int = 1, corner_reach: float = 0.0):
+                 step: int = 1, corner_reach: float = 0.0, brow_hold: float = 0.0):
         self.fiducials = np.asarray(fiducials, np.float64)
         rim = rim_points(mask, spacing)
         self._still = np.zeros((len(rim), 2))
@@ -386,8 +426,20 @@ class FiducialFollow:
             self._beyond, self._corner, self._fade = (np.array(v) for v in zip(*out))
             # the sideways move the follower gives those points without them (one-sided reach, below)
             self._free = tps_weights(np.concatenate([self.fiducials, rim]), self._beyond, lam=lam)
-        self.warp = TpsWarp(np.concatenate([self.fiducials, self._beyond, rim]), np.asarray(mask).shape, lam=lam,
-                            step=step)
+        self._held, self._brows = (_under_brows(self.fiducials, brow_hold) if brow_hold > 0
+                                   else (np.zeros((0, 2)), np.zeros((0, len(self.fiducials)))))
+        # the move the follower gives those points without them
+        self._free_held = tps_weights(np.concatenate([self.fiducials, self._beyond, rim]), self._held, lam=lam) \
+            if len(self._held) else None
+        self.warp = TpsWarp(np.concatenate([self.fiducials, self._beyond, self._held, rim]), np.asarray(mask).shape,
+                            lam=lam, step=step)
+
+    def _shutting(self, target: np.ndarray) -> np.ndarray:
+        """(2,) how far each eye of the ``target`` fiducials shuts, 0 at _SHUTTING[0] of its neutral's opening and
+        above, 1 at _SHUTTING[1] and below (0 where the target has a NaN)."""
+        start, end = _SHUTTING
+        ratio = np.array([gap(target, pairs) / gap(self.fiducials, pairs) for pairs in (FACING[0:2], FACING[2:4])])
+        return np.nan_to_num(np.clip((start - ratio) / (start - end), 0.0, 1.0))
 
     @staticmethod
     def moved(mesh: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -413,8 +465,13 @@ class FiducialFollow:
             held = self._fade * (corner[:, 0] - shift[:, 0])
             # where the skin already goes further the corner's way (the woman's "O" pulls the cheeks in), it is left
             beyond[:, 0] = np.where((held - beyond[:, 0]) * corner[:, 0] > 0, held, beyond[:, 0])
+        held = np.zeros((0, 2))
+        if len(self._held):  # as the follower alone would move them, but held up to the brow as the eye shuts
+            held = self._free_held @ np.concatenate([miss, beyond, self._still])
+            below = np.maximum(held[:, 1] - self._brows @ miss[:, 1], 0.0)  # how far further down than the brow
+            held[:, 1] -= np.repeat(self._shutting(target), 2) * below
         out = np.array(mesh, np.float64, copy=True)
-        out[..., :2] += self.warp.map(np.concatenate([miss, beyond, self._still]))
+        out[..., :2] += self.warp.map(np.concatenate([miss, beyond, held, self._still]))
         return out
 
 

@@ -36,6 +36,16 @@ def _identity_grid():
     return np.stack([xx, yy], axis=-1).astype(np.float64)
 
 
+def _flat_face():
+    """The generic template's fiducials (49, 2), a mask 10 px in from the grid's edge and a flat mesh at rest."""
+    fiducials = generic_template().fiducials3d[:, :2]
+    mask = np.zeros((H, W), bool)
+    mask[10:-10, 10:-10] = True
+    mesh = np.dstack([_identity_grid(), np.zeros((H, W))])
+    mesh[~mask] = np.nan
+    return fiducials, mask, mesh
+
+
 def _landmark_phi(puppet: FaceIdentity, driver: FaceIdentity) -> np.ndarray:
     """φ: a thin-plate spline through the neutral landmarks, puppet (x, y) -> driver (x, y)."""
     def px(identity):
@@ -280,11 +290,7 @@ def test_fiducial_follow_lands_the_fiducials_and_holds_the_rim():
     """On a flat face, misses of a few px at the fiducials are taken out to a quarter of a pixel by
     the default spline (λ 0.1), the rim of the mask does not move, weight 0 moves nothing and a
     target with a NaN moves nothing at its fiducial."""
-    fiducials = generic_template().fiducials3d[:, :2]
-    mask = np.zeros((H, W), bool)
-    mask[10:-10, 10:-10] = True
-    mesh = np.dstack([_identity_grid(), np.zeros((H, W))])
-    mesh[~mask] = np.nan
+    fiducials, mask, mesh = _flat_face()
     follow = FiducialFollow(fiducials, mask)
     np.testing.assert_allclose(follow.landmarks(mesh), fiducials, atol=1e-4)
     offsets = np.zeros((49, 2))
@@ -337,6 +343,40 @@ def test_corner_reach_moves_the_skin_beyond_a_mouth_corner_sideways_with_it():
         assert np.abs(follow.landmarks(moved) - target).max() < 0.25, corner_reach
         assert follow.moved(moved, out[None])[0, 0] - out[0] == pytest.approx(expected, abs=0.3), corner_reach
         assert np.abs(follow.moved(moved, brow[None])[0] - follow.moved(mesh, brow[None])[0]).max() < 0.3, corner_reach
+
+
+def test_brow_hold_keeps_the_brow_where_it_is_as_the_lids_shut():
+    """The upper lids come down onto the lower ones (6 px), the brows stay: on its own the follower
+    drags the skin half-way up to the brows down with the lids (5 px), with ``brow_hold`` 0.5 that skin
+    stays within 0.3 px; the brows stay within 0.5 px and the fiducials land on their targets either way."""
+    fiducials, mask, mesh = _flat_face()
+    target = fiducials.copy()
+    for upper, lower in (((20, 21), (24, 23)), ((26, 27), (30, 29))):  # iBUG 37, 38 onto 41, 40; 43, 44 onto 47, 46
+        target[list(upper), 1] = fiducials[list(lower), 1] - 0.5
+    lids = fiducials[[20, 21, 26, 27]]
+    brows = np.array([[x, np.interp(x, *fiducials[side][np.argsort(fiducials[side][:, 0])].T)]
+                      for x, side in zip(lids[:, 0], (slice(0, 5),) * 2 + (slice(5, 10),) * 2)])
+    between = lids + 0.5 * (brows - lids)
+    for hold, dragged in ((0.0, True), (0.5, False)):
+        follow = FiducialFollow(fiducials, mask, brow_hold=hold)
+        moved = follow(mesh, target)
+        assert np.abs(follow.landmarks(moved) - target).max() < 0.25, hold
+        shift = np.abs(follow.moved(moved, between) - between).max()
+        assert (shift > 4.0) if dragged else (shift < 0.3), (hold, shift)
+        assert np.abs(follow.moved(moved, brows) - brows).max() < 0.5, hold
+
+
+def test_brow_hold_leaves_eyes_that_do_not_shut():
+    """Brows up 2 px and the upper lids up 3 (the eyes widen), or the lids 0.3 px down of the 6.5 px they
+    are apart with the brows still (the hold starts at a tenth): ``brow_hold`` moves the mesh exactly as
+    the follower alone does (to 1e-6 px)."""
+    fiducials, mask, mesh = _flat_face()
+    for brows, lids in ((-2.0, -3.0), (0.0, 0.3)):
+        target = fiducials.copy()
+        target[:10, 1] += brows
+        target[[20, 21, 26, 27], 1] += lids
+        moved = [FiducialFollow(fiducials, mask, brow_hold=hold)(mesh, target) for hold in (0.0, 0.5)]
+        np.testing.assert_allclose(moved[1], moved[0], atol=1e-6, err_msg=f"brows {brows}, lids {lids}")
 
 
 def test_corner_reach_leaves_skin_that_already_moves_further_than_the_corner():
@@ -462,14 +502,14 @@ def test_a_lower_lip_hanging_below_its_own_edge_is_spread_between_its_edges():
 def test_the_built_in_transfer_backend_is_the_transfer_the_follower_and_the_unfolding():
     """The ``transfer`` kind's default (plugins/builtin/transfer.py) prepares, once, the deformation transfer,
     the fiducial follower on the targets smoothed in time and the unfolding below the mouth, with its params;
-    its cache key is the motion stage's before the kind existed: "-" and version 5."""
+    its cache key is the motion stage's before the kind existed: "-", and version 6."""
     from persona.plugins.builtin.transfer import DeformationTransferBackend
     from persona.plugins.face.dynamics import smooth_in_time
     from persona.plugins.kinds import MotionPair
     from persona.plugins.manager import default_registry
 
     assert default_registry().default("transfer") == "deformation"
-    assert (DeformationTransferBackend.key_name, DeformationTransferBackend.version) == ("-", "5")
+    assert (DeformationTransferBackend.key_name, DeformationTransferBackend.version) == ("-", "6")
     mask, fiducials, mesh, below = _template_at_rest()
     rng = np.random.default_rng(3)
     targets = fiducials + rng.normal(0, 0.5, (4, 49, 2))
@@ -480,7 +520,8 @@ def test_the_built_in_transfer_backend_is_the_transfer_the_follower_and_the_unfo
 
     p = TransferParams.model_validate(params)
     transfer = DeformationTransfer(mesh, mesh[..., :2], mesh, mask, mask, params=p, denoiser=NoDenoise())
-    follow = FiducialFollow(fiducials, mask, lam=p.fiducial_lambda, corner_reach=p.corner_reach)
+    follow = FiducialFollow(fiducials, mask, lam=p.fiducial_lambda, corner_reach=p.corner_reach,
+                            brow_hold=p.brow_hold)
     steady = smooth_in_time(targets, p.fiducial_sigma)
     lip = transfer_module.lower_lip(below, fiducials)
     for t in (0, 3):
