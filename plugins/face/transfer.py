@@ -426,12 +426,12 @@ class FiducialFollow:
             self._beyond, self._corner, self._fade = (np.array(v) for v in zip(*out))
             # the sideways move the follower gives those points without them (one-sided reach, below)
             self._free = tps_weights(np.concatenate([self.fiducials, rim]), self._beyond, lam=lam)
-        self._held, self._brows = (_under_brows(self.fiducials, brow_hold) if brow_hold > 0
-                                   else (np.zeros((0, 2)), np.zeros((0, len(self.fiducials)))))
+        self._above, self._brows = (_under_brows(self.fiducials, brow_hold) if brow_hold > 0
+                                    else (np.zeros((0, 2)), np.zeros((0, len(self.fiducials)))))
         # the move the follower gives those points without them
-        self._free_held = tps_weights(np.concatenate([self.fiducials, self._beyond, rim]), self._held, lam=lam) \
-            if len(self._held) else None
-        self.warp = TpsWarp(np.concatenate([self.fiducials, self._beyond, self._held, rim]), np.asarray(mask).shape,
+        self._free_above = tps_weights(np.concatenate([self.fiducials, self._beyond, rim]), self._above, lam=lam) \
+            if len(self._above) else None
+        self.warp = TpsWarp(np.concatenate([self.fiducials, self._beyond, self._above, rim]), np.asarray(mask).shape,
                             lam=lam, step=step)
 
     def _shutting(self, target: np.ndarray) -> np.ndarray:
@@ -465,13 +465,13 @@ class FiducialFollow:
             held = self._fade * (corner[:, 0] - shift[:, 0])
             # where the skin already goes further the corner's way (the woman's "O" pulls the cheeks in), it is left
             beyond[:, 0] = np.where((held - beyond[:, 0]) * corner[:, 0] > 0, held, beyond[:, 0])
-        held = np.zeros((0, 2))
-        if len(self._held):  # as the follower alone would move them, but held up to the brow as the eye shuts
-            held = self._free_held @ np.concatenate([miss, beyond, self._still])
-            below = np.maximum(held[:, 1] - self._brows @ miss[:, 1], 0.0)  # how far further down than the brow
-            held[:, 1] -= np.repeat(self._shutting(target), 2) * below
+        above = np.zeros((0, 2))  # without brow_hold there are no points above the lids
+        if len(self._above):  # as the follower alone would move them, but held up to the brow as the eye shuts
+            above = self._free_above @ np.concatenate([miss, beyond, self._still])
+            below = np.maximum(above[:, 1] - self._brows @ miss[:, 1], 0.0)  # how far further down than the brow
+            above[:, 1] -= np.repeat(self._shutting(target), 2) * below
         out = np.array(mesh, np.float64, copy=True)
-        out[..., :2] += self.warp.map(np.concatenate([miss, beyond, held, self._still]))
+        out[..., :2] += self.warp.map(np.concatenate([miss, beyond, above, self._still]))
         return out
 
 
