@@ -193,7 +193,7 @@ class MultiscaleTexture(TextureBackend):
                                  "it, to cover it all at `shut_at`: B's photos rarely show shut eyes, and a mesh "
                                  "squeezes an open eye rather than covers it (persona.plugins.face.eyes). Not in the "
                                  "paper")
-        shut_from: float = Field(0.9, gt=0, le=1, description="close_eyes: the lids' distance, over B's neutral one, "
+        shut_from: float = Field(eyes.SHUT_FROM, gt=0, le=1, description="close_eyes: the lids' distance, over B's neutral one, "
                                  "below which the upper lid starts to come down (the open-eye frames' 10th "
                                  "percentile on the self-reenactment: 0.87). 0.9 rather than 0.85 brings the "
                                  "self-reenactment's composite eye gain 0.92 -> 1.03 and Bush <- Obama's 0.69 -> "
@@ -209,7 +209,7 @@ class MultiscaleTexture(TextureBackend):
         gaze_together: bool = Field(True, description="gaze: both of B's eyes turn by the mean of the driver's two, "
                                     "never apart; false: each eye turns as the driver's same eye does, so eyes that "
                                     "converge on something near or cross do so on B's face too (docs/gaze.md)")
-        shut_at: float = Field(0.45, ge=0, lt=1, description="close_eyes: the distance at which it is fully shut "
+        shut_at: float = Field(eyes.SHUT_AT, ge=0, lt=1, description="close_eyes: the distance at which it is fully shut "
                                "(dlib's lid points of a shut eye stay 40-50 % of their open distance apart)")
         stretch_scale: float = Field(0.3, ge=0, description="s of the alignment confidence's flow term "
                                      "exp(-|∇w_i|² / 2s²), |∇w_i|² the local (σ 3 px) squared Jacobian norm of "

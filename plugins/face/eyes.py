@@ -64,13 +64,23 @@ def region(neutral: np.ndarray, shape: tuple[int, int], *, grow: int = 3, blur: 
     return cv2.GaussianBlur(mask, (0, 0), blur) if blur else mask
 
 
+#: the distance of a target's lids over B's neutral one below which the eye starts to shut, and at which it is
+#: shut: the texture's defaults (``shut_from``, ``shut_at``), which the transfer's brow hold follows too
+SHUT_FROM, SHUT_AT = 0.9, 0.45
+
+
+def opened(target: np.ndarray, neutral: np.ndarray) -> np.ndarray:
+    """(2,) how far apart each eye's lids are in the fiducials ``target`` (49, 2), over their distance in
+    ``neutral``'s (NaN where either has a NaN)."""
+    return np.array([gap(target, pairs) / max(float(gap(neutral, pairs)), 1e-6) for _, pairs in EYES])
+
+
 def lowered(target: np.ndarray, neutral: np.ndarray, *, start: float = 0.85, end: float = 0.45) -> np.ndarray:
     """(2,) the share of each eye's opening the upper lid leaves uncovered in the texture, in [0, 1]:
     φ(r) / r, r the distance of the eye's lids in the fiducials ``target`` (49, 2) over ``neutral``'s
-    (the module's docstring); 1 from ``start`` up, 0 at ``end`` and below."""
+    (:func:`opened`; the module's docstring); 1 from ``start`` up, 0 at ``end`` and below."""
     out = np.ones(2)
-    for k, (_, pairs) in enumerate(EYES):
-        r = gap(target, pairs) / max(float(gap(neutral, pairs)), 1e-6)
+    for k, r in enumerate(opened(target, neutral)):
         if np.isfinite(r) and r < start:
             out[k] = np.clip(start * (r - end) / (start - end) / max(r, 1e-6), 0.0, 1.0)
     return out

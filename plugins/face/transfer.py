@@ -64,10 +64,11 @@ from scipy.spatial import cKDTree
 
 from ..base import Params
 from ..kinds import DenoiseBackend, FlowBackend
+from .eyes import SHUT_AT, SHUT_FROM, opened
 from .mesh import rim_points
 from .subspace import project
 from .template import IDX49
-from .warp import FACING, TpsWarp, compose, gap, pin, tps_map, tps_weights
+from .warp import TpsWarp, compose, pin, tps_map, tps_weights
 
 #: the TV weight of the default denoiser (the paper's is 1; see DeformationTransfer)
 DEFAULT_TV_WEIGHT = 0.3
@@ -351,10 +352,6 @@ _MOUTH_CORNERS = (31, 37)
 #: under 22-26)
 _LIDS_BROWS = (((20, 21), tuple(range(0, 5))), ((26, 27), tuple(range(5, 10))))
 
-#: an eye's lids as far apart as these shares of their distance at B's neutral: the brow hold starts, and is
-#: whole (the texture's default ``shut_from`` and ``shut_at``, between which it draws the upper lid down)
-_SHUTTING = (0.9, 0.45)
-
 
 def _under_brows(fiducials: np.ndarray, share: float) -> tuple[np.ndarray, np.ndarray]:
     """Points ``share`` of the way from each upper lid's point up to its brow, straight above it (two an
@@ -406,8 +403,8 @@ class FiducialFollow:
     down onto the shut lid, which then read (to dlib and to a viewer) as the upper lid of an eye still
     open. A point that far up, above each of the lid's two points, moves as the follower alone would
     move it, less the share of what it would go further down than the brow above it that the eye shuts:
-    none while the target's lids are at least _SHUTTING[0] of their neutral distance apart (the mesh is
-    the follower's alone), all of it at _SHUTTING[1] and below.
+    none while the target's lids are at least eyes.SHUT_FROM of their neutral distance apart (the mesh is
+    the follower's alone), all of it at eyes.SHUT_AT and below.
     """
 
     def __init__(self, fiducials: np.ndarray, mask: np.ndarray, *, lam: float = 0.1, spacing: int = 12,
@@ -435,11 +432,10 @@ class FiducialFollow:
                             lam=lam, step=step)
 
     def _shutting(self, target: np.ndarray) -> np.ndarray:
-        """(2,) how far each eye of the ``target`` fiducials shuts, 0 at _SHUTTING[0] of its neutral's opening and
-        above, 1 at _SHUTTING[1] and below (0 where the target has a NaN)."""
-        start, end = _SHUTTING
-        ratio = np.array([gap(target, pairs) / gap(self.fiducials, pairs) for pairs in (FACING[0:2], FACING[2:4])])
-        return np.nan_to_num(np.clip((start - ratio) / (start - end), 0.0, 1.0))
+        """(2,) how far each eye of the ``target`` fiducials shuts, 0 at SHUT_FROM of its neutral's opening and
+        above, 1 at SHUT_AT and below (0 where the target has a NaN)."""
+        shut = (SHUT_FROM - opened(target, self.fiducials)) / (SHUT_FROM - SHUT_AT)
+        return np.nan_to_num(np.clip(shut, 0.0, 1.0))
 
     @staticmethod
     def moved(mesh: np.ndarray, points: np.ndarray) -> np.ndarray:
