@@ -118,9 +118,11 @@ def analyse_frames(url: str, start: int, stop: int, identity: tuple[str, dict], 
         alpha = render_alpha(alphas[j])
         face = composite.alone(rendered[j], alpha)  # as puppet.mp4 shows it
         blended = composites[j]
+        rows = np.flatnonzero(masks[j].any(axis=1))
+        height = rows[-1] - rows[0] + 1 if len(rows) else None  # the drawn face's: dlib's search skips finer
         for k, (image, found) in enumerate(((face, landmarks), (blended, composite_landmarks))):
             try:
-                found[j] = detector.detect(image).points
+                found[j] = detector.detect(image, face_height=height).points
                 if every and (start + j) % every == 0:
                     descriptors[j, k] = backend.describe(image, found[j])
             except Rejected:

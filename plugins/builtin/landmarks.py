@@ -30,6 +30,63 @@ def dlib_models():
     )
 
 
+#: dlib's frontal detector scans a pyramid of the image, each level 5/6 the size of the one before, and
+#: its boxes are this many pixels square on the level that found them (its 80 px window less padding)
+_LEVEL_BOX = 73
+#: a face known to be ``face_height`` px tall is searched for from the level where faces of this share of
+#: that height are found: finer levels, which hold most of the pixels, only find smaller faces
+_SMALLEST_SHARE = 0.5
+
+
+def pyramid_search(detector, image: np.ndarray, threshold: float, face_height: float | None):
+    """dlib's detections (rectangles) in ``image`` at upsample 0, as ``detector.run`` finds them. With
+    ``face_height``, the levels of dlib's pyramid that only find faces under :data:`_SMALLEST_SHARE` of
+    it are skipped: the search starts on dlib's own downsampled image (the same pixels as those levels of a
+    whole search), and each box is mapped back from the level that found it, so the boxes are a whole
+    search's to the pixel. Faces smaller than that are not found; none found: a whole search."""
+    import dlib
+
+    pyramid = dlib.pyramid_down(6)
+    skip = skipped_levels(face_height)
+    small = image
+    for _ in range(skip):
+        small = pyramid(small)
+    found = detector.run(small, 0, threshold)[0] if skip else []
+    if skip and len(found):
+        boxes = [_box_up(pyramid, r, skip) for r in found]
+        if all(b is not None for b in boxes):
+            return boxes
+    return detector.run(image, 0, threshold)[0]
+
+
+def skipped_levels(face_height: float | None) -> int:
+    """How many of dlib's finest pyramid levels a search for a face ``face_height`` px tall skips: those
+    whose boxes are under :data:`_SMALLEST_SHARE` of it (a level's boxes are 6/5 of the next finer one's)."""
+    if not face_height:
+        return 0
+    return max(0, int(np.floor(np.log(_SMALLEST_SHARE * face_height / _LEVEL_BOX) / np.log(6 / 5))))
+
+
+def _box_up(pyramid, rect, levels: int):
+    """``rect``, a box dlib found in an image ``levels`` pyramid levels down, in the whole image's
+    pixels as a whole search gives it: found again on the level it came from (a :data:`_LEVEL_BOX`
+    square whose corners map up to ``rect``), then mapped up from there. None when no level fits."""
+    import dlib
+
+    for level in range(64):
+        down = pyramid.rect_down(dlib.drectangle(rect.left(), rect.top(), rect.right(), rect.bottom()), level)
+        if down.width() < _LEVEL_BOX - 2:
+            return None
+        if down.width() > _LEVEL_BOX + 2:
+            continue
+        for left in (int(np.floor(down.left())), int(np.floor(down.left())) + 1):
+            for top in (int(np.floor(down.top())), int(np.floor(down.top())) + 1):
+                square = dlib.rectangle(left, top, left + _LEVEL_BOX - 1, top + _LEVEL_BOX - 1)
+                if pyramid.rect_up(square, level) == rect:
+                    return pyramid.rect_up(square, level + levels)
+    return None
+
+
 def choose_subject(boxes: np.ndarray, image_size: tuple[int, int], select: str) -> int:
     """Index of the subject among face boxes (n, 4) = (left, top, right, bottom).
 
@@ -87,7 +144,10 @@ class DlibLandmarks(LandmarkBackend):
             out.append((1.0, False, p.retry_upsample, p.threshold))
         return out + ([padded] if p.retry_padded else [])
 
-    def detect(self, image, hint=None):
+    def detect(self, image, hint=None, face_height: float | None = None):
+        """The subject's landmarks. ``face_height``: how tall the face is in ``image`` (px) when the caller
+        knows (the evaluation, which drew it): the search skips the detector's finest levels
+        (:func:`pyramid_search`), with the same result."""
         import dlib
 
         detector, predictor = dlib_models()
@@ -96,7 +156,10 @@ class DlibLandmarks(LandmarkBackend):
             work = cv2.copyMakeBorder(image, pad, pad, pad, pad, cv2.BORDER_REPLICATE) if pad else image
             work = np.ascontiguousarray(work)
             small = work if scale == 1 else cv2.resize(work, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
-            rects = detector.run(small, upsample, threshold)[0]
+            if upsample == 0:
+                rects = pyramid_search(detector, small, threshold, face_height and face_height * scale)
+            else:
+                rects = detector.run(small, upsample, threshold)[0]
             if len(rects):
                 break
         else:

@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from persona.plugins.builtin.landmarks import DlibLandmarks, dlib_models
+from persona.plugins.builtin.landmarks import DlibLandmarks, dlib_models, skipped_levels
 from persona.stores import media
 
 pytestmark = pytest.mark.realdata
@@ -44,3 +44,25 @@ def test_an_hd_frame_is_searched_small_first_and_fitted_at_full_size(shared_data
     assert len(dlib_models()[0].run(reduced, 0, 0.0)[0]) == 0  # too small to be found there
     c, d = fast.detect(tiny).points, full.detect(tiny).points
     np.testing.assert_allclose(c, d)  # the same full-size search found it
+
+
+@pytest.mark.parametrize("clip", ["woman_gaze_fringe.mp4", "man_frontal_480.mp4", "woman_expressions.mp4",
+                                  "man_glasses_phone_720p.mp4"])
+def test_a_face_of_known_height_is_found_from_coarser_levels_with_the_same_box(shared_data, clip):
+    """Told how tall the face is, dlib's search starts several pyramid levels down and finds the same box
+    and the same 68 points as the whole search, to the bit, on every 10th of a clip's first 60 frames (her
+    face at 512², his at 480² and 720p). Told a face four times as tall as it is, it still finds it (the
+    coarser search finds nothing, and the whole one runs)."""
+    detector = DlibLandmarks()
+    with media.VideoReader(shared_data / "videos" / clip) as reader:
+        frames = [f for i, f in reader.frames() if i % 10 == 0 and i < 60]
+    for frame in frames:
+        whole = detector.detect(frame)
+        height = 1.3 * (whole.points[:, 1].max() - whole.points[:, 1].min())  # about the face oval's
+        scale = detector.attempts(frame.shape[:2])[0][0]  # the 720p frame is searched at 800 px
+        assert skipped_levels(height * scale) >= 3  # of the 8-10 levels a whole search scans
+        known = detector.detect(frame, face_height=height)
+        np.testing.assert_array_equal(known.box, whole.box)
+        np.testing.assert_array_equal(known.points, whole.points)
+    tiny = cv2.resize(frames[0], None, fx=0.5, fy=0.5, interpolation=cv2.INTER_AREA)
+    np.testing.assert_array_equal(detector.detect(tiny, face_height=2 * height).points, detector.detect(tiny).points)
