@@ -50,7 +50,7 @@ from typing import Callable
 import numpy as np
 
 from persona.plugins.builtin import evaluate as ev
-from persona.plugins.builtin.landmarks import DlibLandmarks
+from persona.plugins.builtin.landmarks import DlibLandmarks, dlib_models
 from persona.plugins.face import composite, gaze
 from persona.plugins.face.template import generic_template
 from persona.plugins.base import Rejected
@@ -72,6 +72,13 @@ CENTROID = "identity/centroid"
 
 def _identity(spec: tuple[str, dict]):
     return default_registry().get("identity", spec[0])(spec[1])
+
+
+def warm_up() -> None:
+    """What every shard of an evaluation loads first, loaded once per process: dlib's detector and predictor
+    (0.6 s). A drive sends it to the workers as it starts (:meth:`persona.dag.executor.Executor.warm`), while
+    they wait on the client's retargeting, so that the evaluation's first shards do not load it."""
+    dlib_models()
 
 
 def describe_photos(url: str, path: str, indices: list[int], identity: tuple[str, dict]) -> np.ndarray:

@@ -109,6 +109,17 @@ class Executor:
             self.client.cancel(list(pending))  # the tasks not started yet; a run that goes on must not race them
             raise
 
+    def warm(self, fn, *args) -> None:
+        """fn(*args) once on each worker there is now, not waited for and its result dropped: what a later
+        step's tasks would load first (:func:`persona.dag.evaluate.warm_up`), loaded while the workers wait
+        on the client. Nothing in one process, where it is loaded at first use."""
+        if self.client is None:
+            return
+        from distributed import fire_and_forget
+
+        for address in self.client.scheduler_info()["workers"]:
+            fire_and_forget(self.client.submit(fn, *args, workers=[address], allow_other_workers=False, pure=False))
+
     def compute(self, *collections):
         import dask
 

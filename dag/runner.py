@@ -24,7 +24,7 @@ from persona.stores.provenance import Provenance
 from . import graph as dag_graph
 from . import stages as st
 from .collection import create_outputs, open_collection, photo_chain, screen
-from .evaluate import evaluate
+from .evaluate import evaluate, warm_up
 from .executor import Executor, executor_for
 from .graph import Target
 from .inputs import resolve_inputs
@@ -219,6 +219,7 @@ class Runner:
         (:func:`persona.dag.outputs.kept_outputs`); the drive's speed is this run's whenever it rendered every frame, the last
         run's otherwise."""
         t0 = time.perf_counter()
+        self.executor.warm(warm_up)  # the evaluation's models, while the workers wait on the retargeting
         target = Target(plan.cast.drive, cast=plan.cast, output=plan.output)
         for node in self.graph.of(plan.cast.drive):
             self.run_stage(st.STAGES[node.stage], target)

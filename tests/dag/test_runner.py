@@ -447,6 +447,35 @@ def test_an_array_every_task_takes_is_sent_once_and_each_task_let_go_when_taken(
         ex.close()
 
 
+def _models_loaded() -> bool:
+    from persona.plugins.builtin.landmarks import dlib_models
+
+    return dlib_models.cache_info().currsize == 1
+
+
+def test_the_evaluations_models_are_loaded_on_every_worker_without_waiting_for_them():
+    """A drive starts by sending the evaluation's warm-up to every worker (``Executor.warm``): the call
+    returns at once (a warm-up of 3 s does not hold it), and both workers soon hold dlib's models, which
+    they had not loaded before. In one process there is nothing to send."""
+    from persona.dag.evaluate import warm_up
+    from persona.dag.executor import Executor
+
+    ex = Executor("local", 2)
+    try:
+        assert not any(ex.client.run(_models_loaded).values())
+        t0 = time.perf_counter()
+        ex.warm(time.sleep, 3)
+        ex.warm(warm_up)
+        assert time.perf_counter() - t0 < 2
+        deadline = time.monotonic() + 60
+        while not all((loaded := ex.client.run(_models_loaded)).values()) and time.monotonic() < deadline:
+            time.sleep(0.2)
+        assert len(loaded) == 2 and all(loaded.values()), loaded
+    finally:
+        ex.close()
+    Executor("sync", None).warm(_first_value_plus)  # not called: it would fail without its arguments
+
+
 def test_a_connection_closed_while_a_result_comes_back_is_a_lost_scheduler():
     """The scheduler SIGKILLed just as a finished task's result is fetched: distributed raises
     CommClosedError there (seen once in CI under load, a raw traceback and exit 1); the run says it
