@@ -126,7 +126,7 @@ def analyse_frames(url: str, start: int, stop: int, identity: tuple[str, dict], 
         face = composite.alone(rendered[j], alpha)  # as puppet.mp4 shows it
         blended = composites[j]
         rows = np.flatnonzero(masks[j].any(axis=1))
-        height = rows[-1] - rows[0] + 1 if len(rows) else None  # the drawn face's: dlib's search skips finer
+        height = rows[-1] - rows[0] + 1 if len(rows) else None  # the drawn face's, for dlib's search
         for k, (image, found) in enumerate(((face, landmarks), (blended, composite_landmarks))):
             try:
                 found[j] = detector.detect(image, face_height=height).points
