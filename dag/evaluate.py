@@ -125,8 +125,8 @@ def analyse_frames(url: str, start: int, stop: int, identity: tuple[str, dict], 
         alpha = render_alpha(alphas[j])
         face = composite.alone(rendered[j], alpha)  # as puppet.mp4 shows it
         blended = composites[j]
-        rows = np.flatnonzero(masks[j].any(axis=1))
-        height = rows[-1] - rows[0] + 1 if len(rows) else None  # the drawn face's, for dlib's search
+        box = composite.mask_box(masks[j])
+        height = None if box is None else box[0].stop - box[0].start  # the drawn face's, for dlib's search
         for k, (image, found) in enumerate(((face, landmarks), (blended, composite_landmarks))):
             try:
                 found[j] = detector.detect(image, face_height=height).points

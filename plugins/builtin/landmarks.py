@@ -46,15 +46,13 @@ def pyramid_search(detector, image: np.ndarray, threshold: float, face_height: f
     search's to the pixel. Faces smaller than that are not found; none found: a whole search."""
     import dlib
 
-    pyramid = dlib.pyramid_down(6)
     skip = skipped_levels(face_height)
-    small = image
-    for _ in range(skip):
-        small = pyramid(small)
-    found = detector.run(small, 0, threshold)[0] if skip else []
-    if skip and len(found):
-        boxes = [_box_up(pyramid, r, skip) for r in found]
-        if all(b is not None for b in boxes):
+    if skip:
+        pyramid, small = dlib.pyramid_down(6), image
+        for _ in range(skip):
+            small = pyramid(small)
+        boxes = [_box_up(pyramid, r, skip) for r in detector.run(small, 0, threshold)[0]]
+        if boxes and all(b is not None for b in boxes):
             return boxes
     return detector.run(image, 0, threshold)[0]
 
@@ -73,8 +71,9 @@ def _box_up(pyramid, rect, levels: int):
     square whose corners map up to ``rect``), then mapped up from there. None when no level fits."""
     import dlib
 
+    found = dlib.drectangle(rect.left(), rect.top(), rect.right(), rect.bottom())
     for level in range(64):
-        down = pyramid.rect_down(dlib.drectangle(rect.left(), rect.top(), rect.right(), rect.bottom()), level)
+        down = pyramid.rect_down(found, level)
         if down.width() < _LEVEL_BOX - 2:
             return None
         if down.width() > _LEVEL_BOX + 2:
