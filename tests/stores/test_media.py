@@ -419,6 +419,23 @@ def test_video_writer_pads_odd_sizes_and_keeps_ntsc_rate(tmp_path):
             assert mad(a[:47, :63, 0], want) < 3.0
 
 
+def test_video_writer_keeps_colours(tmp_path):
+    """Saturated and skin colours and a grey ramp come back as written (BT.601 video range both ways, as
+    players assume): the mean of each 16 x 16 patch within 3 levels in every channel."""
+    colours = [(255, 0, 0), (0, 255, 0), (0, 0, 255), (255, 255, 0), (224, 172, 140), (120, 80, 60),
+               (0, 0, 0), (64, 64, 64), (128, 128, 128), (192, 192, 192), (255, 255, 255), (30, 200, 180)]
+    frame = np.zeros((48, 64, 3), np.uint8)
+    for k, c in enumerate(colours):
+        frame[16 * (k // 4):16 * (k // 4 + 1), 16 * (k % 4):16 * (k % 4 + 1)] = c
+    path = tmp_path / "colours.mp4"
+    media.write_video_mp4(path, [frame] * 3, fps=25)
+    with media.VideoReader(path) as r:
+        _, got = next(iter(r.frames()))
+    for k, c in enumerate(colours):
+        patch = got[16 * (k // 4) + 4:16 * (k // 4 + 1) - 4, 16 * (k % 4) + 4:16 * (k % 4 + 1) - 4]
+        assert np.abs(patch.reshape(-1, 3).mean(0) - c).max() < 3, (c, patch.reshape(-1, 3).mean(0))
+
+
 def test_video_writer_rejects_bad_input_and_leaves_nothing(tmp_path):
     with pytest.raises(ValueError, match="no frames"):
         media.write_video_mp4(tmp_path / "a.mp4", [], fps=25)
