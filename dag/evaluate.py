@@ -139,9 +139,8 @@ def analyse_frames(url: str, start: int, stop: int, identity: tuple[str, dict], 
             irises[j, k] = gaze.iris_offsets(image, points)
         skin[j] = ev.without_mouths(masks[j] & ~drawn[j], theirs[j], landmarks[j])
         if compare and masks[j].any():
-            for k, image in enumerate((face, blended)):
-                psnr[j, k] = ev.masked_psnr(image, original[j], masks[j])
-                ssim[j, k] = ev.masked_ssim(image, original[j], masks[j])
+            psnr[j] = [ev.masked_psnr(image, original[j], masks[j]) for image in (face, blended)]
+            ssim[j] = ev.masked_ssims((face, blended), original[j], masks[j])
         if (start + j) % 4 == 0:
             for name, found in composite.seams(rendered[j], original[j], alpha, blended).items():
                 if found is not None:

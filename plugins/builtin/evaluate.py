@@ -773,9 +773,13 @@ def ssim_map(a, b, data_range: float = 255.0) -> np.ndarray:
     each pixel, the image's edge reflected. :func:`skimage.metrics.structural_similarity`'s ``full`` map
     to 1e-4 (its mean over a face to 1e-6), in a quarter of its time: OpenCV's box filter in float32, on
     values centred on mid-grey so that the variances keep their precision."""
+    return ssim_maps([a], b, data_range)[0]
+
+
+def ssim_maps(images, reference, data_range: float = 255.0) -> list[np.ndarray]:
+    """:func:`ssim_map` of each of ``images`` against the same ``reference``, whose local mean and variance
+    are computed once (the same figures to the bit)."""
     centre = np.float32(data_range / 2)
-    a = np.asarray(a, np.float32) - centre
-    b = np.asarray(b, np.float32) - centre
 
     def mean(x):
         return cv2.boxFilter(x, -1, (SSIM_WINDOW, SSIM_WINDOW), normalize=True, borderType=cv2.BORDER_REFLECT)
@@ -786,11 +790,18 @@ def ssim_map(a, b, data_range: float = 255.0) -> np.ndarray:
     def covariance(x, y, ux, uy):
         return sample * (mean(x * y) - ux * uy)
 
-    ua, ub = mean(a), mean(b)
-    va, vb, vab = covariance(a, a, ua, ua), covariance(b, b, ub, ub), covariance(a, b, ua, ub)
-    ua, ub = ua + centre, ub + centre
     c1, c2 = np.float32((SSIM_K1 * data_range) ** 2), np.float32((SSIM_K2 * data_range) ** 2)
-    return (2 * ua * ub + c1) * (2 * vab + c2) / ((ua * ua + ub * ub + c1) * (va + vb + c2))
+    b = np.asarray(reference, np.float32) - centre
+    ub = mean(b)
+    vb = covariance(b, b, ub, ub)
+    maps = []
+    for a in images:
+        a = np.asarray(a, np.float32) - centre
+        ua = mean(a)
+        va, vab = covariance(a, a, ua, ua), covariance(a, b, ua, ub)
+        ua, uc = ua + centre, ub + centre
+        maps.append((2 * ua * uc + c1) * (2 * vab + c2) / ((ua * ua + uc * uc + c1) * (va + vb + c2)))
+    return maps
 
 
 def masked_ssim(a, b, mask) -> float:
@@ -810,13 +821,21 @@ def masked_ssim(a, b, mask) -> float:
         meets the image's own edge there): the same figure as on the whole image, in the time of the
         face's pixels.
     """
-    a, b = np.asarray(a), np.asarray(b)
-    mask = _mask_like(a, b, mask)
+    return masked_ssims([a], b, mask)[0]
+
+
+def masked_ssims(images, reference, mask) -> list[float]:
+    """:func:`masked_ssim` of each of ``images`` against the same ``reference`` (:func:`ssim_maps`)."""
+    reference = np.asarray(reference)
+    images = [np.asarray(a) for a in images]
+    for a in images:
+        mask = _mask_like(a, reference, mask)
     box = mask_box(mask, SSIM_WINDOW // 2)
     if box is None:
-        return float("nan")
-    full = ssim_map(a[box], b[box])
-    return float(np.mean(full[mask[box]], dtype=np.float64))
+        return [float("nan")] * len(images)
+    inside = mask[box]
+    maps = ssim_maps([a[box] for a in images], reference[box])
+    return [float(np.mean(full[inside], dtype=np.float64)) for full in maps]
 
 
 def gaze_signals(offsets) -> dict[str, np.ndarray]:
