@@ -12,8 +12,8 @@ from pydantic import ValidationError
 from persona.plugins.base import Rejected
 from persona.plugins.builtin.evaluate import (DlibIdentity, IdentityBackend, centroid, colour_change,
                                               compare_videos, expression_signals, frame_changes, identity_figures,
-                                              INNER, interocular, jitter, masked_psnr, masked_ssim, pearson,
-                                              ssim_map)
+                                              INNER, interocular, jitter, masked_psnr, masked_ssim, masked_ssims,
+                                              pearson, ssim_map)
 from persona.plugins.builtin import evaluate as ev
 from persona.plugins.manager import default_registry
 
@@ -365,6 +365,18 @@ def test_masked_ssim_on_the_masks_box_is_skimages_figure_on_the_whole_image():
     smooth = cv2.GaussianBlur(grey, (0, 0), 2)
     _, full = structural_similarity(grey, smooth, full=True, data_range=255)
     assert np.abs(ssim_map(grey, smooth) - full).max() < 1e-4
+
+
+def test_several_ssims_against_one_reference_are_each_ones_own_to_the_bit():
+    rng = np.random.default_rng(4)
+    reference = rng.integers(0, 256, (48, 60, 3), dtype=np.uint8)
+    images = [np.clip(reference + rng.normal(0, s, reference.shape), 0, 255).astype(np.uint8) for s in (5, 30)]
+    mask = np.zeros((48, 60), bool)
+    mask[8:40, 12:50] = True
+    assert masked_ssims(images, reference, mask) == [masked_ssim(a, reference, mask) for a in images]
+    assert np.isnan(masked_ssims(images, reference, np.zeros_like(mask))).all()
+    with pytest.raises(ValueError, match="different shapes"):
+        masked_ssims([images[0], images[1][:40]], reference, mask)
 
 
 def test_gaze_signals_are_the_two_eyes_mean_one_eye_when_the_other_is_not_seen_and_how_far_apart():
