@@ -10,7 +10,8 @@ By default runs the Bush-driven-by-Obama workflow on the first --frames frames o
 driver's clip, say). Each of --runs runs makes the drive again from its retargeting on, with its three
 videos and its evaluation (--workers local workers), and prints the median wall time per driver frame
 of the drive (retarget to composite: frames per second), each step's share of it, the videos' and the
-evaluation's time apart with their share of the drive's (issue 58: at most 10 % and 25 %), and each
+evaluation's time apart with their share of the drive's (issue 58: at most 10 % and 25 %; the two are made
+side by side, the videos in this process while the workers evaluate, so their time together too), and each
 per-frame step's compute on one worker. Then times each per-frame step of the 3D method alone in this
 process, one core, median of --runs passes: dynamics (the driver's 3D flow), transfer (with Huber-ROF),
 texture (video-mode blend, a shard of frames at a time as the drive makes them) and render (mesh3d at
@@ -25,6 +26,7 @@ for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA
     os.environ[var] = "1"
 
 import argparse  # noqa: E402
+import json  # noqa: E402
 import shutil  # noqa: E402
 import statistics  # noqa: E402
 import tempfile  # noqa: E402
@@ -81,7 +83,7 @@ def time_drive(path: Path, runs: int, workers: int, render: str, slurm: bool = F
                f"cluster.memory={3 * workers}GiB", "cluster.start_timeout=300"] if slurm else []
     wf = load_workflow(path, [f"stages.render.backend={render}", *cluster])
     plan = wf.drive_plans()[0]
-    walls, steps = [], {}
+    walls, steps, outputs = [], {}, []  # outputs: the videos and the evaluation, made side by side
     for run in range(runs):
         if (Path(wf.store) / plan.cast.drive).exists():
             shutil.rmtree(Path(wf.store) / plan.cast.drive)  # the drive, made again from its retargeting on
@@ -92,6 +94,7 @@ def time_drive(path: Path, runs: int, workers: int, render: str, slurm: bool = F
                               progress=False)
         rows = [r for r in report["stages"] if r["collection"] == plan.cast.drive]
         walls.append(sum(r["wall_seconds"] for r in rows if r["stage"] not in APART))
+        outputs.append(json.loads(metrics.read_text())["speed"]["outputs_seconds"])
         for r in rows:
             steps.setdefault(r["stage"], []).append((r["wall_seconds"], r["task_seconds"]))
         print(f"run {run + 1}: the drive {walls[-1]:.1f} s", flush=True)
@@ -112,6 +115,9 @@ def time_drive(path: Path, runs: int, workers: int, render: str, slurm: bool = F
         share = f"{100 * w_s / wall:5.1f} % of the drive" + ("'s time, apart" if stage in APART else "")
         print(f"  {stage:<14} {1000 * w_s / n:7.1f} ms/frame wall, {share}; {1000 * task / n:7.1f} ms/frame "
               f"of one worker's compute")
+    both = statistics.median(outputs)
+    print(f"  videos and evaluation, side by side: {1000 * both / n:.1f} ms/frame wall, {100 * both / wall:.1f} % of "
+          f"the drive's time, apart (runs {', '.join(f'{x:.1f}' for x in outputs)} s)")
     if render == "mesh3d":
         one = one_core(Path(wf.store), runs, plan.cast)
         for name, times in one.items():

@@ -11,6 +11,7 @@ the ``drive`` collection, whose photo axis is the driver's frame axis.
 from __future__ import annotations
 
 import logging
+import threading
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
@@ -203,10 +204,11 @@ def driver_sound(frames: Collection, fps: float) -> media.Audio | None:
     return media.read_audio(sources.pop(), index[0] / fps, (index[-1] + 1) / fps)
 
 
-def write_videos(drive: Collection, frames: Collection, output) -> dict[str, str]:
+def write_videos(drive: Collection, frames: Collection, output, stop: threading.Event | None = None) -> dict[str, str]:
     """puppet.mp4 (the puppet's face alone, on grey), side_by_side.mp4 (driver | puppet) and
     composite.mp4 (the ``composite`` stage's frames: B's face in A's light and frame), at the video's
-    fps, with the driver video's sound (:func:`driver_sound`)."""
+    fps, with the driver video's sound (:func:`driver_sound`). Once ``stop`` is set (the run stops), they
+    stop at the next shard of frames and none of the files is written."""
     fps = float(drive.attrs["fps"])
     arrays = [drive.array("render/rgb"), drive.array("render/mask"), frames.array("photos/rgb"),
               drive.array("composite/rgb")]
@@ -228,6 +230,8 @@ def write_videos(drive: Collection, frames: Collection, output) -> dict[str, str
             ahead = reader.submit(shard, *ranges[0])
             for following in ranges[1:] + [None]:
                 made = ahead.result()
+                if stop is not None and stop.is_set():
+                    raise RuntimeError(f"{drive.path}: the videos were stopped before their last frame")
                 if following is not None:
                     ahead = reader.submit(shard, *following)
                 yield from made

@@ -7,7 +7,9 @@ from __future__ import annotations
 import json
 import logging
 import posixpath
+import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
@@ -35,19 +37,35 @@ def drive_outputs(runner: RunContext, plan, speed: dict) -> dict:
         kept["speed"].update(speed)  # a drive made again (the same bytes) was timed again
         return kept
     out = {"outputs_key": key, "speed": {**last_speed(plan.output), **speed}}  # a drive not made again: its last timing
-    with runner.tasks.step("videos", plan.cast.drive):  # and a 3D drive's puppet.glb (about 4 s for 269 frames)
-        out["videos"] = write_videos(drive, Collection(runner.root, plan.cast.frames), plan.output)
-        if drive.has("mesh"):
-            glb = write_drive_glb(runner.root, plan.cast, storage.join(plan.output, "puppet.glb"))
-            out["videos"]["glb"] = glb["path"]
+    stop = threading.Event()
     t0 = time.perf_counter()
-    with runner.tasks.step("evaluate", plan.cast.drive), \
-            runner.tasks.progress_bar(f"{plan.cast.drive:>13} {'analyse':<10}", drive.n) as bar:
-        evaluation = runner.evaluate(plan.cast, progress=bar.update)
-    out["speed"]["evaluate_seconds"] = time.perf_counter() - t0
+    # the videos are encoded in this process while the workers evaluate: neither reads what the other makes, and
+    # this process would otherwise only wait on the workers
+    with ThreadPoolExecutor(1) as writer:
+        videos = writer.submit(_videos, runner, plan, drive, stop)
+        try:
+            with runner.tasks.step("evaluate", plan.cast.drive), \
+                    runner.tasks.progress_bar(f"{plan.cast.drive:>13} {'analyse':<10}", drive.n) as bar:
+                evaluation = runner.evaluate(plan.cast, progress=bar.update)
+        except BaseException:
+            stop.set()  # the videos stop at their next shard, none of their files written
+            raise
+        out["speed"]["evaluate_seconds"] = time.perf_counter() - t0
+        out["videos"] = videos.result()
+    out["speed"]["outputs_seconds"] = time.perf_counter() - t0
     out["series"] = evaluation.pop("series")
     out["evaluation"] = evaluation
     return out
+
+
+def _videos(runner: RunContext, plan, drive: Collection, stop: threading.Event) -> dict[str, str]:
+    """A drive's videos (:func:`persona.dag.drive.write_videos`) and a 3D drive's puppet.glb (about 4 s for
+    269 frames); none written once ``stop`` is set."""
+    with runner.tasks.step("videos", plan.cast.drive):
+        videos = write_videos(drive, Collection(runner.root, plan.cast.frames), plan.output, stop)
+        if drive.has("mesh"):
+            videos["glb"] = write_drive_glb(runner.root, plan.cast, storage.join(plan.output, "puppet.glb"))["path"]
+    return videos
 
 
 def kept_outputs(output: str, key: str) -> dict | None:

@@ -813,3 +813,43 @@ def test_new_figures_evaluate_a_finished_drive_again(drive_run, monkeypatch):
     assert "evaluate" in {r["stage"] for r in after["stages"]}
     # the drive was not made again: its speed is the last run's, not lost
     assert after["speed"]["ms_per_driver_frame"] == json.loads(first)["speed"]["ms_per_driver_frame"]
+
+
+def test_the_videos_are_made_while_the_workers_evaluate_and_none_is_left_half_made_when_the_run_stops(
+        drive_run, monkeypatch):
+    """The videos are encoded in the run's own process while the evaluation runs: both steps have begun before
+    either ends. Ctrl-C during the evaluation stops the videos too, and no video, whole or in part, is left in
+    the output folder; the next run makes them."""
+    import threading
+    import time
+
+    from persona.dag import drive as drive_module
+    from persona.dag.runner import Runner
+
+    folder, path, _ = drive_run
+    out = folder / "output_stopped"
+    slow = drive_module.alone
+
+    def alone(*args):  # 50 ms a frame: the videos are still being made when the evaluation stops
+        time.sleep(0.05)
+        return slow(*args)
+
+    began = threading.Event()
+
+    def evaluate(self, *args, **kwargs):
+        began.set()
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(drive_module, "alone", alone)
+    monkeypatch.setattr(Runner, "evaluate", evaluate)
+    assert cli(["run", str(path), "--scheduler", "sync", "--quiet", "--set", f"output={out.name}"]) == 130
+    assert began.is_set()
+    assert not [p.name for p in out.iterdir() if ".mp4" in p.name]  # nor a temporary one
+    monkeypatch.undo()
+
+    assert cli(["run", str(path), "--scheduler", "sync", "--quiet", "--set", f"output={out.name}"]) == 0
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert all(Path(metrics["videos"][k]).is_file() for k in ("puppet", "side_by_side", "composite"))
+    steps = {r["stage"]: r["wall_seconds"] for r in metrics["stages"] if r["collection"] == "drive"}
+    assert metrics["speed"]["outputs_seconds"] >= max(steps["videos"], steps["evaluate"]) - 0.01
+    assert metrics["speed"]["outputs_seconds"] < steps["videos"] + steps["evaluate"]  # side by side
