@@ -23,7 +23,7 @@ from persona.plugins.face.fiducials import rest_shape
 from persona.plugins.face.tracks import bridge, steadied
 from persona.plugins.face.warp import retarget
 from persona.stores import media, storage
-from persona.stores.layout import OK, PENDING, Cast, Collection
+from persona.stores.layout import OK, PENDING, Cast, Collection, open_store
 
 from . import stages as st
 from .context import RunContext
@@ -110,23 +110,32 @@ def run_light(runner: RunContext, stage: st.Stage, target: Target) -> None:
 
 def run_gaze(runner: RunContext, stage: st.Stage, target: Target) -> None:
     """``eyes/gaze`` (frame, eye, along / across): how far the driver's irises sit from where they usually do
-    in the clip, in eye widths (gaze.iris_offsets on each frame and its landmarks, gaze.gaze_shift); frames
-    without a face look where they usually do."""
+    in the clip, in eye widths (:func:`driver_irises` on the workers, gaze.gaze_shift); frames without a face
+    look where they usually do."""
     drive, frames = Collection(runner.root, target.path), Collection(runner.root, target.cast.frames)
-    found = st.accepted(frames)
     prov = st.provenance(stage.name, params={}, inputs={"frames": frames.provenance("status/screen/state").key},
                          persona_version=runner.version)
     if not st.is_done(drive, prov, *stage.done):
-        offsets = np.full((drive.n, 2, 2), np.nan)
-        rgb, size, points = (frames.array(array) for array in ("photos/rgb", "photos/size", "landmarks/points"))
-        for start, stop in drive.shard_ranges():
-            for i, (image, (h, w), lm) in enumerate(zip(rgb[start:stop], size[start:stop], points[start:stop])):
-                if found[start + i]:
-                    offsets[start + i] = gaze.iris_offsets(image[:h, :w], lm)
+        shards = runner.tasks.map_shards(drive, "irises", driver_irises)
+        offsets = np.concatenate([shards[start] for start in sorted(shards)])
         drive.create("eyes/gaze", (2, 2), "float32", ("frame", "eye", "axis"), prov,
                      pending=True)[:] = gaze.gaze_shift(offsets)
         drive.mark_done("eyes/gaze", prov)  # after the data: a run killed before this does it again
     target.made[stage.name] = prov
+
+
+def driver_irises(url: str, path: str, start: int, stop: int) -> np.ndarray:
+    """One shard's task: (stop - start, 2, 2) where the driver's irises sit in frames [start, stop) of the drive
+    at ``path`` (gaze.iris_offsets of each frame and its landmarks), NaN in a frame without a face."""
+    root = open_store(url, mode="r")
+    frames = Collection(root, Cast.of(root, path).frames)
+    found = st.accepted(frames)[start:stop]
+    rgb, size, points = (frames.array(array)[start:stop] for array in ("photos/rgb", "photos/size", "landmarks/points"))
+    offsets = np.full((stop - start, 2, 2), np.nan)
+    for i, (image, (h, w), lm) in enumerate(zip(rgb, size, points)):
+        if found[i]:
+            offsets[i] = gaze.iris_offsets(image[:h, :w], lm)
+    return offsets
 
 
 def run_teeth(runner: RunContext, stage: st.Stage, target: Target) -> None:
