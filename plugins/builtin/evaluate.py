@@ -793,14 +793,14 @@ def ssim_maps(images, reference, data_range: float = 255.0) -> list[np.ndarray]:
     c1, c2 = np.float32((SSIM_K1 * data_range) ** 2), np.float32((SSIM_K2 * data_range) ** 2)
     b = np.asarray(reference, np.float32) - centre
     ub = mean(b)
-    vb = covariance(b, b, ub, ub)
+    vb, mb = covariance(b, b, ub, ub), ub + centre  # the reference's variance and (not centred) mean
     maps = []
     for a in images:
         a = np.asarray(a, np.float32) - centre
         ua = mean(a)
         va, vab = covariance(a, a, ua, ua), covariance(a, b, ua, ub)
-        ua, uc = ua + centre, ub + centre
-        maps.append((2 * ua * uc + c1) * (2 * vab + c2) / ((ua * ua + uc * uc + c1) * (va + vb + c2)))
+        ma = ua + centre
+        maps.append((2 * ma * mb + c1) * (2 * vab + c2) / ((ma * ma + mb * mb + c1) * (va + vb + c2)))
     return maps
 
 
