@@ -5,6 +5,8 @@ import io
 import json
 import re
 import shutil
+import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -820,9 +822,6 @@ def test_the_videos_are_made_while_the_workers_evaluate_and_none_is_left_half_ma
     """The videos are encoded in the run's own process while the evaluation runs: both steps have begun before
     either ends. Ctrl-C during the evaluation stops the videos too, and no video, whole or in part, is left in
     the output folder; the next run makes them."""
-    import threading
-    import time
-
     from persona.dag import drive as drive_module
     from persona.dag.runner import Runner
 
