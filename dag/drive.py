@@ -182,7 +182,7 @@ def _retarget(runner: RunContext, cast, drive, frames, puppet, found, prov, sigm
     fiducials = frames.array("aligned/fiducials")[:].astype(np.float64)
     pose = bridge(frames.array("pose")[:], found)
     pose[:, :6] = smooth_in_time(pose[:, :6], sigma)  # rvec, tvec
-    driver_fiducials = bridge(steadied(fiducials, frames.array("aligned/rgb"), found, steady), found)
+    driver_fiducials = bridge(steadied(fiducials, frames.in_order("aligned/rgb"), found, steady), found)
     collection = Collection(runner.root, cast.driver)
     driver_neutral = rest_shape(fiducials[found] if neutral == "clip" else _photo_fiducials(collection), share)
     puppet_neutral = rest_shape(_photo_fiducials(puppet), share)

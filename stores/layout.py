@@ -210,6 +210,10 @@ class Collection:
             out[where] = array[lo:hi][rows[where] - lo]
         return out
 
+    def in_order(self, name: str) -> "InOrder":
+        """The per-photo array ``name`` for a pass over its photos in increasing order: :class:`InOrder`."""
+        return InOrder(self.array(name), self.shard)
+
     def remove(self, *names: str) -> None:
         """Delete the arrays or groups ``names`` that exist: an earlier run's outputs that this run
         does not make again, so that nothing later reads them as its own."""
@@ -263,6 +267,24 @@ class Collection:
             return sorted(self.group["status"].group_keys())
         except KeyError:
             return []
+
+
+class InOrder:
+    """A per-photo array indexed one photo at a time, read a whole shard at a time and the last shard read
+    kept: for a pass over consecutive frames. A photo read alone costs about what its whole shard does
+    (an aligned frame of a video, 5 ms a read on a drive's client: 0.7 s of the retargeting of 136 frames)."""
+
+    def __init__(self, array: zarr.Array, shard: int):
+        self.array, self.shard, self.start, self.block = array, shard, -1, None
+
+    def __len__(self) -> int:
+        return self.array.shape[0]
+
+    def __getitem__(self, i: int) -> np.ndarray:
+        start = i - i % self.shard
+        if start != self.start:
+            self.start, self.block = start, self.array[start:start + self.shard]
+        return self.block[i - start]
 
 
 def collections(root: zarr.Group) -> list[Collection]:
