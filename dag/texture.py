@@ -296,7 +296,7 @@ CACHE_BYTES = 1 << 30
 #: bytes of B's texture cache read and summed as one block of consecutive shards of photos (at least one
 #: shard): the frames' sums take one matrix product per level and block, and each product reads and writes
 #: all of the frames' sums again, so a few large blocks cost far less than one per shard of photos
-#: (Bush's 530 photos in 34 shards: 240 ms a task, against 70 in three blocks)
+#: (Bush's 530 photos in 34 shards: 240 ms a task, against 77 in three blocks)
 BLOCK_BYTES = 256 << 20
 
 _blocks: dict[tuple[str, int], tuple[list, list]] = {}
@@ -368,9 +368,9 @@ def stored_textures(url: str, path: str, name: str, params: dict, targets, start
                     stop: int | None = None, gaze: np.ndarray | None = None, neutral_share: float = 1.0) -> np.ndarray:
     """B's textures (f, H, W, 3) float32 for the frames [start, stop) of consecutive frames' ``targets``
     (T, 49, 2; an array read only about those frames) from the stored video-mode cache of the collection
-    ``path``: the sums of Eq. 3 taken over it a block of photos at a time (:data:`BLOCK_BYTES`; a block that
-    no target weighs is not read, one kept from an earlier task of this process is not read again), then finished with
-    the totals; ``gaze`` (f, 2, 2), the driver's in those frames (``eyes/gaze``), moves B's irises;
+    ``path``: the sums of Eq. 3 taken over it a block of photos at a time (:data:`BLOCK_BYTES`; a block
+    that no target weighs is not read, one kept from an earlier task of this process is not read again),
+    then finished with the totals; ``gaze`` (f, 2, 2), the driver's in those frames (``eyes/gaze``), moves B's irises;
     B's neutral is the :func:`rest_shape` of ``neutral_share`` of the photos' fiducials, as retargeting's."""
     source = Collection(open_store(url, mode="r"), path)
     key = _cache_id(source)
