@@ -302,10 +302,10 @@ BLOCK_BYTES = 256 << 20
 _blocks: dict[tuple[str, int], tuple[list, list]] = {}
 
 
-def _block_ranges(coll: Collection, levels: int) -> list[tuple[int, int]]:
-    """The blocks of the collection's cache (:data:`BLOCK_BYTES`): [begin, end) of whole shards."""
-    photo = sum(int(np.prod(a.shape[1:])) * a.dtype.itemsize for a in
-                (coll.array(f"texture/{kind}_{k}") for kind in ("weighted", "detail") for k in range(levels)))
+def _block_ranges(coll: Collection, totals: BlendTotals) -> list[tuple[int, int]]:
+    """The blocks of the collection's cache (:data:`BLOCK_BYTES`): [begin, end) of whole shards. A photo's
+    levels have the shapes and type of the cache's ``totals``, already in memory: no array is opened."""
+    photo = sum(a.nbytes for a in (*totals.weighted, *totals.detail))
     size = coll.shard * max(1, BLOCK_BYTES // (photo * coll.shard))
     return [(begin, min(begin + size, coll.n)) for begin in range(0, coll.n, size)]
 
@@ -370,8 +370,8 @@ def stored_textures(url: str, path: str, name: str, params: dict, targets, start
     (T, 49, 2; an array read only about those frames) from the stored video-mode cache of the collection
     ``path``: the sums of Eq. 3 taken over it a block of photos at a time (:data:`BLOCK_BYTES`; a block
     that no target weighs is not read, one kept from an earlier task of this process is not read again),
-    then finished with the totals; ``gaze`` (f, 2, 2), the driver's in those frames (``eyes/gaze``), moves B's irises;
-    B's neutral is the :func:`rest_shape` of ``neutral_share`` of the photos' fiducials, as retargeting's."""
+    then finished with the totals; ``gaze`` (f, 2, 2), the driver's in those frames (``eyes/gaze``),
+    moves B's irises; B's neutral is the :func:`rest_shape` of ``neutral_share`` of the photos' fiducials, as retargeting's."""
     source = Collection(open_store(url, mode="r"), path)
     key = _cache_id(source)
     backend = st.default_registry().get("texture", name)(params)
@@ -385,11 +385,10 @@ def stored_textures(url: str, path: str, name: str, params: dict, targets, start
     rest = rest_shape(fiducials, neutral_share)
     weights = backend.weights(fiducials, around, keep, rest, gazes)  # (targets and the backend's own rows, photos)
     sums = backend.sums(fiducials, stop - start, totals)
-    levels = len(totals.weighted)
-    for begin, end in _block_ranges(source, levels):
+    for begin, end in _block_ranges(source, totals):
         a, b = np.searchsorted(ok, [begin, end])
         if weights[:, a:b].any():
-            sums.add(*_read_block(source, key, begin, ok[a:b], levels), weights[:, a:b])
+            sums.add(*_read_block(source, key, begin, ok[a:b], len(totals.weighted)), weights[:, a:b])
     return backend.finish(sums, totals, fiducials, around[keep], gaze=gaze)
 
 
