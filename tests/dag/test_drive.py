@@ -435,8 +435,9 @@ def test_the_texture_cache_made_a_shard_at_a_time_is_the_whole_collections(drive
     basis by a randomised SVD over the shards); done on all 10 photos at once in memory with the
     same steps, the pyramids agree to 1e-3 of their range and the neutral texture to 1 level of 255.
     A drive's textures read the cache a block at a time: with no room to keep any block between
-    tasks they are the same to the bit; in blocks of one shard each, kept one at a time, within a
-    level (the sums add in another order)."""
+    tasks they are the run's but for a value in 10,000 one level off (the matrix products' last bit
+    depends on how BLAS splits them, which its threads change); in blocks of one shard each, kept one
+    at a time, within a level (the sums add in another order)."""
     from persona.dag import texture as texture_module
     from persona.plugins.face.blend import seen_mean, seen_sums
     from persona.plugins.face.texture import to_grey, warped_basis
@@ -466,7 +467,8 @@ def test_the_texture_cache_made_a_shard_at_a_time_is_the_whole_collections(drive
     for start, stop in drive.shard_ranges()[:2]:  # as the run's tasks made them: a shard of frames each
         again = texture_module.stored_textures(str(folder / "run.zarr"), "puppet", name, params, drive.array("target"),
                                                start, stop, gaze=drive.array("eyes/gaze")[start:stop])
-        np.testing.assert_array_equal(again.round().astype(np.uint8), drive.array("texture/rgb")[start:stop])
+        off = np.abs(again.round() - drive.array("texture/rgb")[start:stop])
+        assert off.max() <= 1 and np.count_nonzero(off) <= 1e-4 * off.size, (off.max(), np.count_nonzero(off))
     monkeypatch.setattr(texture_module, "BLOCK_BYTES", 1)  # a block a shard of photos: three blocks
     texture_module._blocks.clear()
     again = texture_module.stored_textures(str(folder / "run.zarr"), "puppet", name, params, drive.array("target"),
