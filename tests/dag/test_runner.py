@@ -581,10 +581,14 @@ def test_every_decodable_frame_of_a_truncated_video_is_kept(tmp_path):
     media.write_video_mp4(full, [f.image for f in synthetic.make_driver_video(16, seed=2, identity=driver_identity(0))],
                           fps=25)
     data = full.read_bytes()
-    cut.write_bytes(data[:int(0.8 * len(data))])
-    with media.VideoReader(cut) as reader:
-        decodable = [i for i, _ in reader.frames()]
-    assert 0 < len(decodable) < 16 and len(decodable) % 4, decodable  # a shard (4 frames) delivered in part
+    for share in (0.8, 0.75, 0.85, 0.7, 0.9):  # where a shard's frames end depends on the encoder's bytes
+        cut.write_bytes(data[:int(share * len(data))])
+        with media.VideoReader(cut) as reader:
+            decodable = [i for i, _ in reader.frames()]
+        if 0 < len(decodable) < 16 and len(decodable) % 4:  # a shard (4 frames) delivered in part
+            break
+    else:
+        pytest.fail(f"no cut of {full.name} ends inside a shard of 4 frames")
     wf = load_workflow(write_workflow(tmp_path, {"video": "cut.mp4"}))
     runner = Runner(wf, Executor("sync", None), progress=False)
     coll, video = runner.collection("puppet", resolve_inputs(wf)["puppet"])
