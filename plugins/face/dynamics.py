@@ -348,6 +348,12 @@ class _Operators:
         return cls(rows, cols, du, dv, laplacian, up, pattern,
                    (laplacian_up.T @ laplacian_up).tocsr(), (up.T @ up).tocsr())
 
+    @functools.lru_cache(maxsize=4)
+    def regulariser(self, smoothness: float, damping: float) -> sp.csr_matrix:
+        """λ_s (laplacian @ up)ᵀ (laplacian @ up) + λ_0 upᵀ up: the shading refinement's prior on the coarse
+        nodes, the same in every frame (made once per pair of weights)."""
+        return (smoothness * self.laplacian_gram + damping * self.up_gram).tocsr()
+
     def jacobian(self, a: np.ndarray, b: np.ndarray) -> sp.csr_matrix:
         """diag(a) du @ up + diag(b) dv @ up, (n, c): the derivative of per-pixel values that depend on
         the δ-derivatives through coefficients a (of ∂δ/∂u) and b (of ∂δ/∂v)."""
@@ -599,7 +605,7 @@ def refine_depth(model: DriverModel, surface: np.ndarray, ray: np.ndarray, inten
     rho = _blur_on(model.albedo, good, params.shading_blur)[rows, cols]
     target = _blur_on(intensity, good, params.shading_blur)[rows, cols]
     candidate = good[rows, cols] & (rho > 0)
-    regulariser = (params.smoothness * ops.laplacian_gram + params.damping * ops.up_gram).tocsr()
+    regulariser = ops.regulariser(params.smoothness, params.damping)
     coarse = np.zeros(ops.up.shape[1])
     delta = np.zeros(len(rows))
     light = np.full(4, np.nan)
@@ -652,12 +658,15 @@ def _solve_spd(matrix: sp.spmatrix, rhs: np.ndarray) -> np.ndarray:
     """Solve a sparse symmetric positive definite system by banded Cholesky (LAPACK pbtrf/pbtrs).
 
     The unknowns are coarse grid nodes in row-major order, so the matrix is banded (about two grid
-    rows): 3-4x faster here than SuperLU, whose fill-in on a 2D grid costs more than the band."""
-    lower = sp.tril(matrix, format="coo")
-    lower.sum_duplicates()
-    offset = lower.row - lower.col
-    bands = np.zeros((int(offset.max()) + 1, matrix.shape[0]))
-    bands[offset, lower.col] = lower.data
+    rows): 3-4x faster here than SuperLU, whose fill-in on a 2D grid costs more than the band. The band
+    is read off the matrix's compressed rows as they are (no triangular copy)."""
+    matrix = sp.csr_matrix(matrix)
+    matrix.sum_duplicates()  # a no-op for a sum or product of sparse matrices, which has none
+    rows = np.repeat(np.arange(matrix.shape[0]), np.diff(matrix.indptr))
+    offset = rows - matrix.indices
+    lower = offset >= 0
+    bands = np.zeros((int(offset[lower].max()) + 1, matrix.shape[0]))
+    bands[offset[lower], matrix.indices[lower]] = matrix.data[lower]
     # a node that no data or prior reaches (a hole in a reconstructed mask) has an empty row: pin it
     # with a unit diagonal (its right-hand side is 0 too), and keep the rest safely definite
     bands[0] += 1e-10 * bands[0].max() + (bands[0] <= 0)
