@@ -1078,10 +1078,9 @@ def _encode_audio(containers, streams, audio: Audio, duration: float) -> None:
 
 
 #: libx264's settings for every video Persona writes: constant quality 18 (visually lossless), and the
-#: ``ultrafast`` preset: at that quality it encodes in about half of ``veryfast``'s CPU time (a 720p drive's
-#: three videos: 50 -> 26 ms a frame) and a third of ``medium``'s, in files about three times larger (a 720p
-#: face at about 5 Mbit/s); the writing is part of every drive, the files are made once
-#: (docs/CHANGELOG.md, 2026-12-05)
+#: ``ultrafast`` preset, which encodes in about half of ``veryfast``'s CPU time at that quality, in files about
+#: three times larger (a 720p face at about 5 Mbit/s): every drive writes three videos, while the evaluation
+#: runs (docs/CHANGELOG.md, 2026-12-05)
 X264 = {"crf": "18", "preset": "ultrafast"}
 
 
