@@ -371,7 +371,8 @@ def stored_textures(url: str, path: str, name: str, params: dict, targets, start
     ``path``: the sums of Eq. 3 taken over it a block of photos at a time (:data:`BLOCK_BYTES`; a block
     that no target weighs is not read, one kept from an earlier task of this process is not read again),
     then finished with the totals; ``gaze`` (f, 2, 2), the driver's in those frames (``eyes/gaze``),
-    moves B's irises; B's neutral is the :func:`rest_shape` of ``neutral_share`` of the photos' fiducials, as retargeting's."""
+    moves B's irises; B's neutral is the :func:`rest_shape` of ``neutral_share`` of the photos' fiducials,
+    as retargeting's."""
     source = Collection(open_store(url, mode="r"), path)
     key = _cache_id(source)
     backend = st.default_registry().get("texture", name)(params)
