@@ -643,6 +643,12 @@ def detail_energy(image, mask, iod: float | None = None) -> float:
     return float(1000 * np.mean(band[inside] ** 2)) if inside.any() else float("nan")
 
 
+def _reach(sigma: float) -> int:
+    """How far (px) OpenCV's Gaussian blur of σ ``sigma`` reads from a pixel on float images: half its kernel,
+    which OpenCV makes 8σ + 1 wide, rounded to odd."""
+    return int(round(sigma * 8 + 1)) // 2
+
+
 #: how far inside the rendered face's edge (px) :func:`sharpness` looks: the mask's feather and the
 #: composite's seam are not the face's detail
 SHARPNESS_INSET = 4
@@ -655,9 +661,14 @@ def sharpness(image, reference, mask) -> float:
     mean grey squared there, so that a face lit darker (B's skin under A's light) is as sharp as before.
     1 = as sharp as the reference (the driver's own face in its frame); a blur or a texture finer than the
     frame shows lowers it, ringing and noise raise it. NaN where nothing is left of the mask or the
-    reference is flat."""
+    reference is flat. Computed on the mask's box, grown by the inset and the blurs' reach: the whole
+    frame's figure (to float32's rounding) at a fraction of its cost on an HD frame."""
+    box = mask_box(np.asarray(mask, bool), SHARPNESS_INSET + _reach(DETAIL_SIGMAS[1]))
+    if box is None:
+        return float("nan")
+    image, reference = np.asarray(image)[box], np.asarray(reference)[box]
     inset = 2 * SHARPNESS_INSET + 1
-    inside = cv2.erode(np.asarray(mask, np.uint8), np.ones((inset, inset), np.uint8)) > 0
+    inside = cv2.erode(np.asarray(mask, np.uint8)[box], np.ones((inset, inset), np.uint8)) > 0
     if not inside.any():
         return float("nan")
 

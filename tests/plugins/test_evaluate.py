@@ -638,6 +638,26 @@ def test_sharpness_is_the_outputs_fine_detail_over_the_real_faces():
     assert np.isnan(ev.sharpness(real, real, np.pad(np.ones((8, 8), bool), 76)))
 
 
+@pytest.mark.parametrize("corner", [(0, 0), (100, 170), (220, 330)])
+def test_sharpness_on_the_faces_box_is_the_whole_frames(corner):
+    """Sharpness reads only the face's box in a large frame, grown by what its erosion and blurs reach: the
+    figure is the one the whole frame gives (to float32's rounding: OpenCV's blurs may round a row's last pixels
+    apart), for a face in the middle and against either edge."""
+    rng = np.random.default_rng(3)
+    frame = np.clip(128 + cv2.GaussianBlur(rng.normal(0, 60, (300, 420, 3)), (0, 0), 0.8), 0, 255).astype(np.uint8)
+    output = cv2.GaussianBlur(frame, (0, 0), 0.7)
+    face = np.zeros(frame.shape[:2], bool)
+    y, x = corner
+    cv2.ellipse(face.view(np.uint8), (x + 45, y + 40), (45, 40), 0, 0, 360, 1, -1)
+    inside = cv2.erode(face.astype(np.uint8), np.ones((2 * ev.SHARPNESS_INSET + 1,) * 2, np.uint8)) > 0
+
+    def whole(picture):
+        grey = float((picture.astype(np.float32)[inside] @ np.float32([0.299, 0.587, 0.114])).mean()) / 255
+        return ev.detail_energy(picture, inside, iod=ev.DETAIL_IOD) / grey ** 2
+
+    assert ev.sharpness(output, frame, face) == pytest.approx(whole(output) / whole(frame), rel=1e-6)
+
+
 def test_the_edge_of_a_face_cut_out_on_black_is_neither_detail_nor_a_tear(canonical_photos):
     """A frontalized photo is 0 beyond its view. The same photo cut out on black and laid on mid-grey
     has the same detail and tears inside its view (to 1 %): the filters see the masked pixels alone.
