@@ -15,6 +15,9 @@ Figures (paper §6, with dlib's descriptor and landmarks only; nothing downloade
   with A's head around it);
 - gaze: where the irises sit in the eyes (persona.plugins.face.gaze.iris_offsets, along and across the
   eye, in eye widths), the gain and correlation of the face alone's and composite.mp4's on the driver's;
+- creases: the fine detail between the brows (ev.crease_energy: it rises as a frown creases the skin
+  there), the gain and correlation of the face alone's and composite.mp4's on the driver's: creases
+  that come and go with the driver's, not B's in every frame;
 - held: per signal, the expression each face holds through the clip (its mean less its resting face's:
   A's mean photo, B's neutral texture), of the driver, the face alone and composite.mp4's frames; a
   smile held throughout has no amplitude for a gain to see;
@@ -101,7 +104,8 @@ def analyse_frames(url: str, start: int, stop: int, identity: tuple[str, dict], 
     ``every`` is 0), the mean
     face colour of output and driver inside the rendered face less both mouths (ev.without_mouths), and
     (``compare``) PSNR and SSIM against the driver, of the render and of the composite (the composite
-    stage's frames, composite.mp4's)."""
+    stage's frames, composite.mp4's); of the driver's frame, the face alone and the composite, where the
+    irises sit and the fine detail between the brows (ev.crease_energy)."""
     root = open_store(url, mode="r")
     drive, frames = Collection(root, cast.drive), Collection(root, cast.frames)
     rendered = drive.array("render/rgb")[start:stop]
@@ -119,6 +123,7 @@ def analyse_frames(url: str, start: int, stop: int, identity: tuple[str, dict], 
     descriptors = np.full((n, 2, 128), np.nan)  # of the render, of the composite
     psnr, ssim = np.full((n, 2), np.nan), np.full((n, 2), np.nan)  # the render's, the composite's
     irises = np.full((n, 3, 2, 2), np.nan)  # where the eyes look: the driver's, the face alone's, the composite's
+    creases = np.full((n, 3), np.nan)  # the fine detail between the brows: the driver's, the face alone's, the composite's
     seams = {"blend": [], "paste": []}
     sharp = []  # every 4th frame: the face alone's and the composite's fine detail over the driver's face
     for j in range(n):
@@ -137,6 +142,7 @@ def analyse_frames(url: str, start: int, stop: int, identity: tuple[str, dict], 
         for k, (image, points) in enumerate(((original[j], theirs[j]), (face, landmarks[j]),
                                              (blended, composite_landmarks[j]))):
             irises[j, k] = gaze.iris_offsets(image, points)
+            creases[j, k] = ev.crease_energy(image, points, masks[j] if k == 1 else None)
         skin[j] = ev.without_mouths(masks[j] & ~drawn[j], theirs[j], landmarks[j])
         if compare and masks[j].any():
             psnr[j] = [ev.masked_psnr(image, original[j], masks[j]) for image in (face, blended)]
@@ -151,7 +157,7 @@ def analyse_frames(url: str, start: int, stop: int, identity: tuple[str, dict], 
     texture_change = ev.frame_changes(drive.array("texture/rgb")[start:stop], face)
     driver_change = ev.frame_changes(frames.array("aligned/rgb")[start:stop], face)
     return {"start": start, "landmarks": landmarks, "composite_landmarks": composite_landmarks,
-            "descriptors": descriptors, "psnr": psnr, "ssim": ssim, "irises": irises,
+            "descriptors": descriptors, "psnr": psnr, "ssim": ssim, "irises": irises, "creases": creases,
             "texture_change": texture_change, "driver_change": driver_change,
             **{f"seam_{k}": np.array(v).reshape(-1, 2) for k, v in seams.items()},
             "sharpness": np.array(sharp).reshape(-1, 2),
@@ -304,6 +310,8 @@ def evaluate(store: str, executor, *, identity: tuple[str, dict], threshold: flo
         "amplitude": video["amplitude"],
         "amplitude_composite": on_composite_video["amplitude"],
         "gaze": gaze_figures(gazes),
+        "creases": {where: ev.amplitude(joined["creases"][:, 0], joined["creases"][:, k])
+                    for k, where in ((1, "face_alone"), (2, "composite"))},
         "held": held_figures(root, cast, driver_landmarks, joined["landmarks"], joined["composite_landmarks"]),
         "stability": stability,
         "sharpness": {"face_alone": _median(joined["sharpness"][:, 0]),
@@ -318,6 +326,7 @@ def evaluate(store: str, executor, *, identity: tuple[str, dict], threshold: flo
                                                      ("composite", joined["composite_landmarks"]))
                for k, v in ev.expression_signals(points).items()},
             **{f"{who}_gaze_{k}": v for who, signals in gazes.items() for k, v in signals.items()},
+            **{f"{who}_creases": joined["creases"][:, k] for k, who in enumerate(("driver", "output", "composite"))},
         },
     }
     if pieces["motion"] is not None:  # rendered from the motion step's meshes

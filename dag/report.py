@@ -185,6 +185,14 @@ def _gaze_rows(figures: dict) -> list[tuple]:
     return rows
 
 
+def _crease_rows(figures: dict) -> list[tuple]:
+    """The creases between the brows, output on driver: a row per place (face alone, composite.mp4); no target
+    (issue 55 asks that they come when the driver's do: r near 1, and a gain that does not leave them on)."""
+    return [(f"creases between the brows, gain ({where.replace('_', ' ')})", a["gain"],
+             f"1 = they deepen and smooth as far as the driver's; r {a['r']:.2f} (1: when the driver's do); "
+             f"the driver's range {a['driver_range']:.3f}", None) for where, a in figures.items()]
+
+
 def _gain_rows(where: str, amplitudes: dict) -> list[tuple]:
     rows = []
     for k, a in amplitudes.items():
@@ -223,6 +231,7 @@ def figure_rows(ev: dict) -> list[tuple]:
     rows += _gain_rows("(output / driver)", ev.get("amplitude", {}))
     rows += _gain_rows("on composite.mp4", ev.get("amplitude_composite", {}))
     rows += _gaze_rows(ev.get("gaze", {}))
+    rows += _crease_rows(ev.get("creases", {}))
     rows += [(f"held expression: {k.replace('_', ' ')} (driver / face alone / composite, IOD)",
               " / ".join(f"{h[who]:+.3f}" for who in ("driver", "output", "composite")),
               "the mean over the clip less the resting face (A's mean photo, B's neutral texture): a smile or "

@@ -239,12 +239,12 @@ PEAKS = (("widest mouth", "mouth_open", 1), ("widest lips", "mouth_width", 1),
          ("brows highest", "brow_height", 1), ("brows lowest", "brow_height", -1),
          ("looks furthest to the image's left", "gaze_along", -1),
          ("looks furthest to the image's right", "gaze_along", 1),
-         ("eyes most crossed", "gaze_apart", -1))
+         ("eyes most crossed", "gaze_apart", -1), ("deepest creases between the brows", "creases", 1))
 
 
 def expression_peaks(signals: dict) -> list[tuple[str, int]]:
-    """The frame of each of :data:`PEAKS` in a face's :func:`expression_signals` and ``gaze_``-prefixed
-    :func:`gaze_signals`: (what it shows, frame), leaving out a signal that is missing or NaN in every frame."""
+    """The frame of each of :data:`PEAKS` in a face's :func:`expression_signals`, ``gaze_``-prefixed
+    :func:`gaze_signals` and ``creases`` (:func:`crease_energy`): (what it shows, frame), leaving out a signal that is missing or NaN in every frame."""
     peaks = []
     for label, name, sign in PEAKS:
         x = sign * np.asarray(signals.get(name, np.nan), np.float64)
@@ -672,12 +672,58 @@ def sharpness(image, reference, mask) -> float:
     if not inside.any():
         return float("nan")
 
-    def contrast(picture) -> float:
-        grey = float((np.asarray(picture, np.float32)[inside] @ np.float32([0.299, 0.587, 0.114])).mean()) / 255
-        return detail_energy(picture, inside, iod=DETAIL_IOD) / max(grey, 1e-3) ** 2
+    theirs = relative_detail(reference, inside, DETAIL_IOD)
+    return relative_detail(image, inside, DETAIL_IOD) / theirs if theirs > 0 else float("nan")
 
-    theirs = contrast(reference)
-    return contrast(image) / theirs if theirs > 0 else float("nan")
+
+def relative_detail(image, inside, iod: float) -> float:
+    """:func:`detail_energy` of ``image`` inside ``inside`` over the mean grey (0-1) there squared: the same for
+    a face lit darker or brighter."""
+    grey = float((np.asarray(image, np.float32)[inside] @ np.float32([0.299, 0.587, 0.114])).mean()) / 255
+    return detail_energy(image, inside, iod=iod) / max(grey, 1e-3) ** 2
+
+
+#: the skin between the brows reaches this many eye distances above the higher brow (:func:`crease_region`)
+CREASE_ABOVE = 0.35
+#: fewer pixels than this between the brows: no crease figure for that face
+CREASE_MIN_PIXELS = 20
+
+
+def crease_region(points, shape) -> np.ndarray:
+    """(h, w) bool: the skin between the brows of a face with iBUG landmarks ``points`` (68, 2) in an image of
+    ``shape`` (h, w), where a frown draws its upright creases and raised brows their level ones. Along the eyes'
+    axis, from the inner end of one brow (point 21) to that of the other (22); across it, from
+    ``CREASE_ABOVE`` eye distances above the higher brow down to a tenth of one below the top of the nose (27).
+    None of it where the points are NaN."""
+    p = np.asarray(points, np.float64)
+    out = np.zeros(shape[:2], np.uint8)
+    if not np.isfinite(p).all():
+        return out > 0
+    right, left = p[36:42].mean(axis=0), p[42:48].mean(axis=0)
+    iod = float(np.linalg.norm(left - right))
+    along = (left - right) / max(iod, 1e-9)
+    down = np.array([-along[1], along[0]])  # the eyes' axis turned a quarter: down the face
+    a0, a1 = sorted((p[21] @ along, p[22] @ along))
+    d0, d1 = min(p[17:27] @ down) - CREASE_ABOVE * iod, p[27] @ down + 0.1 * iod
+    corners = [a * along + d * down for a, d in ((a0, d0), (a1, d0), (a1, d1), (a0, d1))]
+    cv2.fillConvexPoly(out, np.round(corners).astype(np.int32), 1)
+    return out > 0
+
+
+def crease_energy(image, points, mask=None) -> float:
+    """The fine detail between the brows of a face in an RGB ``image`` (h, w, 3) with iBUG landmarks ``points``
+    (68, 2): :func:`relative_detail` of its :func:`crease_region` (within ``mask`` (h, w) where given: a face
+    drawn alone on grey) at the face's own scale, σ 1 and 2 px at 100 px between the eyes. It rises as a frown
+    draws creases there and falls as the skin smooths. On the region's box, grown by the blurs' reach. NaN
+    without the points or with fewer than ``CREASE_MIN_PIXELS`` pixels there."""
+    region = crease_region(points, np.shape(image))
+    if mask is not None:
+        region &= np.asarray(mask, bool)
+    if region.sum() < CREASE_MIN_PIXELS:
+        return float("nan")
+    iod = float(interocular(np.asarray(points, np.float64)[None])[0])
+    box = mask_box(region, _reach(DETAIL_SIGMAS[1] * iod / DETAIL_IOD))
+    return relative_detail(np.asarray(image)[box], region[box], iod)
 
 
 # --------------------------------------------------------------------------- identity figures

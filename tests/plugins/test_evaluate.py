@@ -15,6 +15,7 @@ from persona.plugins.builtin.evaluate import (DlibIdentity, IdentityBackend, cen
                                               INNER, interocular, jitter, masked_psnr, masked_ssim, masked_ssims,
                                               pearson, ssim_map)
 from persona.plugins.builtin import evaluate as ev
+from persona.plugins.face.template import generic_template
 from persona.plugins.manager import default_registry
 
 SHARED_DATA = Path(__file__).resolve().parents[3] / "shared" / "data"
@@ -656,6 +657,39 @@ def test_sharpness_on_the_faces_box_is_the_whole_frames(corner):
         return ev.detail_energy(picture, inside, iod=ev.DETAIL_IOD) / grey ** 2
 
     assert ev.sharpness(output, frame, face) == pytest.approx(whole(output) / whole(frame), rel=1e-6)
+
+
+def _face_between_brows(creases: int, roll: float = 0.0, scale: float = 3.0):
+    """A plain skin-grey image (fine noise as pores) with the generic template's 68 points scaled by ``scale`` and
+    turned by ``roll`` degrees about the image's centre, and ``creases`` dark upright lines drawn between the inner
+    ends of the brows, as a frown draws them."""
+    rng = np.random.default_rng(4)
+    image = np.clip(170 + rng.normal(0, 3, (800, 700, 3)), 0, 255).astype(np.uint8)
+    points = generic_template().landmarks3d[:, :2] * scale
+    points += np.array([350, 420]) - points[27:36].mean(axis=0)
+    turn = cv2.getRotationMatrix2D((350.0, 420.0), roll, 1.0)
+    points = points @ turn[:, :2].T + turn[:, 2]
+    inner = (points[21] + points[22]) / 2
+    for k in range(creases):
+        x = int(inner[0] + (k - (creases - 1) / 2) * 3 * scale)
+        cv2.line(image, (x, int(inner[1] - 12 * scale)), (x, int(inner[1] + 6 * scale)), (120, 110, 100), 2)
+    return image, points
+
+
+def test_creases_between_the_brows_are_measured_where_a_frown_draws_them():
+    """The fine detail between the brows rises with the creases a frown draws there (none < one < two), is the same
+    lit half as bright and on a face turned in the image, leaves out what its mask does not cover, and is NaN
+    without a face or with the region masked off."""
+    smooth, points = _face_between_brows(0)
+    one, two = (ev.crease_energy(*_face_between_brows(k)) for k in (1, 2))
+    plain = ev.crease_energy(smooth, points)
+    assert plain < 0.2 * one < 0.2 * two and one < two, (plain, one, two)
+    assert ev.crease_energy((_face_between_brows(2)[0] * 0.5).astype(np.uint8), points) == pytest.approx(two, rel=0.05)
+    assert ev.crease_energy(*_face_between_brows(2, roll=15)) == pytest.approx(two, rel=0.25)
+    region = ev.crease_region(points, smooth.shape)
+    assert region.sum() > 200 and not region[:, :300].any() and not region[:, 400:].any()  # between the brows
+    assert np.isnan(ev.crease_energy(smooth, np.full((68, 2), np.nan)))
+    assert np.isnan(ev.crease_energy(_face_between_brows(2)[0], points, mask=~region))
 
 
 def test_the_edge_of_a_face_cut_out_on_black_is_neither_detail_nor_a_tear(canonical_photos):
