@@ -123,7 +123,7 @@ def analyse_frames(url: str, start: int, stop: int, identity: tuple[str, dict], 
     descriptors = np.full((n, 2, 128), np.nan)  # of the render, of the composite
     psnr, ssim = np.full((n, 2), np.nan), np.full((n, 2), np.nan)  # the render's, the composite's
     irises = np.full((n, 3, 2, 2), np.nan)  # where the eyes look: the driver's, the face alone's, the composite's
-    creases = np.full((n, 3), np.nan)  # the fine detail between the brows: the driver's, the face alone's, the composite's
+    creases = np.full((n, 3), np.nan)  # the detail between the brows: the driver's, the face alone's, the composite's
     seams = {"blend": [], "paste": []}
     sharp = []  # every 4th frame: the face alone's and the composite's fine detail over the driver's face
     for j in range(n):

@@ -244,7 +244,8 @@ PEAKS = (("widest mouth", "mouth_open", 1), ("widest lips", "mouth_width", 1),
 
 def expression_peaks(signals: dict) -> list[tuple[str, int]]:
     """The frame of each of :data:`PEAKS` in a face's :func:`expression_signals`, ``gaze_``-prefixed
-    :func:`gaze_signals` and ``creases`` (:func:`crease_energy`): (what it shows, frame), leaving out a signal that is missing or NaN in every frame."""
+    :func:`gaze_signals` and ``creases`` (:func:`crease_energy`): (what it shows, frame), leaving out a signal
+    that is missing or NaN in every frame."""
     peaks = []
     for label, name, sign in PEAKS:
         x = sign * np.asarray(signals.get(name, np.nan), np.float64)
