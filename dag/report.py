@@ -185,12 +185,22 @@ def _gaze_rows(figures: dict) -> list[tuple]:
     return rows
 
 
+#: the driver's creases between the brows (evaluate.crease_energy, 5th-95th percentile) must range over more than
+#: this for the output's gain on them to mean anything: a frowning face ranges over 0.2-0.5, a face that never
+#: creases there over a few thousandths (the skin's grain and the video's noise)
+CREASE_RANGE = 0.05
+
+
 def _crease_rows(figures: dict) -> list[tuple]:
     """The creases between the brows, output on driver: a row per place (face alone, composite.mp4); no target
     (issue 55 asks that they come when the driver's do: r near 1, and a gain that does not leave them on)."""
-    return [(f"creases between the brows, gain ({where.replace('_', ' ')})", a["gain"],
-             f"1 = they deepen and smooth as far as the driver's; r {a['r']:.2f} (1: when the driver's do); "
-             f"the driver's range {a['driver_range']:.3f}", None) for where, a in figures.items()]
+    rows = []
+    for where, a in figures.items():
+        guide = (f"1 = they deepen and smooth as far as the driver's; r {a['r']:.2f} (1: when the driver's do)"
+                 if a.get("driver_range", 0.0) > CREASE_RANGE else
+                 f"the driver's range {a['driver_range']:.3f}, under {CREASE_RANGE}: a face that does not crease there")
+        rows.append((f"creases between the brows, gain ({where.replace('_', ' ')})", a["gain"], guide, None))
+    return rows
 
 
 def _gain_rows(where: str, amplitudes: dict) -> list[tuple]:

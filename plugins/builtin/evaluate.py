@@ -684,8 +684,9 @@ def relative_detail(image, inside, iod: float) -> float:
     return detail_energy(image, inside, iod=iod) / max(grey, 1e-3) ** 2
 
 
-#: the skin between the brows reaches this many eye distances above the higher brow (:func:`crease_region`)
-CREASE_ABOVE = 0.35
+#: the skin between the brows reaches this many eye distances above the higher brow, and this many below the
+#: lower of the brows' inner ends (:func:`crease_region`): not down to the nose, where glasses have their bridge
+CREASE_ABOVE, CREASE_BELOW = 0.35, 0.1
 #: fewer pixels than this between the brows: no crease figure for that face
 CREASE_MIN_PIXELS = 20
 
@@ -694,7 +695,7 @@ def crease_region(points, shape) -> np.ndarray:
     """(h, w) bool: the skin between the brows of a face with iBUG landmarks ``points`` (68, 2) in an image of
     ``shape`` (h, w), where a frown draws its upright creases and raised brows their level ones. Along the eyes'
     axis, from the inner end of one brow (point 21) to that of the other (22); across it, from
-    ``CREASE_ABOVE`` eye distances above the higher brow down to a tenth of one below the top of the nose (27).
+    ``CREASE_ABOVE`` eye distances above the higher brow down to ``CREASE_BELOW`` below the lower inner end.
     None of it where the points are NaN."""
     p = np.asarray(points, np.float64)
     out = np.zeros(shape[:2], np.uint8)
@@ -705,7 +706,7 @@ def crease_region(points, shape) -> np.ndarray:
     along = (left - right) / max(iod, 1e-9)
     down = np.array([-along[1], along[0]])  # the eyes' axis turned a quarter: down the face
     a0, a1 = sorted((p[21] @ along, p[22] @ along))
-    d0, d1 = min(p[17:27] @ down) - CREASE_ABOVE * iod, p[27] @ down + 0.1 * iod
+    d0, d1 = min(p[17:27] @ down) - CREASE_ABOVE * iod, max(p[21] @ down, p[22] @ down) + CREASE_BELOW * iod
     corners = [a * along + d * down for a, d in ((a0, d0), (a1, d0), (a1, d1), (a0, d1))]
     cv2.fillConvexPoly(out, np.round(corners).astype(np.int32), 1)
     return out > 0

@@ -158,7 +158,7 @@ def test_report_is_one_self_contained_page(drive_run):
     assert page.count("data:image/png;base64,") >= 5  # means, sheets, strip, plots
     assert page.count("data:video/mp4;base64,") == 3  # composite, puppet, side by side
     assert page.index("<h2>composite</h2>") < page.index("<h2>puppet</h2>") < page.index("<h2>Figures</h2>")
-    assert "B and not A" in page and "composite seam (blend)" in page
+    assert "B and not A" in page and "composite seam (blend)" in page and "creases between the brows" in page
     assert 'src="http' not in page  # nothing fetched from elsewhere
     strip = media.decode_image(folder / "output" / "frames.png")  # driver, composite, puppet alone
     assert strip.shape[0] == 3 * 240 and strip.shape[1] % 240 == 0
@@ -185,6 +185,8 @@ def test_the_series_carry_the_composites_signals_for_a_paired_comparison(drive_r
     assert len(composited) == len(series["output_mouth_width"])
     figures = report["evaluation"]["amplitude_composite"]["mouth_width"]
     assert amplitude(driver, composited)["gain"] == pytest.approx(figures["gain"], nan_ok=True)
+    creases = (np.asarray(series[f"{who}_creases"], float) for who in ("driver", "output"))  # between the brows
+    assert amplitude(*creases)["gain"] == pytest.approx(report["evaluation"]["creases"]["face_alone"]["gain"], nan_ok=True)
     script = Path(__file__).resolve().parents[2] / "benchmarks" / "gain_difference.py"
     spec = importlib.util.spec_from_file_location("gain_difference", script)
     module = importlib.util.module_from_spec(spec)
@@ -207,6 +209,9 @@ def test_evaluate_command_prints_json(drive_run, capsys):
     # the synthetic puppet, its texture about the size the frame shows it, lighter than the driver: a little
     # softer than the driver's face (0.58-0.75 on its frames), not twice as sharp for being lighter
     assert all(0.4 < v < 1.2 for v in result["sharpness"].values()), result["sharpness"]
+    # the creases between the brows, of the face alone and of composite.mp4 on the driver's
+    assert set(result["creases"]) == {"face_alone", "composite"}
+    assert all({"gain", "r", "driver_range"} <= set(a) for a in result["creases"].values())
 
 
 def test_a_puppet_driven_by_its_own_collection_judges_no_identity(drive_run):
