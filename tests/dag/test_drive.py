@@ -186,7 +186,8 @@ def test_the_series_carry_the_composites_signals_for_a_paired_comparison(drive_r
     figures = report["evaluation"]["amplitude_composite"]["mouth_width"]
     assert amplitude(driver, composited)["gain"] == pytest.approx(figures["gain"], nan_ok=True)
     creases = (np.asarray(series[f"{who}_creases"], float) for who in ("driver", "output"))  # between the brows
-    assert amplitude(*creases)["gain"] == pytest.approx(report["evaluation"]["creases"]["face_alone"]["gain"], nan_ok=True)
+    between = report["evaluation"]["creases"]["face_alone"]
+    assert amplitude(*creases)["gain"] == pytest.approx(between["gain"], nan_ok=True)
     script = Path(__file__).resolve().parents[2] / "benchmarks" / "gain_difference.py"
     spec = importlib.util.spec_from_file_location("gain_difference", script)
     module = importlib.util.module_from_spec(spec)
