@@ -662,9 +662,10 @@ def sharpness(image, reference, mask) -> float:
     mean grey squared there, so that a face lit darker (B's skin under A's light) is as sharp as before.
     1 = as sharp as the reference (the driver's own face in its frame); a blur or a texture finer than the
     frame shows lowers it, ringing and noise raise it. NaN where nothing is left of the mask or the
-    reference is flat. Computed on the mask's box, grown by the inset and the blurs' reach: the whole
-    frame's figure (to float32's rounding) at a fraction of its cost on an HD frame."""
-    box = mask_box(np.asarray(mask, bool), SHARPNESS_INSET + _reach(DETAIL_SIGMAS[1]))
+    reference is flat. The mask is eroded on its box grown by the inset, and the detail taken on a box
+    (:func:`relative_detail`): the whole frame's figure (to float32's rounding) at a fraction of its cost
+    on an HD frame."""
+    box = mask_box(np.asarray(mask, bool), SHARPNESS_INSET)
     if box is None:
         return float("nan")
     image, reference = np.asarray(image)[box], np.asarray(reference)[box]
@@ -678,8 +679,13 @@ def sharpness(image, reference, mask) -> float:
 
 
 def relative_detail(image, inside, iod: float) -> float:
-    """:func:`detail_energy` of ``image`` inside ``inside`` over the mean grey (0-1) there squared: the same for
-    a face lit darker or brighter."""
+    """:func:`detail_energy` of ``image`` inside ``inside`` (h, w) over the mean grey (0-1) there squared: the
+    same for a face lit darker or brighter. Computed on the box of ``inside`` grown by what the blurs reach, and
+    so the whole image's figure (to float32's rounding)."""
+    box = mask_box(np.asarray(inside, bool), _reach(DETAIL_SIGMAS[1] * iod / DETAIL_IOD))
+    if box is None:
+        return float("nan")
+    image, inside = np.asarray(image)[box], np.asarray(inside, bool)[box]
     grey = float((np.asarray(image, np.float32)[inside] @ np.float32([0.299, 0.587, 0.114])).mean()) / 255
     return detail_energy(image, inside, iod=iod) / max(grey, 1e-3) ** 2
 
@@ -701,7 +707,7 @@ def crease_region(points, shape) -> np.ndarray:
     out = np.zeros(shape[:2], np.uint8)
     if not np.isfinite(p).all():
         return out > 0
-    right, left = p[36:42].mean(axis=0), p[42:48].mean(axis=0)
+    right, left = (centre[0] for centre in eye_centres(p[None]))
     iod = float(np.linalg.norm(left - right))
     along = (left - right) / max(iod, 1e-9)
     down = np.array([-along[1], along[0]])  # the eyes' axis turned a quarter: down the face
@@ -716,16 +722,14 @@ def crease_energy(image, points, mask=None) -> float:
     """The fine detail between the brows of a face in an RGB ``image`` (h, w, 3) with iBUG landmarks ``points``
     (68, 2): :func:`relative_detail` of its :func:`crease_region` (within ``mask`` (h, w) where given: a face
     drawn alone on grey) at the face's own scale, σ 1 and 2 px at 100 px between the eyes. It rises as a frown
-    draws creases there and falls as the skin smooths. On the region's box, grown by the blurs' reach. NaN
-    without the points or with fewer than ``CREASE_MIN_PIXELS`` pixels there."""
+    draws creases there and falls as the skin smooths. NaN without the points or with fewer than
+    ``CREASE_MIN_PIXELS`` pixels there."""
     region = crease_region(points, np.shape(image))
     if mask is not None:
         region &= np.asarray(mask, bool)
     if region.sum() < CREASE_MIN_PIXELS:
         return float("nan")
-    iod = float(interocular(np.asarray(points, np.float64)[None])[0])
-    box = mask_box(region, _reach(DETAIL_SIGMAS[1] * iod / DETAIL_IOD))
-    return relative_detail(np.asarray(image)[box], region[box], iod)
+    return relative_detail(image, region, float(interocular(np.asarray(points, np.float64)[None])[0]))
 
 
 # --------------------------------------------------------------------------- identity figures
