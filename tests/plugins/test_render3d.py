@@ -13,7 +13,7 @@ import cv2
 import numpy as np
 import pytest
 
-from persona.plugins.builtin.render3d import RaycastRender, footprint_sample, surface_map
+from persona.plugins.builtin.render3d import RaycastRender, footprint_sample, surface_map, texture_sample
 from persona.plugins.face import composite
 from persona.plugins.face.synthetic import Expression, Light, look_at_pose, make_face, render_photo
 from persona.plugins.kinds import Pose, Puppet
@@ -42,10 +42,12 @@ def truth(face, pose):
 
 
 def render(puppet, pose, **params):
-    """The render with a hard edge, and the texture sampled at a point per pixel as the ray cast
-    samples it (``filter_texture`` off; the filter has its own tests below)."""
+    """The render with a hard edge, and the texture sampled at a point per pixel, bilinearly, as the ray
+    cast interpolates its vertex colours (``filter_texture`` off and ``sampling`` bilinear; both have their
+    own tests below)."""
     frame = np.zeros((*SIZE, 3), np.uint8)
-    return RaycastRender({"feather": 0.0, "filter_texture": False, **params}).render(puppet, None, pose, frame)
+    params = {"feather": 0.0, "filter_texture": False, "sampling": "bilinear", **params}
+    return RaycastRender(params).render(puppet, None, pose, frame)
 
 
 def iou(a, b):
@@ -234,6 +236,52 @@ def test_the_footprint_filter_keeps_what_a_pixel_can_show():
     u, v = 1.5 * xs, 1.5 * ys
     inside = np.s_[5:-5, 5:-5]
     assert np.abs(footprint_sample(texture, u, v)[inside] - cv2.remap(texture, u, v, cv2.INTER_LINEAR)[inside]).max() < 1.0
+
+
+def _waves(period: float, h=244, w=194):
+    """A texture of vertical waves, 128 + 100 sin(2π x / period) at each texel's centre, and the wave itself."""
+    wave = lambda x: 128 + 100 * np.sin(2 * np.pi * x / period)  # noqa: E731
+    row = wave(np.arange(w, dtype=np.float64))
+    return np.repeat(np.repeat(row[None, :, None], h, axis=0), 3, axis=2).astype(np.float32), wave
+
+
+def test_a_face_larger_than_its_texture_keeps_what_lies_between_its_texels():
+    """Waves 5 texels long seen at two pixels a texel (a face at HD on the canonical grid): the bicubic
+    sample follows the wave between texel centres within 3 grey levels (RMS, of its 100 of amplitude), and
+    keeps at least 0.97 of its amplitude; the bilinear sample cuts across each crest and trough, losing over
+    a tenth of it."""
+    texture, wave = _waves(5.0)
+    ys, xs = np.mgrid[0:100, 0:150].astype(np.float32)
+    u, v = 0.5 * xs + 7.25, 0.5 * ys + 3.6
+    truth = wave(u.astype(np.float64))
+    for sampling, most_error, least_amplitude in (("bicubic", 3.0, 97), ("bilinear", None, None)):
+        grey = texture_sample(texture, u, v, sampling=sampling)[..., 0]
+        error = float(np.sqrt(np.mean((grey - truth) ** 2)))
+        amplitude = np.std(grey) * np.sqrt(2)
+        if most_error is not None:
+            assert error < most_error and amplitude > least_amplitude, (sampling, error, amplitude)
+        else:
+            assert error > 6 and amplitude < 92, (sampling, error, amplitude)
+
+
+def test_the_bicubic_sample_is_bilinear_where_it_would_reach_a_hole():
+    """Texels with no colour (stored as 0) darken the bicubic kernel's reach one texel further than the
+    bilinear's: a pixel within two texels of a hole is the bilinear sample, to the bit, and no pixel whose
+    bilinear sample sees no hole comes out darker than the texture's darkest colour; further in it is the
+    bicubic one."""
+    texture, _ = _waves(5.0)
+    holes = np.zeros(texture.shape[:2], bool)
+    holes[:, :40] = True
+    texture[holes] = 0
+    ys, xs = np.mgrid[0:80, 0:120].astype(np.float32)
+    u, v = 0.5 * xs + 30.3, 0.5 * ys + 10.2
+    linear = cv2.remap(texture, u, v, cv2.INTER_LINEAR)
+    cubic = cv2.remap(texture, u, v, cv2.INTER_CUBIC)
+    sampled = texture_sample(texture, u, v, holes, "bicubic")
+    near = u < 41  # the bicubic kernel of a pixel at u < 41 reads texel 39 (floor(u) - 1)
+    np.testing.assert_array_equal(sampled[near], linear[near])
+    np.testing.assert_array_equal(sampled[~near], cubic[~near])
+    assert sampled[u >= 40].min() >= 28 - 1  # the wave's trough, 128 - 100, within a grey level
 
 
 def test_the_render_filters_a_texture_it_draws_smaller():
