@@ -1,7 +1,7 @@
 """Where does the driver's expression amplitude go? The gain of each step of the 3D drive.
 
-On a finished 3D run's store, for every expression signal (mouth opening, mouth width, eye
-openness, brow height; dlib's landmarks on A's frames are the reference), prints the gain
+On a finished 3D run's store, for every expression signal (mouth opening, mouth width, the mouth
+corners' height, eye openness, brow height; dlib's landmarks on A's frames are the reference), prints the gain
 (slope on the driver's signal), the correlation and the ranges of:
 
 - A's per-frame meshes M_D^t (A's mean fiducials moved by them): what the dynamics kept;
@@ -39,7 +39,7 @@ from persona.dag.workflow import load_workflow
 from persona.plugins.builtin import evaluate as ev
 from persona.stores.layout import Collection, open_store
 
-SIGNALS = ("mouth_open", "mouth_width", "eye_open", "brow_height")
+SIGNALS = ("mouth_open", "mouth_width", "mouth_corners", "eye_open", "brow_height")
 
 
 def gains(landmarks: np.ndarray, driver: dict) -> dict:
