@@ -231,8 +231,8 @@ def evaluate(store: str, executor, *, identity: tuple[str, dict], threshold: flo
              cast: Cast = Cast(),
              progress: Callable[[int], object] = lambda frames: None, keep_in=None, version: str = "") -> dict:
     """Every figure of a finished drive (``cast``; a format-1 store's by default), as a JSON-ready
-    dict (plus per-frame series under "series"); ``progress(n)`` is called as each shard of n
-    frames is analysed. Identity is judged on ``identity_frames`` frames evenly spaced (0: all), and not at
+    dict (plus per-frame series under "series", with each frame's PSNR in a self-reenactment);
+    ``progress(n)`` is called as each shard of n frames is analysed. Identity is judged on ``identity_frames`` frames evenly spaced (0: all), and not at
     all where the puppet is the driver (a self-reenactment from one collection: B is A, and dlib's
     descriptors, two a frame, were most of the evaluation's time).
     A collection's centroid is taken from the collection when it holds one made from the same photos
@@ -332,6 +332,7 @@ def evaluate(store: str, executor, *, identity: tuple[str, dict], threshold: flo
     if pieces["motion"] is not None:  # rendered from the motion step's meshes
         result["motion"] = pieces["motion"]
     if self_reenactment:
+        result["series"].update({"psnr_face_alone": joined["psnr"][:, 0], "psnr_composite": joined["psnr"][:, 1]})
         result["self_reenactment"] = {"psnr_db": _nanmean(joined["psnr"][:, 0]), "ssim": _nanmean(joined["ssim"][:, 0]),
                                       "psnr_db_composite": _nanmean(joined["psnr"][:, 1]),
                                       "ssim_composite": _nanmean(joined["ssim"][:, 1]),

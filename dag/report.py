@@ -56,7 +56,7 @@ def _img(src: str, alt: str, width: int | None = None) -> str:
 
 def plots(series: dict, threshold: float, fps: float) -> dict[str, str]:
     """Per-frame identity distances, expression signals and, where the series has them, gaze, driver against
-    output."""
+    output, and a self-reenactment's PSNR of each frame against its targets."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -93,7 +93,25 @@ def plots(series: dict, threshold: float, fps: float) -> dict[str, str]:
     if "driver_gaze_along" in series:  # where the eyes look (evaluate.gaze_signals)
         out["gaze"] = driver_against_output(("gaze_along", "gaze_apart"), "eye width", "Gaze: the irises along the "
                                             "eye (+: the image's right) and the eyes apart (-: crossed)", 4.4)
+    if "psnr_composite" in series:  # a self-reenactment: each frame against the real one
+        fig, ax = plt.subplots(figsize=(9, 2.8))
+        for name, label, key in (("psnr_composite", "composite.mp4", "psnr_db_composite"),
+                                 ("psnr_face_alone", "the face alone", "psnr_db")):
+            line, = ax.plot(t, series[name], label=label, lw=1)
+            ax.axhline(_FIDELITY[key], color=line.get_color(), ls="--", lw=0.8)
+        ax.set(xlabel="seconds", ylabel="PSNR / dB", title="Self-reenactment: each frame against the real one "
+               "(dashed: the targets)")
+        ax.legend(loc="lower right", fontsize=8)
+        out["fidelity"] = _figure(fig)
+        plt.close(fig)
     return out
+
+
+def least_like_the_frame(series: dict) -> list[tuple[str, int]]:
+    """In a self-reenactment, the frame whose composite is furthest from the real one (lowest PSNR), as a peak
+    of the report's strip; none otherwise."""
+    psnr = np.asarray(series.get("psnr_composite", np.nan), np.float64)
+    return [("least like the real frame", int(np.nanargmin(psnr)))] if np.isfinite(psnr).any() else []
 
 
 def met(value, target) -> bool | None:
@@ -412,7 +430,7 @@ def write_run_report(wf, root, metrics: dict, series: dict | None, *, cast: Cast
         media.write_png(storage.join(out, "frames.png"), strip)
         if series:  # the driver's expression peaks, driver above output
             found = expression_peaks({k.removeprefix("driver_"): v for k, v in series.items()
-                                         if k.startswith("driver_")})
+                                         if k.startswith("driver_")}) + least_like_the_frame(series)
             peaks = (found, frames_strip(drive, frames, side=200, at=[t for _, t in found]))
     fps = float(root[cast.frames].attrs["fps"]) if strip is not None else 25.0
     model = storage.join(out, "puppet.glb")  # a 3D drive's, written with its videos: the 3D view's
@@ -463,7 +481,8 @@ def write_report(path, *, metrics: dict, pictures: dict[str, np.ndarray], strip:
     if peaks is not None:
         found, image = peaks
         columns = ", ".join(f"{label} (frame {t})" for label, t in found)
-        parts += ["<h2>The driver's expression peaks: driver (top), composite (middle), puppet alone (bottom)</h2>",
+        parts += ["<h2>The driver's expression peaks (and a self-reenactment's frame least like the real one): "
+                  "driver (top), composite (middle), puppet alone (bottom)</h2>",
                   f"<p>Left to right: {html.escape(columns)}.</p>", _img(_png(image), "peaks", min(1200, image.shape[1]))]
     if series:
         for name, src in plots(series, threshold, fps).items():

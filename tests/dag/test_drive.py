@@ -215,6 +215,31 @@ def test_evaluate_command_prints_json(drive_run, capsys):
     assert all({"gain", "r", "driver_range"} <= set(a) for a in result["creases"].values())
 
 
+def test_a_self_reenactment_gives_each_frames_psnr_and_shows_the_frame_least_like_the_real_one(drive_run):
+    """Judged as a self-reenactment, the series hold each frame's PSNR against the driver's frame, the face
+    alone's and the composite's, whose means are the evaluation's figures; the report plots them against their
+    targets and puts the composite's worst frame among the peaks. A drive not judged so has neither."""
+    from persona.dag.evaluate import evaluate
+    from persona.dag.report import least_like_the_frame, plots
+    from persona.dag.runner import executor_for
+
+    folder, path, report = drive_run
+    wf = load_workflow(path)
+    with executor_for(wf, "sync", None) as ex:
+        judged = evaluate(wf.store, ex, identity=wf.stage("identity"), self_reenactment=True)
+    series, figures = judged["series"], judged["self_reenactment"]
+    for name, figure in (("psnr_face_alone", "psnr_db"), ("psnr_composite", "psnr_db_composite")):
+        psnr = np.asarray(series[name], float)
+        assert len(psnr) == len(series["driver_mouth_open"]) and np.isfinite(psnr).sum() >= len(psnr) - 1
+        assert np.nanmean(psnr) == pytest.approx(figures[figure])
+    worst = int(np.nanargmin(series["psnr_composite"]))
+    assert least_like_the_frame(series) == [("least like the real frame", worst)]
+    assert "fidelity" in plots(series, 0.6, 25.0)
+    unjudged = json.loads((folder / "output" / "series.json").read_text())
+    assert "psnr_composite" not in unjudged and least_like_the_frame(unjudged) == []
+    assert "fidelity" not in plots(unjudged, 0.6, 25.0)
+
+
 def test_a_puppet_driven_by_its_own_collection_judges_no_identity(drive_run):
     """Where the puppet is the driver (a self-reenactment from one collection) no descriptor is taken and
     identity is not judged (B is A); the expression figures are those of the same drive judged as two people."""
