@@ -381,7 +381,7 @@ class CorrespondenceParams(FlowChoice):
 class MotionParams(Strict):
     pose_sigma: float = Field(POSE_SIGMA, ge=0, le=10, description="σ (frames) of the Gaussian smoothing of the "
                               "driver's head pose over time (ALGORITHMS §9.2.1; not in the paper); 0 = none. "
-                              "1.5 lagged the head's real motion (docs/expression.md)")
+                              "0.75 and more lagged a head that moves unevenly from frame to frame (docs/expression.md)")
     steady: int = Field(2, ge=0, le=10, description="frames on each side whose landmarks, carried into a frame "
                         "by optical flow, are averaged with its own before they drive the puppet, so the "
                         "detector's jitter averages down but not the face's motion (persona.plugins.face.tracks."

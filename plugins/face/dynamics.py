@@ -364,10 +364,11 @@ class _Operators:
 
 # ----------------------------------------------------------------------------- poses
 
-#: σ (frames) of the driver's pose smoothing, the default of ``stages.motion.params.pose_sigma``: the
-#: lightest smoothing that still takes out landmark noise; 1.5 took real head motion away (the face lagged
-#: where the head went; docs/expression.md, "The head's pose, smoothed less", benchmarks/pose_smoothing.py)
-POSE_SIGMA = 0.75
+#: σ (frames) of the driver's pose smoothing, the default of ``stages.motion.params.pose_sigma``: light
+#: enough to keep a head that moves unevenly from frame to frame where it is, while it takes out most of
+#: dlib's noise; wider ones took real head motion away (the face lagged where the head went;
+#: docs/expression.md, "The head's pose, smoothed less", benchmarks/pose_smoothing.py)
+POSE_SIGMA = 0.5
 
 
 def smooth_poses(poses: Sequence[Pose | None], sigma: float = POSE_SIGMA) -> list[Pose]:
