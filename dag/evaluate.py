@@ -232,9 +232,10 @@ def evaluate(store: str, executor, *, identity: tuple[str, dict], threshold: flo
              progress: Callable[[int], object] = lambda frames: None, keep_in=None, version: str = "") -> dict:
     """Every figure of a finished drive (``cast``; a format-1 store's by default), as a JSON-ready
     dict (plus per-frame series under "series", with each frame's PSNR in a self-reenactment);
-    ``progress(n)`` is called as each shard of n frames is analysed. Identity is judged on ``identity_frames`` frames evenly spaced (0: all), and not at
-    all where the puppet is the driver (a self-reenactment from one collection: B is A, and dlib's
-    descriptors, two a frame, were most of the evaluation's time).
+    ``progress(n)`` is called as each shard of n frames is analysed. Identity is judged on
+    ``identity_frames`` frames evenly spaced (0: all), and not at all where the puppet is the driver (a
+    self-reenactment from one collection: B is A, and dlib's descriptors, two a frame, were most of the
+    evaluation's time).
     A collection's centroid is taken from the collection when it holds one made from the same photos
     (:data:`CENTROID`), and kept in ``keep_in`` (the store, open for writing by a caller that holds its
     lock; ``version``: Persona's, which the centroid's provenance records) when it was computed: a person

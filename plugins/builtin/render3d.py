@@ -214,8 +214,8 @@ class RaycastRender(RenderBackend):
             "GPU samples) or bicubically (4 x 4 texels; bilinear at the texture's edge). At HD a frame pixel spans "
             "about half a texel of the canonical grid, and bilinear interpolation blurs what the texels hold: "
             "bicubic makes the face at HD as sharp as the driver's own (the phone man's self-reenactment, 720p: "
-            "0.69 -> 1.00 of the real face's fine detail), but puts the detail of a texture that does not lie "
-            "exactly where the frame's does where a viewer and PSNR see it: the four HD self-reenactments' "
+            "0.69 -> 1.00 of the real face's fine detail). But the texture's detail does not lie exactly where "
+            "the frame's does, and drawn sharper it differs from the frame more: the four HD self-reenactments' "
             "composites lost 0.09-0.43 dB. Not in the paper (docs/composite.md)")
         jaw_margin: float | None = Field(2.0, ge=0, description="draw B's face only above B's jaw line (the "
                                          "median of B's aligned photos' iBUG 0-16) moved this many canonical px "
