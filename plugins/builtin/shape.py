@@ -47,6 +47,7 @@ import numpy as np
 from pydantic import Field
 
 from ..base import Params, Rejected
+from ..face.mesh import enclosed
 from ..hookspecs import hookimpl
 from ..kinds import Shape, ShapeBackend
 
@@ -294,6 +295,8 @@ class TemplatePhotometricStereo(ShapeBackend):
     description = ("rank-4 photometric stereo of the aligned collection, the 4x4 ambiguity fixed with the "
                    "generic template (Kemelmacher-Shlizerman & Seitz 2011; ALGORITHMS §8)")
     default = True
+    #: raised whenever the same inputs give another shape, so a stored one is made again (docs/CHANGELOG.md)
+    version = "3"
 
     class Params(Params):
         rank: int = Field(4, ge=4, le=9, description="rank of the factorisation M ≈ L S; 4 = first-order "
@@ -410,6 +413,14 @@ class TemplatePhotometricStereo(ShapeBackend):
         out_n[use] = normals
         out_rho = np.full((h, w), np.nan)
         out_rho[use] = rho
+        # a hole in the face that too few images see (under the nose, which hides it from a camera above) is
+        # not its edge, which min_visible leaves out: it takes the template's normal, as an outlier does, and
+        # the face's median albedo, so that the surface has no hole there
+        holes = enclosed(use) & ~use
+        template = np.asarray(template_normals, np.float64)[holes]
+        template /= np.maximum(np.linalg.norm(template, axis=1, keepdims=True), 1e-12)
+        out_n[holes] = template if np.mean(tn[:, 2]) < 0 else -template
+        out_rho[holes] = np.median(rho)
         return Shape(normals=out_n, albedo=out_rho, lighting=np.ascontiguousarray(L, dtype=np.float64),
                      depth=None)
 

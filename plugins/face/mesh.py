@@ -90,6 +90,15 @@ def lip_split(fiducials49: np.ndarray, offsets49: np.ndarray, points: np.ndarray
     return out
 
 
+def enclosed(mask: np.ndarray) -> np.ndarray:
+    """(H, W) bool: ``mask`` with every hole it encloses filled, what no path of unmasked pixels (4-connected)
+    joins to the grid's border: the face's own holes (under the nose, which hides it from a camera above),
+    not its edge."""
+    outside = np.pad(~np.asarray(mask, bool), 1, constant_values=True).astype(np.uint8)
+    cv2.floodFill(outside, None, (0, 0), 2)
+    return outside[1:-1, 1:-1] != 2
+
+
 def grid_triangles(mask: np.ndarray) -> np.ndarray:
     """Triangles (m, 3) of vertex indices (row * W + col): two per grid quad whose four corners are in ``mask``."""
     h, w = mask.shape
