@@ -32,7 +32,7 @@ from ..base import Params
 from ..face import mouth
 from ..face.blend import gaussian_pyramid
 from ..face.composite import GREY
-from ..face.mesh import above_jaw, grid_triangles
+from ..face.mesh import above_jaw, enclosed, grid_triangles
 from ..face.warp import compose
 from ..hookspecs import hookimpl
 from ..kinds import Pose, Puppet, RenderBackend, Rendered
@@ -195,11 +195,13 @@ class RaycastRender(RenderBackend):
     uses_mesh = True
     #: raised whenever the same inputs are drawn differently, so a stored render is drawn again (the history
     #: is in docs/CHANGELOG.md)
-    version = "15"
+    version = "16"
 
     class Params(Params):
         min_coverage: float = Field(0.3, ge=0, le=1, description="canonical pixels seen in fewer "
-                                    "than this fraction of the puppet's photos are left out")
+                                    "than this fraction of the puppet's photos are left out where they reach the "
+                                    "face's edge (the sides a turned head hides); enclosed by the face (under the "
+                                    "nose, which hides the nostrils from a camera above them) they are drawn")
         feather: float = Field(3.0, ge=0, description="Gaussian σ (frame px) of the soft face edge "
                                "(inwards, as tps2d); 0 = hard edge")
         filter_texture: bool = Field(False, description="where the face is drawn smaller than its texture "
@@ -288,7 +290,7 @@ class RaycastRender(RenderBackend):
         x0, y0, x1, y1 = box
         texture = np.asarray(puppet.appearance, np.float32)
         finite = np.isfinite(texture).all(axis=2)
-        seen = ((puppet.coverage >= self.params.min_coverage) & finite).astype(np.float32)
+        seen = (enclosed(puppet.coverage >= self.params.min_coverage) & finite).astype(np.float32)
         if self.params.jaw_margin is not None and puppet.jaw is not None:
             seen *= above_jaw(puppet.jaw, seen.shape, self.params.jaw_margin)
         texture = np.where(finite[..., None], texture, 0).astype(np.float32)

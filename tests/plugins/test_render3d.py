@@ -165,6 +165,23 @@ def test_mask_respects_coverage():
     assert iou(everything.mask > 0.5, gt.face_mask) > 0.995
 
 
+def test_a_hole_the_face_encloses_is_drawn_though_few_photos_see_it():
+    """Texels under the nose that few photos see (coverage 0.1, under ``min_coverage``), enclosed by the face's
+    well-seen texels: drawn like the rest (mask 1), not a hole through which the frame shows.
+    A gap that reaches the face's edge is still left out."""
+    face = make_face()
+    pose = posed(0)
+    gt = truth(face, pose)
+    coverage = np.ones(face.vert_mask.shape, np.float32)
+    coverage[140:150, 85:110] = 0.1  # inside the face
+    coverage[:, :20] = 0.1  # its edge
+    out = render(puppet_of(face, coverage), pose, min_coverage=0.3)
+    u, v = gt.uv[..., 0], gt.uv[..., 1]
+    inside = gt.face_mask & (u > 87) & (u < 108) & (v > 142) & (v < 148)
+    assert inside.sum() > 20 and np.all(out.mask[inside] == 1)
+    assert np.all(out.mask[gt.face_mask & (u < 18)] == 0)
+
+
 def test_missing_mesh_is_a_clear_error():
     face = make_face()
     flat = Puppet(puppet_of(face).appearance, np.ones(face.vert_mask.shape, np.float32), np.zeros((49, 2)))
