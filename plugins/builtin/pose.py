@@ -51,7 +51,8 @@ class PnPPose(PoseBackend):
 
     class Params(Params):
         focal_factor: float = Field(1.2, gt=0.2, le=10, description="focal length as a multiple "
-                                    "of the photo's longer side (unknown Internet cameras)")
+                                    "of the photo's longer side (unknown Internet cameras); 0.7 is a phone's or a "
+                                    "webcam's, filming close (docs/expression.md, 'The camera')")
         points: Literal["fiducials49", "rigid", "weighted", "all68"] = Field(
             "fiducials49", description="landmarks the pose is solved from: the paper's 49 fiducials (no jaw "
             "contour, which slides with the view), whose mouth and brows tilt the head as they move; 'rigid', the "
