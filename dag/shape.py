@@ -126,11 +126,10 @@ def photometric_stereo(url: str, path: str, seen: np.ndarray, prov: Provenance,
                        integrate_params: dict) -> tuple[np.ndarray, np.ndarray]:
     """:func:`run_shape`'s task on a worker: the shape backend over the aligned collection (its
     accepted photos, grey, or those of them it takes: ``images_for``), on the template's mask where at
-    least 30 % of them see (``seen``) or that such pixels enclose, then the integrate backend. The photos go
-    to the backend a shard at a time (``reconstruct_chunks``): this task holds no more of them than the
+    least 30 % of them see (``seen``), then the integrate backend where the backend gave a normal. The photos
+    go to the backend a shard at a time (``reconstruct_chunks``): this task holds no more of them than the
     backend does. Stores normals, albedo, mask and lights, and returns (depth, mask)."""
     from persona.plugins.builtin.shape import as_grey
-    from persona.plugins.face.mesh import enclosed
     from persona.plugins.face.template import generic_template
 
     coll = Collection(open_store(url), path)
@@ -140,7 +139,7 @@ def photometric_stereo(url: str, path: str, seen: np.ndarray, prov: Provenance,
     ok = np.zeros(coll.n, bool)
     ok[accepted[backend.images_for(len(accepted))]] = True  # all, or as many as the backend takes
     template = generic_template()
-    mask = template.mask & enclosed(seen)  # what the face encloses is not its edge (the backend's docs)
+    mask = template.mask & seen
 
     def shards():  # the aligned collection, grey (m x H x W), and where each photo sees, a shard at a time
         for start, stop in coll.shard_ranges():
@@ -150,7 +149,9 @@ def photometric_stereo(url: str, path: str, seen: np.ndarray, prov: Provenance,
                        coll.array("collection/mask")[start:stop][keep])
 
     result = backend.reconstruct_chunks(shards(), mask, template.normals, template.depth)
-    mask &= np.isfinite(result.normals).all(axis=-1)  # pixels seen by too few photos have no normal
+    # the face is where the backend gave a normal: not at its edge where too few photos see, but in a hole it
+    # encloses (the backend's docs)
+    mask = np.isfinite(result.normals).all(axis=-1)
     depth = registry.get("integrate", integrate_name)(integrate_params).integrate(
         result.normals, mask, reference=template.depth)
     lighting = np.full((coll.n, result.lighting.shape[1]), np.nan)

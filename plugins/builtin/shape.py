@@ -416,9 +416,10 @@ class TemplatePhotometricStereo(ShapeBackend):
         # a hole in the face that too few images see (under the nose, which hides it from a camera above) is
         # not its edge, which min_visible leaves out: it takes the template's normal, as an outlier does, and
         # the face's median albedo, so that the surface has no hole there
-        holes = enclosed(use) & ~use
-        template = np.asarray(template_normals, np.float64)[holes]
-        template /= np.maximum(np.linalg.norm(template, axis=1, keepdims=True), 1e-12)
+        template = np.asarray(template_normals, np.float64)
+        length = np.linalg.norm(template, axis=2)
+        holes = enclosed(use) & ~use & (length > 0)  # NaN lengths compare False: where the template has a normal
+        template = template[holes] / length[holes][:, None]
         out_n[holes] = template if np.mean(tn[:, 2]) < 0 else -template
         out_rho[holes] = np.median(rho)
         return Shape(normals=out_n, albedo=out_rho, lighting=np.ascontiguousarray(L, dtype=np.float64),
