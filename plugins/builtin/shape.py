@@ -400,7 +400,8 @@ class TemplatePhotometricStereo(ShapeBackend):
         if not np.isfinite(c) or c == 0:
             raise Rejected("shape: degenerate lighting (the images carry no shading)")
         L, rho = L / abs(c), rho * abs(c)
-        facing = tn if np.mean(tn[:, 2]) < 0 else -tn  # the template, turned to the camera
+        turn = 1.0 if np.mean(tn[:, 2]) < 0 else -1.0  # the template's sign that turns it to the camera
+        facing = turn * tn
         trust = min(lighting_variety(L) / self.params.full_variety, 1.0) if self.params.full_variety > 0 else 1.0
         if trust < 1:  # lighting too uniform to tell albedo from shape: towards the template
             normals = facing + trust * (normals - facing)
@@ -419,8 +420,7 @@ class TemplatePhotometricStereo(ShapeBackend):
         template = np.asarray(template_normals, np.float64)
         length = np.linalg.norm(template, axis=2)
         holes = enclosed(use) & ~use & (length > 0)  # NaN lengths compare False: where the template has a normal
-        template = template[holes] / length[holes][:, None]
-        out_n[holes] = template if np.mean(tn[:, 2]) < 0 else -template
+        out_n[holes] = turn * template[holes] / length[holes][:, None]
         out_rho[holes] = np.median(rho)
         return Shape(normals=out_n, albedo=out_rho, lighting=np.ascontiguousarray(L, dtype=np.float64),
                      depth=None)
