@@ -18,11 +18,11 @@ import numpy as np
 from pydantic import Field, model_validator
 
 from ..base import Params
-from ..face import eyes, texture as align
+from ..face import brows, eyes, texture as align
 from ..face.gaze import ahead, look, together
 from ..face.blend import BlendCache, BlendSums, BlendTotals, chosen, expression_weights
 from ..face.dynamics import smooth_in_time, time_radius
-from ..face.fiducials import mean_shape
+from ..face.fiducials import gap_square_distance, mean_shape
 from ..face.template import CANONICAL_HEIGHT as H, CANONICAL_WIDTH as W
 from ..face.warp import FACING, tps_map
 from ..hookspecs import hookimpl
@@ -30,11 +30,15 @@ from ..kinds import Texture, TextureBackend
 from ..manager import FlowChoice
 
 
-#: texels above and below the eyes' region over which the eyes' own rows are summed too
+#: texels above and below a part's region (the eyes', the brows') over which its own rows are summed too
 #: (MultiscaleTexture.sums), for what the pyramid's collapse carries into the region: with none the eyes are
 #: up to 0.11 grey levels off the whole image's sums, with 4 0.002, with 8 or more exactly the same
 #: (tests/plugins/test_texture.py, random photos)
-EYE_MARGIN = 12
+REGION_MARGIN = 12
+
+#: where in a texture at the fiducials ``neutral`` each part blended with its own weights shows: (neutral,
+#: shape) -> (H, W) weights in [0, 1]
+REGIONS = {"eyes": eyes.region, "brows": brows.region}
 
 
 class _Weights(Params):
@@ -54,12 +58,25 @@ class _Weights(Params):
                              "eyes take the face's weights, as there). σ is widened by `min_share` like the "
                              "face's. 1 raises Bush ← Obama's eye gain 0.56 → 0.62 (docs/expression.md)")
 
+    brow_sigma: float = Field(3.0, ge=0, description="σ (canonical px) of the brows' own expression weight, over "
+                              "where each brow's points lie from its eye's middle rather than the 49 fiducials; the "
+                              "region above the eyes (brows, forehead, the creases between the brows) is blended "
+                              "with it, so its creases are those of photos whose brows do what the target's do, "
+                              "whatever its mouth does (persona.plugins.face.brows). Not in the paper (0: the "
+                              "face's weights, as there). σ is widened by `min_share` like the face's. 3 raises the "
+                              "brow gain on 18 of the 20 example drives (Powell ← MEAD happy 0.66 -> 0.80; "
+                              "docs/expression.md)")
+
     def weights_of(self, fiducials: np.ndarray, target: np.ndarray, *, relative: bool = True,
-                   eyes: bool = False) -> np.ndarray:
+                   part: str = "face") -> np.ndarray:
         """e_i (n,) of photos with fiducials (n, 49, 2) for a target (49, 2): Eq. 3's, σ widened for a
-        rare target (``min_share``); with ``eyes``, the eyes' own (``eye_sigma``)."""
-        return expression_weights(fiducials, target, self.eye_sigma if eyes else self.sigma, relative=relative,
-                                  min_photos=self.min_share * len(fiducials), pairs=FACING[:4] if eyes else None)
+        rare target (``min_share``); of ``part`` "eyes", the eyes' own (``eye_sigma``), of "brows" the
+        brows' own (``brow_sigma``)."""
+        sigma, distance = {"face": (self.sigma, None),
+                           "eyes": (self.eye_sigma, lambda f, t: gap_square_distance(f, t, FACING[:4])),
+                           "brows": (self.brow_sigma, brows.square_distance)}[part]
+        return expression_weights(fiducials, target, sigma, relative=relative,
+                                  min_photos=self.min_share * len(fiducials), distance=distance)
 
 
 class _Alignment(_Weights):
@@ -136,9 +153,9 @@ class MultiscaleTexture(TextureBackend):
                    "Laplacian pyramid with expression and detail weights (paper §5, Eq. 3)")
     default = True
     #: part of the texture stages' cache keys: raised whenever the same params give a different texture
-    version = "12"
+    version = "13"
     #: what :meth:`weights` and :meth:`finish` read and :meth:`cache` does not (``tau`` is read by both)
-    frame_params = frozenset({"sigma", "eye_sigma", "eye_gaze", "min_share", "skip", "time_sigma", "detail_share",
+    frame_params = frozenset({"sigma", "eye_sigma", "brow_sigma", "eye_gaze", "min_share", "skip", "time_sigma", "detail_share",
                               "finest_share", "detail_from", "close_eyes", "shut_from", "shut_at", "gaze",
                               "gaze_together"})
 
@@ -244,44 +261,53 @@ class MultiscaleTexture(TextureBackend):
         """Video mode: how many frames on each side a frame's expression weights take in (``time_sigma``)."""
         return time_radius(self.params.time_sigma)
 
+    @property
+    def parts(self) -> list[str]:
+        """The parts of the face blended with weights of their own, in the order they are laid over the face's
+        blend: the brows (``brow_sigma``), then the eyes (``eye_sigma``); those whose σ is not 0."""
+        p = self.params
+        return [part for part, sigma in (("brows", p.brow_sigma), ("eyes", p.eye_sigma)) if sigma > 0]
+
     def expression(self, fiducials: np.ndarray, targets: np.ndarray, keep: slice = slice(None), *,
-                   eyes: bool = False) -> np.ndarray:
+                   part: str = "face") -> np.ndarray:
         """Video mode: the expression weights (f, n) of the targets ``keep`` of consecutive frames' targets
         (T, 49, 2), over photos whose fiducials are (n, 49, 2): each photo's weight Gaussian-averaged over
         the frames around (``time_sigma``; the targets should reach :attr:`time_radius` frames beyond
         ``keep`` where the video does), those below ``skip`` of a frame's largest then set to 0
-        (blend.chosen); with ``eyes``, the eyes' own weights (``eye_sigma``)."""
+        (blend.chosen); of a ``part``, its own weights (``_Weights.weights_of``)."""
         p = self.params
         # without a uniform term only the ratios of the e_i matter: relative ones cannot all underflow
-        e = np.stack([p.weights_of(fiducials, t, relative=p.tau == 0, eyes=eyes) for t in targets])
+        e = np.stack([p.weights_of(fiducials, t, relative=p.tau == 0, part=part) for t in targets])
         return chosen(smooth_in_time(e, p.time_sigma)[keep], p.skip)
 
     def weights(self, fiducials: np.ndarray, targets: np.ndarray, keep: slice = slice(None),
                 neutral: np.ndarray | None = None, gazes: np.ndarray | None = None) -> np.ndarray:
-        """Video mode: the weights (f + 1, n), or (2f + 1, n) with ``eye_sigma``, a drive sums the photos
-        with: the :meth:`expression` weights of the targets ``keep``, then the eyes' own of the same
-        targets (with ``eye_gaze`` and the photos' ``gazes``, times gaze.ahead), then those of B's
-        ``neutral`` (by default the photos' mean fiducials), whose blend sets how much fine detail
-        :meth:`finish` gives back, and with ``detail_from`` neutral which, in every frame alike."""
+        """Video mode: the weights ((1 + parts) f + 1, n) a drive sums the photos with: the :meth:`expression`
+        weights of the targets ``keep``, then each of the :attr:`parts`' own of the same targets (the eyes'
+        with ``eye_gaze`` and the photos' ``gazes``, times gaze.ahead), then those of B's ``neutral`` (by
+        default the photos' mean fiducials), whose blend sets how much fine detail :meth:`finish` gives
+        back, and with ``detail_from`` neutral which, in every frame alike."""
         p = self.params
         looking = ahead(gazes, p.eye_gaze) if gazes is not None and p.eye_gaze else 1.0
-        eyes = [self.expression(fiducials, targets, keep, eyes=True) * looking] if p.eye_sigma > 0 else []
+        own = [self.expression(fiducials, targets, keep, part=part) * (looking if part == "eyes" else 1.0)
+               for part in self.parts]
         rest = mean_shape(fiducials) if neutral is None else np.asarray(neutral, np.float64)
-        return np.vstack([self.expression(fiducials, targets, keep), *eyes, self.expression(fiducials, rest[None])])
+        return np.vstack([self.expression(fiducials, targets, keep), *own, self.expression(fiducials, rest[None])])
 
     def sums(self, fiducials: np.ndarray, targets: int, totals: BlendTotals) -> BlendSums:
-        """Empty sums for the :meth:`weights` of ``targets`` frames: with ``eye_sigma``, the eyes' own rows
-        summed only over the band of image rows that holds the eyes' region and what the pyramid's
-        collapse carries into it (EYE_MARGIN texels either side), a fifth of the face's height."""
-        rows = (2 * targets + 1) if self.params.eye_sigma > 0 else targets + 1
+        """Empty sums for the :meth:`weights` of ``targets`` frames: each part's own rows summed only over the
+        band of image rows that holds its region and what the pyramid's collapse carries into it
+        (REGION_MARGIN texels either side): a fifth of the face's height for the eyes, the top two fifths for
+        the brows."""
+        parts = self.parts
+        shape, neutral = totals.weighted[0].shape[:2], mean_shape(fiducials)
         bands = {}
-        if self.params.eye_sigma > 0:
-            shape = totals.weighted[0].shape[:2]
-            inside = np.flatnonzero(eyes.region(mean_shape(fiducials), shape).max(axis=1) > 0)
+        for k, part in enumerate(parts, start=1):
+            inside = np.flatnonzero(REGIONS[part](neutral, shape).max(axis=1) > 0)
             if len(inside):
-                band = (max(int(inside[0]) - EYE_MARGIN, 0), min(int(inside[-1]) + 1 + EYE_MARGIN, shape[0]))
-                bands = {t: band for t in range(targets, 2 * targets)}
-        return BlendSums.zeros(rows, totals, bands)
+                band = (max(int(inside[0]) - REGION_MARGIN, 0), min(int(inside[-1]) + 1 + REGION_MARGIN, shape[0]))
+                bands.update({t: band for t in range(k * targets, (k + 1) * targets)})
+        return BlendSums.zeros((1 + len(parts)) * targets + 1, totals, bands)
 
     def finish(self, sums: BlendSums, totals: BlendTotals, fiducials: np.ndarray, targets: np.ndarray, *,
                close_eyes: bool | None = None, gaze: np.ndarray | None = None) -> np.ndarray:
@@ -289,7 +315,8 @@ class MultiscaleTexture(TextureBackend):
         sums over every photo (fiducials (n, 49, 2)) of their :meth:`weights` (B's neutral last). Each
         fine band of every texture is multiplied by one factor, the one that gives back ``detail_share``
         of the energy the neutral's blend lost (BlendSums.detail_gains): the detail given back does not
-        change from frame to frame with the photos a frame takes. With ``eye_sigma``, the eyes' region
+        change from frame to frame with the photos a frame takes. With ``brow_sigma``, the region above the
+        eyes (brows.region) is the blend of the brows' own weights; with ``eye_sigma``, the eyes' region
         (eyes.region) is the blend of the eyes' own weights, given back its own fine bands: B's neutral's
         would draw B's neutral lids back over photos whose eyes are wider or narrower. With ``close_eyes``
         (default: the param), the eyes a target shuts drawn shut."""
@@ -299,9 +326,12 @@ class MultiscaleTexture(TextureBackend):
         gains = sums.detail_gains(totals, p.detail_share, last, finest=p.finest_share)
         held = last if p.detail_from == "neutral" else None
         textures = np.clip(sums.finish(totals, gains=gains, rows=range(f), held=held), 0, 255)
-        if p.eye_sigma > 0:  # the eyes' own rows, after the frames' (weights)
-            own = np.clip(sums.finish(totals, gains=gains, rows=range(f, 2 * f)), 0, 255)
-            where = eyes.region(neutral, textures.shape[1:3])[..., None]
+        for k, part in enumerate(self.parts, start=1):  # each part's own rows, after the frames' (weights)
+            # the eyes take back their own fine detail (B's neutral's would draw B's neutral lids back over eyes
+            # wider or narrower), the brows the face's, which holds still from frame to frame
+            own = np.clip(sums.finish(totals, gains=gains, rows=range(k * f, (k + 1) * f),
+                                      held=None if part == "eyes" else held), 0, 255)
+            where = REGIONS[part](neutral, textures.shape[1:3])[..., None]
             textures += where * (own - textures)
         return _eyes_moved(textures, targets, neutral, p, gaze, p.close_eyes if close_eyes is None else close_eyes)
 

@@ -27,11 +27,11 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from .fiducials import gap_square_distance, mean_square_distance
+from .fiducials import mean_square_distance
 
 
 def expression_weights(fiducials: np.ndarray, target: np.ndarray, sigma: float, *,
-                       relative: bool = False, min_photos: float = 0.0, pairs=None) -> np.ndarray:
+                       relative: bool = False, min_photos: float = 0.0, distance=None) -> np.ndarray:
     """e_i = exp(-||F^T - F^i||² / 2σ²) for fiducials (n, 49, 2) and a target (49, 2), in
     canonical px (σ = 10 in the paper: a mean displacement of 2 px per point gives 0.14).
 
@@ -45,13 +45,15 @@ def expression_weights(fiducials: np.ndarray, target: np.ndarray, sigma: float, 
     target few photos are near (an expression B rarely makes) is not made of a handful of photos, their
     accessories and their misalignments.
 
-    ``pairs`` (not in the paper): the distance is taken over the heights of these facing pairs of points
-    instead (:func:`~persona.plugins.face.fiducials.gap_square_distance`; the eyes' lids give the eyes'
-    own weights, which follow how open the target's eyes are whatever its mouth does)."""
-    if pairs is None:
+    ``distance`` (not in the paper): a function (fiducials, target) -> (n,) squared distances (px²) that
+    compares one part of the face instead (the heights of the eyes' lids,
+    :func:`~persona.plugins.face.fiducials.gap_square_distance`, give the eyes' own weights, which follow how
+    open the target's eyes are whatever its mouth does; :func:`~persona.plugins.face.brows.square_distance`
+    the brows')."""
+    if distance is None:
         d2 = np.shape(fiducials)[1] * mean_square_distance(fiducials, target)  # over the shared points, scaled to all
     else:
-        d2 = gap_square_distance(fiducials, target, pairs)
+        d2 = np.array(distance(fiducials, target), np.float64)
     d2[np.isnan(d2)] = np.inf  # no point in common
     if min_photos > 0:
         sigma = widened(d2, sigma, min_photos)

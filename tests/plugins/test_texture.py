@@ -255,7 +255,7 @@ def test_weights_smoothed_in_time_change_gradually_and_a_shard_with_its_margin_g
 
 
 #: a value other than the default for each of MultiscaleTexture's frame_params
-FRAME_PARAMS = {"sigma": 3.0, "eye_sigma": 0.0, "min_share": 0.5, "skip": 0.1, "time_sigma": 2.0, "detail_share": 1.0,
+FRAME_PARAMS = {"sigma": 3.0, "eye_sigma": 0.0, "brow_sigma": 2.0, "min_share": 0.5, "skip": 0.1, "time_sigma": 2.0, "detail_share": 1.0,
                 "finest_share": 0.5, "detail_from": "frame", "close_eyes": False, "shut_from": 0.8, "shut_at": 0.3,
                 "gaze": False, "gaze_together": False, "eye_gaze": 0.1}
 
@@ -319,7 +319,7 @@ def test_the_eyes_take_the_photos_whose_eyes_are_as_open_as_the_targets():
         energy = (fine[where] ** 2).mean(axis=0)
         return float(energy[0] / energy[1])
 
-    paper_blend = {"detail_share": 0.0, "finest_share": 0.0, "close_eyes": False}
+    paper_blend = {"detail_share": 0.0, "finest_share": 0.0, "close_eyes": False, "brow_sigma": 0.0}
     for eye_sigma in (1.0, 0.0):
         texture = MultiscaleTexture({**paper_blend, "eye_sigma": eye_sigma}).blend(cache, fiducials, target)
         assert red_over_green(texture, region == 0) < 0.2, eye_sigma  # the face follows the mouth
@@ -327,9 +327,49 @@ def test_the_eyes_take_the_photos_whose_eyes_are_as_open_as_the_targets():
         assert in_the_eyes > 5 if eye_sigma else in_the_eyes < 0.2, eye_sigma
     # the detail given back: the face's from B's neutral (half red, half green), the eyes' their own (red);
     # given back from the neutral there too, the neutral's green came back into the eyes (red over green 27)
-    texture = MultiscaleTexture({"close_eyes": False}).blend(cache, fiducials, target)
+    texture = MultiscaleTexture({"close_eyes": False, "brow_sigma": 0.0}).blend(cache, fiducials, target)
     assert red_over_green(texture, region > 0.95) > 500
     assert red_over_green(texture, region == 0) < 0.2
+
+
+def test_the_brows_take_the_photos_whose_brows_do_what_the_targets_do():
+    """``brow_sigma``: the region above the eyes of a frame's texture is the blend of the photos whose brows sit
+    as the target's do from its eyes, whatever their mouths. Half the photos have raised brows and a shut mouth
+    (a red stripe pattern, as a raised brow's creases), half an open mouth and resting brows (green); for a
+    target with both, the face's weights (49 fiducials, the mouth's 12 px dominate) take the green photos, the
+    brows' own the red above the eyes; with ``brow_sigma`` 0 (the paper's) the green there too."""
+    from persona.plugins.face import brows
+    from persona.plugins.face.blend import BlendCache
+    from persona.plugins.face.template import CANONICAL_HEIGHT as H, CANONICAL_WIDTH as W
+    from persona.plugins.face.warp import FACING
+
+    base = generic_template().fiducials3d[:, :2]
+    raised, open_mouth = base.copy(), base.copy()
+    raised[[i for brow, _ in brows.BROWS for i in brow], 1] -= 4.0
+    open_mouth[[lower for _, lower in FACING[4:]], 1] += 12.0
+    target = raised.copy()
+    target[[lower for _, lower in FACING[4:]], 1] += 12.0
+    stripes = np.where(np.arange(H) % 4 < 2, 20.0, -20.0)[:, None] * np.ones((1, W))
+    photos = []
+    for k in range(12):
+        image = np.full((H, W, 3), 128.0, np.float32)
+        image[..., 0 if k % 2 else 1] += stripes
+        photos.append(image)
+    fiducials = np.stack([raised if k % 2 else open_mouth for k in range(12)])
+    cache = BlendCache.build(np.stack(photos), np.ones((12, H, W), bool), levels=5, alpha=1.0, beta=20.0, tau=1.0)
+    region = brows.region(mean_shape(fiducials), (H, W))
+
+    def red_over_green(texture, where) -> float:
+        fine = texture - cv2.GaussianBlur(texture, (0, 0), 2.0)
+        energy = (fine[where] ** 2).mean(axis=0)
+        return float(energy[0] / energy[1])
+
+    paper_blend = {"detail_share": 0.0, "finest_share": 0.0, "close_eyes": False, "eye_sigma": 0.0}
+    for brow_sigma in (3.0, 0.0):
+        texture = MultiscaleTexture({**paper_blend, "brow_sigma": brow_sigma}).blend(cache, fiducials, target)
+        assert red_over_green(texture, region == 0) < 0.2, brow_sigma  # the face follows the mouth
+        above = red_over_green(texture, region > 0.95)
+        assert above > 5 if brow_sigma else above < 0.2, (brow_sigma, above)
 
 
 def test_the_eyes_take_the_photos_that_look_ahead():
@@ -363,13 +403,13 @@ def test_the_eyes_take_the_photos_that_look_ahead():
     fiducials = np.repeat(neutral[None], 12, axis=0)
     plain = MultiscaleTexture().weights(fiducials, neutral[None])
     weighed = MultiscaleTexture().weights(fiducials, neutral[None], gazes=gazes)
-    assert np.array_equal(plain[[0, 2]], weighed[[0, 2]])  # the face's row and B at rest
-    assert np.allclose(weighed[1], plain[1] * looking[:12])  # the eyes' own
+    assert np.array_equal(plain[[0, 1, 3]], weighed[[0, 1, 3]])  # the face's row, the brows' and B at rest
+    assert np.allclose(weighed[2], plain[2] * looking[:12])  # the eyes' own
     assert np.array_equal(MultiscaleTexture({"eye_gaze": 0.0}).weights(fiducials, neutral[None], gazes=gazes), plain)
 
 
-def test_the_eyes_own_rows_summed_over_their_band_alone_give_the_same_texture():
-    """The eyes' own rows are summed only over the band of image rows around the eyes' region
+def test_each_parts_own_rows_summed_over_their_band_alone_give_the_same_texture():
+    """The brows' and the eyes' own rows are summed only over the band of image rows around each one's region
     (MultiscaleTexture.sums): what the pyramid's collapse brings into the region from outside the band is
     the same to within a hundredth of a grey level (max over the texture) as when summed over the whole image,
     on photos of random detail at every scale with their fiducials moved at random."""
@@ -388,10 +428,13 @@ def test_the_eyes_own_rows_summed_over_their_band_alone_give_the_same_texture():
     targets = base[None] + rng.normal(0, 2.0, (3, 49, 2))
     cache = BlendCache.build(photos, np.ones((n, H, W), bool), levels=5, alpha=1.0, beta=20.0, tau=1.0)
     backend = MultiscaleTexture({"close_eyes": False})
-    banded = backend.sums(fiducials, len(targets), cache.totals)
-    top, bottom = banded.bands[len(targets)]
-    assert 0 < top and bottom < H and bottom - top < H / 2  # a band, under half the face's height
-    whole = BlendSums.zeros(2 * len(targets) + 1, cache.totals)
+    f = len(targets)
+    banded = backend.sums(fiducials, f, cache.totals)
+    assert backend.parts == ["brows", "eyes"]
+    (brows_top, brows_bottom), (eyes_top, eyes_bottom) = banded.bands[f], banded.bands[2 * f]
+    assert brows_top == 0 and brows_bottom < H / 2  # from the top to the eyes, under half the face's height
+    assert 0 < eyes_top and eyes_bottom < H and eyes_bottom - eyes_top < H / 4
+    whole = BlendSums.zeros(3 * f + 1, cache.totals)
     weights = backend.weights(fiducials, targets)
     for sums in (banded, whole):
         sums.add(cache.weighted, cache.detail, weights)
