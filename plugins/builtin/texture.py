@@ -64,7 +64,7 @@ class _Weights(Params):
                               "with it, so its creases are those of photos whose brows do what the target's do, "
                               "whatever its mouth does (persona.plugins.face.brows). Not in the paper (0: the "
                               "face's weights, as there). σ is widened by `min_share` like the face's. 3 raises the "
-                              "brow gain on 18 of the 20 example drives (Powell ← MEAD happy 0.66 -> 0.80; "
+                              "brow gain on 17 of the 20 example drives (Powell ← MEAD happy 0.66 -> 0.80; "
                               "docs/expression.md)")
 
     def weights_of(self, fiducials: np.ndarray, target: np.ndarray, *, relative: bool = True,
@@ -155,9 +155,9 @@ class MultiscaleTexture(TextureBackend):
     #: part of the texture stages' cache keys: raised whenever the same params give a different texture
     version = "13"
     #: what :meth:`weights` and :meth:`finish` read and :meth:`cache` does not (``tau`` is read by both)
-    frame_params = frozenset({"sigma", "eye_sigma", "brow_sigma", "eye_gaze", "min_share", "skip", "time_sigma", "detail_share",
-                              "finest_share", "detail_from", "close_eyes", "shut_from", "shut_at", "gaze",
-                              "gaze_together"})
+    frame_params = frozenset({"sigma", "eye_sigma", "brow_sigma", "eye_gaze", "min_share", "skip", "time_sigma",
+                              "detail_share", "finest_share", "detail_from", "close_eyes", "shut_from", "shut_at",
+                              "gaze", "gaze_together"})
 
     class Params(_Alignment):
         levels: int = Field(5, ge=2, le=8, description="pyramid levels p (the paper does not say; 5 gives a "

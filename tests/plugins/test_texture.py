@@ -255,9 +255,9 @@ def test_weights_smoothed_in_time_change_gradually_and_a_shard_with_its_margin_g
 
 
 #: a value other than the default for each of MultiscaleTexture's frame_params
-FRAME_PARAMS = {"sigma": 3.0, "eye_sigma": 0.0, "brow_sigma": 2.0, "min_share": 0.5, "skip": 0.1, "time_sigma": 2.0, "detail_share": 1.0,
-                "finest_share": 0.5, "detail_from": "frame", "close_eyes": False, "shut_from": 0.8, "shut_at": 0.3,
-                "gaze": False, "gaze_together": False, "eye_gaze": 0.1}
+FRAME_PARAMS = {"sigma": 3.0, "eye_sigma": 0.0, "brow_sigma": 2.0, "min_share": 0.5, "skip": 0.1, "time_sigma": 2.0,
+                "detail_share": 1.0, "finest_share": 0.5, "detail_from": "frame", "close_eyes": False, "shut_from": 0.8,
+                "shut_at": 0.3, "gaze": False, "gaze_together": False, "eye_gaze": 0.1}
 
 
 def test_the_frame_params_leave_the_video_mode_cache_as_it_is():
@@ -286,6 +286,27 @@ def test_the_frame_params_leave_the_video_mode_cache_as_it_is():
     assert not same(MultiscaleTexture({"detail_blur": 2.0}).cache(aligned), cache)
 
 
+def _striped(red: np.ndarray, green: np.ndarray, stripes: np.ndarray):
+    """Twelve photos of two kinds taken in turn, grey with ``stripes`` (H, W) added to their red channel and
+    fiducials ``red`` (49, 2), or to their green and fiducials ``green``: (their cache, their fiducials)."""
+    from persona.plugins.face.blend import BlendCache
+
+    h, w = stripes.shape
+    photos = np.full((12, h, w, 3), 128.0, np.float32)
+    photos[1::2, ..., 0] += stripes
+    photos[0::2, ..., 1] += stripes
+    fiducials = np.stack([red if k % 2 else green for k in range(12)])
+    cache = BlendCache.build(photos, np.ones((12, h, w), bool), levels=5, alpha=1.0, beta=20.0, tau=1.0)
+    return cache, fiducials
+
+
+def _red_over_green(texture: np.ndarray, where: np.ndarray) -> float:
+    """The fine detail's energy in a texture's red channel over its green's, on the texels ``where``."""
+    fine = texture - cv2.GaussianBlur(texture, (0, 0), 2.0)
+    energy = (fine[where] ** 2).mean(axis=0)
+    return float(energy[0] / energy[1])
+
+
 def test_the_eyes_take_the_photos_whose_eyes_are_as_open_as_the_targets():
     """``eye_sigma``: the eyes' region of a frame's texture is the blend of the photos whose lids are as
     far apart as the target's, whatever their mouths. Half the photos have wide eyes and a shut mouth (a
@@ -293,7 +314,6 @@ def test_the_eyes_take_the_photos_whose_eyes_are_as_open_as_the_targets():
     weights (49 fiducials, the mouth's 12 px dominate) take the green photos, the eyes' own the red. At the
     defaults the fine detail given back in the eyes is the eyes' own too, not B's neutral's."""
     from persona.plugins.face import eyes
-    from persona.plugins.face.blend import BlendCache
     from persona.plugins.face.template import CANONICAL_HEIGHT as H, CANONICAL_WIDTH as W
     from persona.plugins.face.warp import FACING
 
@@ -303,33 +323,20 @@ def test_the_eyes_take_the_photos_whose_eyes_are_as_open_as_the_targets():
         shape[[lower for _, lower in pairs], 1] += by
     target = wide.copy()
     target[[lower for _, lower in FACING[4:]], 1] += 12.0
-    stripes = np.where(np.arange(W) % 4 < 2, 20.0, -20.0)[None, :] * np.ones((H, 1))
-    photos, fiducials = [], []
-    for k in range(12):
-        image = np.full((H, W, 3), 128.0, np.float32)
-        image[..., 0 if k % 2 else 1] += stripes
-        photos.append(image)
-        fiducials.append(wide if k % 2 else open_mouth)
-    fiducials = np.stack(fiducials)
-    cache = BlendCache.build(np.stack(photos), np.ones((12, H, W), bool), levels=5, alpha=1.0, beta=20.0, tau=1.0)
+    columns = np.where(np.arange(W) % 4 < 2, 20.0, -20.0)[None, :] * np.ones((H, 1))
+    cache, fiducials = _striped(wide, open_mouth, columns)
     region = eyes.region(mean_shape(fiducials), (H, W))
-
-    def red_over_green(texture, where) -> float:
-        fine = texture - cv2.GaussianBlur(texture, (0, 0), 2.0)
-        energy = (fine[where] ** 2).mean(axis=0)
-        return float(energy[0] / energy[1])
-
     paper_blend = {"detail_share": 0.0, "finest_share": 0.0, "close_eyes": False, "brow_sigma": 0.0}
     for eye_sigma in (1.0, 0.0):
         texture = MultiscaleTexture({**paper_blend, "eye_sigma": eye_sigma}).blend(cache, fiducials, target)
-        assert red_over_green(texture, region == 0) < 0.2, eye_sigma  # the face follows the mouth
-        in_the_eyes = red_over_green(texture, region > 0.95)
+        assert _red_over_green(texture, region == 0) < 0.2, eye_sigma  # the face follows the mouth
+        in_the_eyes = _red_over_green(texture, region > 0.95)
         assert in_the_eyes > 5 if eye_sigma else in_the_eyes < 0.2, eye_sigma
     # the detail given back: the face's from B's neutral (half red, half green), the eyes' their own (red);
     # given back from the neutral there too, the neutral's green came back into the eyes (red over green 27)
     texture = MultiscaleTexture({"close_eyes": False, "brow_sigma": 0.0}).blend(cache, fiducials, target)
-    assert red_over_green(texture, region > 0.95) > 500
-    assert red_over_green(texture, region == 0) < 0.2
+    assert _red_over_green(texture, region > 0.95) > 500
+    assert _red_over_green(texture, region == 0) < 0.2
 
 
 def test_the_brows_take_the_photos_whose_brows_do_what_the_targets_do():
@@ -339,7 +346,6 @@ def test_the_brows_take_the_photos_whose_brows_do_what_the_targets_do():
     target with both, the face's weights (49 fiducials, the mouth's 12 px dominate) take the green photos, the
     brows' own the red above the eyes; with ``brow_sigma`` 0 (the paper's) the green there too."""
     from persona.plugins.face import brows
-    from persona.plugins.face.blend import BlendCache
     from persona.plugins.face.template import CANONICAL_HEIGHT as H, CANONICAL_WIDTH as W
     from persona.plugins.face.warp import FACING
 
@@ -349,26 +355,14 @@ def test_the_brows_take_the_photos_whose_brows_do_what_the_targets_do():
     open_mouth[[lower for _, lower in FACING[4:]], 1] += 12.0
     target = raised.copy()
     target[[lower for _, lower in FACING[4:]], 1] += 12.0
-    stripes = np.where(np.arange(H) % 4 < 2, 20.0, -20.0)[:, None] * np.ones((1, W))
-    photos = []
-    for k in range(12):
-        image = np.full((H, W, 3), 128.0, np.float32)
-        image[..., 0 if k % 2 else 1] += stripes
-        photos.append(image)
-    fiducials = np.stack([raised if k % 2 else open_mouth for k in range(12)])
-    cache = BlendCache.build(np.stack(photos), np.ones((12, H, W), bool), levels=5, alpha=1.0, beta=20.0, tau=1.0)
+    rows = np.where(np.arange(H) % 4 < 2, 20.0, -20.0)[:, None] * np.ones((1, W))  # lines across, as creases
+    cache, fiducials = _striped(raised, open_mouth, rows)
     region = brows.region(mean_shape(fiducials), (H, W))
-
-    def red_over_green(texture, where) -> float:
-        fine = texture - cv2.GaussianBlur(texture, (0, 0), 2.0)
-        energy = (fine[where] ** 2).mean(axis=0)
-        return float(energy[0] / energy[1])
-
     paper_blend = {"detail_share": 0.0, "finest_share": 0.0, "close_eyes": False, "eye_sigma": 0.0}
     for brow_sigma in (3.0, 0.0):
         texture = MultiscaleTexture({**paper_blend, "brow_sigma": brow_sigma}).blend(cache, fiducials, target)
-        assert red_over_green(texture, region == 0) < 0.2, brow_sigma  # the face follows the mouth
-        above = red_over_green(texture, region > 0.95)
+        assert _red_over_green(texture, region == 0) < 0.2, brow_sigma  # the face follows the mouth
+        above = _red_over_green(texture, region > 0.95)
         assert above > 5 if brow_sigma else above < 0.2, (brow_sigma, above)
 
 
