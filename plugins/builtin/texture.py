@@ -64,7 +64,7 @@ class _Weights(Params):
                               "with it, so its creases are those of photos whose brows do what the target's do, "
                               "whatever its mouth does (persona.plugins.face.brows). Not in the paper (0: the "
                               "face's weights, as there). σ is widened by `min_share` like the face's. 3 raises the "
-                              "brow gain on 17 of the 20 example drives (Powell ← MEAD happy 0.66 -> 0.80; "
+                              "brow gain on 17 of the 20 example drives (Obama ← MEAD happy 0.82 -> 1.00; "
                               "docs/expression.md)")
 
     def weights_of(self, fiducials: np.ndarray, target: np.ndarray, *, relative: bool = True,
