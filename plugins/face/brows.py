@@ -3,11 +3,12 @@ target's do.
 
 Not in the paper, whose expression weight compares all 49 fiducials at once. The mouth moves furthest, so
 it decides which photos a frame's texture is made of, and the brows and forehead come with whatever those
-photos' brows were doing: a scream drawn with the frown its photos had while the driver's brows rose, the
-frown lines of a collection that frowns a lot on a surprised face. Here the region above the eyes (the
-brows, the forehead, the creases between the brows down to the eyes' inner corners) is blended with weights
-of its own, over where each brow's five points lie from its eye's middle: raised, lowered or drawn together,
-whatever the mouth does. The eyes take theirs (``eye_sigma``) and the rest of the face the paper's.
+photos' brows were doing: a driver's raised brows drawn with the creases of photos that frowned with their
+mouths open as the driver's. Here the region above the eyes (the brows, the forehead, the creases between
+the brows down to the eyes' inner corners) is blended with weights of its own, over where each brow's five
+points lie from its eye's middle: raised, lowered or drawn together, whatever the mouth does. The eyes take
+theirs (``eye_sigma``) and the rest of the face the paper's. It cannot give a face creases none of its
+photos has (docs/expression.md, "The brows").
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from .fiducials import scaled_sum
 from .template import IDX49
 
 #: per brow (the image's left, then right): its five points and its eye's six among the 49 fiducials
@@ -37,10 +39,7 @@ def square_distance(fiducials: np.ndarray, reference: np.ndarray) -> np.ndarray:
     """(n,) Σ over the ten brow points of the squared difference (px²) between each photo's offset of the point
     from its eye's middle, in fiducials (n, 49, 2), and the reference's (49, 2). A point NaN in a photo or the
     reference is left out and the sum scaled back to all ten; NaN when none is shared."""
-    d2 = np.sum((_offsets(fiducials) - _offsets(reference)) ** 2, axis=-1)
-    seen = np.isfinite(d2)
-    count = seen.sum(axis=-1)
-    return np.where(count > 0, np.where(seen, d2, 0.0).sum(axis=-1) * d2.shape[-1] / np.maximum(count, 1), np.nan)
+    return scaled_sum(np.sum((_offsets(fiducials) - _offsets(reference)) ** 2, axis=-1))
 
 
 def region(neutral: np.ndarray, shape: tuple[int, int], *, above: float = 3.0, blur: float = 3.0) -> np.ndarray:
@@ -51,7 +50,6 @@ def region(neutral: np.ndarray, shape: tuple[int, int], *, above: float = 3.0, b
     points = np.asarray(neutral, np.float64)[list(_LIDS)]
     if not np.isfinite(points).all():
         return np.zeros(shape, np.float32)
-    ys, xs = np.mgrid[0:shape[0], 0:shape[1]]
     edge = np.interp(np.arange(shape[1]), points[:, 0], points[:, 1] - above)
-    mask = (ys < edge[None, :]).astype(np.float32)
+    mask = (np.arange(shape[0])[:, None] < edge[None, :]).astype(np.float32)
     return cv2.GaussianBlur(mask, (0, 0), blur) if blur else mask

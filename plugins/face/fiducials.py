@@ -41,10 +41,16 @@ def gap_square_distance(fiducials: np.ndarray, reference: np.ndarray, pairs) -> 
     A pair NaN in a photo or the reference is left out and the sum scaled back to all pairs; NaN when none
     is shared."""
     f, r = np.asarray(fiducials, np.float64), np.asarray(reference, np.float64)
-    d2 = np.stack([((f[:, lo, 1] - f[:, up, 1]) - (r[lo, 1] - r[up, 1])) ** 2 for up, lo in pairs], axis=-1)
+    return scaled_sum(np.stack([((f[:, lo, 1] - f[:, up, 1]) - (r[lo, 1] - r[up, 1])) ** 2 for up, lo in pairs],
+                               axis=-1))
+
+
+def scaled_sum(d2: np.ndarray) -> np.ndarray:
+    """(n,) the sum of squared differences (n, k) over the k terms that are finite, scaled back to all k (a
+    term a photo does not have, a NaN point, counts as the mean of those it has); NaN where none is."""
     seen = np.isfinite(d2)
     count = seen.sum(axis=-1)
-    return np.where(count > 0, np.where(seen, d2, 0.0).sum(axis=-1) * len(pairs) / np.maximum(count, 1), np.nan)
+    return np.where(count > 0, np.where(seen, d2, 0.0).sum(axis=-1) * d2.shape[-1] / np.maximum(count, 1), np.nan)
 
 
 def shape_distance(fiducials: np.ndarray, reference: np.ndarray) -> np.ndarray:
