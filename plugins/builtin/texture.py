@@ -78,6 +78,12 @@ class _Weights(Params):
         return expression_weights(fiducials, target, sigma, relative=relative,
                                   min_photos=self.min_share * len(fiducials), distance=distance)
 
+    @property
+    def parts(self) -> list[str]:
+        """The parts of the face blended with weights of their own, in the order they are laid over the face's
+        blend: the brows (``brow_sigma``), then the eyes (``eye_sigma``); those whose σ is not 0."""
+        return [part for part, sigma in (("brows", self.brow_sigma), ("eyes", self.eye_sigma)) if sigma > 0]
+
 
 class _Alignment(_Weights):
     tps_lambda: float = Field(10.0, ge=0, description="λ of the smoothing thin-plate spline to the target "
@@ -261,13 +267,6 @@ class MultiscaleTexture(TextureBackend):
         """Video mode: how many frames on each side a frame's expression weights take in (``time_sigma``)."""
         return time_radius(self.params.time_sigma)
 
-    @property
-    def parts(self) -> list[str]:
-        """The parts of the face blended with weights of their own, in the order they are laid over the face's
-        blend: the brows (``brow_sigma``), then the eyes (``eye_sigma``); those whose σ is not 0."""
-        p = self.params
-        return [part for part, sigma in (("brows", p.brow_sigma), ("eyes", p.eye_sigma)) if sigma > 0]
-
     def expression(self, fiducials: np.ndarray, targets: np.ndarray, keep: slice = slice(None), *,
                    part: str = "face") -> np.ndarray:
         """Video mode: the expression weights (f, n) of the targets ``keep`` of consecutive frames' targets
@@ -283,24 +282,22 @@ class MultiscaleTexture(TextureBackend):
     def weights(self, fiducials: np.ndarray, targets: np.ndarray, keep: slice = slice(None),
                 neutral: np.ndarray | None = None, gazes: np.ndarray | None = None) -> np.ndarray:
         """Video mode: the weights ((1 + parts) f + 1, n) a drive sums the photos with: the :meth:`expression`
-        weights of the targets ``keep``, then each of the :attr:`parts`' own of the same targets (the eyes'
-        with ``eye_gaze`` and the photos' ``gazes``, times gaze.ahead), then those of B's ``neutral`` (by
-        default the photos' mean fiducials), whose blend sets how much fine detail :meth:`finish` gives
-        back, and with ``detail_from`` neutral which, in every frame alike."""
+        weights of the targets ``keep``, then each of the params' :attr:`~_Weights.parts`' own of the same
+        targets (the eyes' with ``eye_gaze`` and the photos' ``gazes``, times gaze.ahead), then those of B's
+        ``neutral`` (by default the photos' mean fiducials), whose blend sets how much fine detail
+        :meth:`finish` gives back, and with ``detail_from`` neutral which, in every frame alike."""
         p = self.params
         looking = ahead(gazes, p.eye_gaze) if gazes is not None and p.eye_gaze else 1.0
         own = [self.expression(fiducials, targets, keep, part=part) * (looking if part == "eyes" else 1.0)
-               for part in self.parts]
+               for part in self.params.parts]
         rest = mean_shape(fiducials) if neutral is None else np.asarray(neutral, np.float64)
         return np.vstack([self.expression(fiducials, targets, keep), *own, self.expression(fiducials, rest[None])])
 
     def sums(self, fiducials: np.ndarray, targets: int, totals: BlendTotals) -> BlendSums:
         """Empty sums for the :meth:`weights` of ``targets`` frames: each part's own rows summed only over the
-        band of image rows that holds its region and what the pyramid's collapse carries into it
-        (REGION_MARGIN texels either side): a fifth of the face's height for the eyes, the top two fifths for
-        the brows."""
-        parts = self.parts
-        shape, neutral = totals.weighted[0].shape[:2], mean_shape(fiducials)
+        band of image rows that holds its region and what the pyramid's collapse carries into it (REGION_MARGIN
+        texels either side): the eyes' a fifth of the face's height, the brows' its top two fifths."""
+        parts, shape, neutral = self.params.parts, totals.weighted[0].shape[:2], mean_shape(fiducials)
         bands = {}
         for k, part in enumerate(parts, start=1):
             inside = np.flatnonzero(REGIONS[part](neutral, shape).max(axis=1) > 0)
@@ -326,9 +323,8 @@ class MultiscaleTexture(TextureBackend):
         gains = sums.detail_gains(totals, p.detail_share, last, finest=p.finest_share)
         held = last if p.detail_from == "neutral" else None
         textures = np.clip(sums.finish(totals, gains=gains, rows=range(f), held=held), 0, 255)
-        for k, part in enumerate(self.parts, start=1):  # each part's own rows, after the frames' (weights)
-            # the eyes take back their own fine detail (B's neutral's would draw B's neutral lids back over eyes
-            # wider or narrower), the brows the face's, which holds still from frame to frame
+        for k, part in enumerate(self.params.parts, start=1):  # each part's own rows, after the frames' (weights)
+            # the eyes take back their own fine detail (B's neutral's would draw its lids back), the brows the face's
             own = np.clip(sums.finish(totals, gains=gains, rows=range(k * f, (k + 1) * f),
                                       held=None if part == "eyes" else held), 0, 255)
             where = REGIONS[part](neutral, textures.shape[1:3])[..., None]

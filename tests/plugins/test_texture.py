@@ -424,7 +424,7 @@ def test_each_parts_own_rows_summed_over_their_band_alone_give_the_same_texture(
     backend = MultiscaleTexture({"close_eyes": False})
     f = len(targets)
     banded = backend.sums(fiducials, f, cache.totals)
-    assert backend.parts == ["brows", "eyes"]
+    assert backend.params.parts == ["brows", "eyes"]
     (brows_top, brows_bottom), (eyes_top, eyes_bottom) = banded.bands[f], banded.bands[2 * f]
     assert brows_top == 0 and brows_bottom < H / 2  # from the top to the eyes, under half the face's height
     assert 0 < eyes_top and eyes_bottom < H and eyes_bottom - eyes_top < H / 4
