@@ -234,10 +234,11 @@ class Drive(_Part):
 
     @property
     def files(self) -> dict[str, str]:
-        """Its other files that exist: report.html, frames.png, metrics.json, puppet.glb."""
+        """Its other files that exist: report.html, frames.png, metrics.json, puppet.glb and, judged as a
+        self-reenactment, error_map.png."""
         self._metrics()
         return _existing(self.output, {"report": "report.html", "frames": "frames.png", "metrics": "metrics.json",
-                                       "glb": "puppet.glb"})
+                                       "glb": "puppet.glb", "error_map": "error_map.png"})
 
     def glb(self, path: str | os.PathLike, *, step: int = 2) -> Path | str:
         """Write the puppet performing the video as an animated glTF 2.0 binary file (.glb) at ``path``:

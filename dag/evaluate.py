@@ -66,7 +66,7 @@ from .stages import RENDER_3D, accepted, backend_key, provenance, render_alpha
 
 #: the figures' version: a run keeps its last evaluation only when this is the same (raise it whenever a
 #: figure is added or computed differently)
-VERSION = 7
+VERSION = 8
 
 #: a person's descriptor centroid (128,), kept in its collection: the mean descriptor of the sample of its
 #: accepted photos that every drive of the person is judged against (:func:`centroid_plan`)
@@ -126,6 +126,10 @@ def analyse_frames(url: str, start: int, stop: int, identity: tuple[str, dict], 
     creases = np.full((n, 3), np.nan)  # the detail between the brows: the driver's, the face alone's, the composite's
     seams = {"blend": [], "paste": []}
     sharp = []  # every 4th frame: the face alone's and the composite's fine detail over the driver's face
+    # a self-reenactment's error map (ev.error_picture): the composite's squared difference from the real frame
+    # and the real frames, summed, and where the face was drawn
+    errors = {"square_sum": np.zeros(original.shape[1:3], np.float32), "seen": np.zeros(original.shape[1:3], bool),
+              "real_sum": np.zeros(original.shape[1:], np.float32), "frames": n} if compare else None
     for j in range(n):
         alpha = render_alpha(alphas[j])
         face = composite.alone(rendered[j], alpha)  # as puppet.mp4 shows it
@@ -147,6 +151,10 @@ def analyse_frames(url: str, start: int, stop: int, identity: tuple[str, dict], 
         if compare and masks[j].any():
             psnr[j] = [ev.masked_psnr(image, original[j], masks[j]) for image in (face, blended)]
             ssim[j] = ev.masked_ssims((face, blended), original[j], masks[j])
+        if compare:
+            errors["square_sum"] += np.mean(np.square(blended.astype(np.float32) - original[j]), axis=-1)
+            errors["real_sum"] += original[j]
+            errors["seen"] |= masks[j]
         if (start + j) % 4 == 0:
             for name, found in composite.seams(rendered[j], original[j], alpha, blended).items():
                 if found is not None:
@@ -158,7 +166,7 @@ def analyse_frames(url: str, start: int, stop: int, identity: tuple[str, dict], 
     driver_change = ev.frame_changes(frames.array("aligned/rgb")[start:stop], face)
     return {"start": start, "landmarks": landmarks, "composite_landmarks": composite_landmarks,
             "descriptors": descriptors, "psnr": psnr, "ssim": ssim, "irises": irises, "creases": creases,
-            "texture_change": texture_change, "driver_change": driver_change,
+            "errors": errors, "texture_change": texture_change, "driver_change": driver_change,
             **{f"seam_{k}": np.array(v).reshape(-1, 2) for k, v in seams.items()},
             "sharpness": np.array(sharp).reshape(-1, 2),
             "colour_output": ev.masked_mean_colours(rendered, skin),
@@ -257,9 +265,13 @@ def evaluate(store: str, executor, *, identity: tuple[str, dict], threshold: flo
             tasks += [(actor, "photos", store, path, chosen[i::2], identity) for i in range(2)]
     # the drive's two single pieces first: each is several shards' work, and started last they ran alone
     tasks = [("motion", "motion", store, cast), ("texture", "texture", store, cast, collection_sample), *tasks]
-    parts, described, pieces = [], {actor: [] for actor in wanted}, {}
+    parts, described, pieces, errors = [], {actor: [] for actor in wanted}, {}, None
     for tag, result in executor.run(_piece, tasks):
         if tag == "frames":
+            part = result.pop("errors")  # summed as they come: a long HD drive's would not all fit in memory
+            if part is not None:
+                errors = part if errors is None else {k: errors[k] | v if k == "seen" else errors[k] + v
+                                                      for k, v in part.items()}
             parts.append(result)
             progress(len(result["landmarks"]))
         elif tag in described:
@@ -340,6 +352,8 @@ def evaluate(store: str, executor, *, identity: tuple[str, dict], threshold: flo
                                       "registration": ev.registration(driver_landmarks, joined["landmarks"]),
                                       "registration_composite": ev.registration(driver_landmarks,
                                                                                 joined["composite_landmarks"])}
+        picture = ev.error_picture(errors["square_sum"], errors["real_sum"], errors["seen"], errors["frames"])
+        result["pictures"] = {} if picture is None else {"error_map": picture}
     return result
 
 

@@ -54,8 +54,24 @@ def drive_outputs(runner: RunContext, plan, speed: dict) -> dict:
         out["videos"] = videos.result()
     out["speed"]["outputs_seconds"] = time.perf_counter() - t0
     out["series"] = evaluation.pop("series")
+    write_pictures(plan.output, evaluation.pop("pictures", {}))
     out["evaluation"] = evaluation
     return out
+
+
+#: the pictures an evaluation makes, each written as NAME.png beside the videos when it makes it
+EVALUATION_PICTURES = ("error_map",)
+
+
+def write_pictures(output: str, pictures: dict[str, np.ndarray]) -> None:
+    """An evaluation's ``pictures`` (:data:`EVALUATION_PICTURES`) into ``output``, and none left from an
+    evaluation before that made one this one did not (a drive no longer judged as a self-reenactment)."""
+    for name in EVALUATION_PICTURES:
+        path = storage.join(output, f"{name}.png")
+        if name in pictures:
+            media.write_png(path, pictures[name])
+        elif storage.isfile(path):
+            storage.remove(path)
 
 
 def _videos(runner: RunContext, plan, drive: Collection, stop: threading.Event) -> dict[str, str]:

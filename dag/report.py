@@ -15,7 +15,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from persona.plugins.builtin.evaluate import GAIN_BLOCK, expression_peaks
+from persona.plugins.builtin.evaluate import ERROR_SCALE, GAIN_BLOCK, expression_peaks
 from persona.plugins.face import composite
 from persona.stores import media, storage
 from persona.stores.layout import Cast, Collection
@@ -414,6 +414,12 @@ def frames_strip(drive: Collection, frames: Collection, n: int = 6, side: int = 
     return np.concatenate(columns, axis=1)
 
 
+#: the title of a self-reenactment's error map (evaluate.error_picture)
+ERROR_TITLE = ("Where the self-reenactment differs from the real frames: their mean (left), and the composite's "
+               f"root-mean-square difference from them at each pixel (right: blue 0, red {ERROR_SCALE:.0f} grey "
+               "levels and over)")
+
+
 def write_run_report(wf, root, metrics: dict, series: dict | None, *, cast: Cast | None = Cast(),
                      output=None) -> Path | str:
     """report.html in ``output`` (the workflow's output folder by default), from a run's ``metrics``
@@ -432,6 +438,9 @@ def write_run_report(wf, root, metrics: dict, series: dict | None, *, cast: Cast
             found = expression_peaks({k.removeprefix("driver_"): v for k, v in series.items()
                                          if k.startswith("driver_")}) + least_like_the_frame(series)
             peaks = (found, frames_strip(drive, frames, side=200, at=[t for _, t in found]))
+        error = storage.join(out, "error_map.png")  # a self-reenactment's (dag.outputs.write_pictures)
+        if storage.isfile(error):
+            pictures = {ERROR_TITLE: media.decode_image(error, max_side=4000), **pictures}
     fps = float(root[cast.frames].attrs["fps"]) if strip is not None else 25.0
     model = storage.join(out, "puppet.glb")  # a 3D drive's, written with its videos: the 3D view's
     model = model if strip is not None and storage.isfile(model) else None

@@ -826,6 +826,30 @@ def masked_psnr(a, b, mask) -> float:
     return float(10 * np.log10(255.0**2 / mse))
 
 
+#: the root-mean-square difference (grey levels) :func:`error_picture` draws red; 0 is blue
+ERROR_SCALE = 40.0
+
+
+def error_picture(square_sum: np.ndarray, real_sum: np.ndarray, seen: np.ndarray, frames: int,
+                  scale: float = ERROR_SCALE, margin: float = 0.1) -> np.ndarray | None:
+    """Where a self-reenactment differs from the real frames, as a picture (h, 2w, 3) uint8 RGB: the mean
+    real frame, and beside it the root-mean-square difference of the output from the real frames at each
+    pixel, blue at 0 to red at ``scale`` grey levels and over (OpenCV's JET colours), both cut to the pixels
+    the face covered in some frame (``seen``, (h, w) bool) and ``margin`` of that box's size around.
+
+    ``square_sum`` (h, w): each pixel's squared difference (mean over the channels) summed over ``frames``
+    frames; ``real_sum`` (h, w, 3): the real frames summed. None where the face covered no pixel."""
+    face = mask_box(seen)
+    if face is None or frames <= 0:
+        return None
+    box = mask_box(seen, int(margin * max(s.stop - s.start for s in face)))
+    rms = np.sqrt(np.asarray(square_sum, np.float64)[box] / frames)
+    level = np.clip(np.round(255 * rms / scale), 0, 255).astype(np.uint8)
+    heat = cv2.cvtColor(cv2.applyColorMap(level, cv2.COLORMAP_JET), cv2.COLOR_BGR2RGB)
+    mean = np.clip(np.round(np.asarray(real_sum, np.float64)[box] / frames), 0, 255).astype(np.uint8)
+    return np.hstack([mean, heat])
+
+
 #: SSIM's window (px, a box of this side, as skimage's default) and constants (Wang et al. 2004)
 SSIM_WINDOW, SSIM_K1, SSIM_K2 = 7, 0.01, 0.03
 

@@ -9,6 +9,7 @@ import threading
 import time
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 import yaml
@@ -220,6 +221,7 @@ def test_a_self_reenactment_gives_each_frames_psnr_and_shows_the_frame_least_lik
     alone's and the composite's, whose means are the evaluation's figures; the report plots them against their
     targets and puts the composite's worst frame among the peaks. A drive not judged so has neither."""
     from persona.dag.evaluate import evaluate
+    from persona.dag.outputs import write_pictures
     from persona.dag.report import least_like_the_frame, plots
     from persona.dag.runner import executor_for
 
@@ -238,6 +240,17 @@ def test_a_self_reenactment_gives_each_frames_psnr_and_shows_the_frame_least_lik
     unjudged = json.loads((folder / "output" / "series.json").read_text())
     assert "psnr_composite" not in unjudged and least_like_the_frame(unjudged) == []
     assert "fidelity" not in plots(unjudged, 0.6, 25.0)
+    # where the composite missed, as a picture: the real frames' mean beside the error, which is 0 (blue)
+    # far from the face the composite drew into the frame, and above it somewhere on the face
+    picture = judged["pictures"]["error_map"]
+    mean, heat = np.split(picture, 2, axis=1)
+    blue = cv2.cvtColor(cv2.applyColorMap(np.zeros((1, 1), np.uint8), cv2.COLORMAP_JET), cv2.COLOR_BGR2RGB)[0, 0]
+    assert (heat[0, 0] == blue).all() and (heat != blue).any(axis=-1).mean() > 0.1
+    assert not (folder / "output" / "error_map.png").exists()  # the run's drive was not judged so
+    write_pictures(str(folder / "output"), judged["pictures"])
+    assert (folder / "output" / "error_map.png").is_file()
+    write_pictures(str(folder / "output"), {})  # judged again, not as a self-reenactment: no map left behind
+    assert not (folder / "output" / "error_map.png").exists()
 
 
 def test_a_puppet_driven_by_its_own_collection_judges_no_identity(drive_run):
