@@ -126,10 +126,7 @@ def analyse_frames(url: str, start: int, stop: int, identity: tuple[str, dict], 
     creases = np.full((n, 3), np.nan)  # the detail between the brows: the driver's, the face alone's, the composite's
     seams = {"blend": [], "paste": []}
     sharp = []  # every 4th frame: the face alone's and the composite's fine detail over the driver's face
-    # a self-reenactment's error map (ev.error_picture): the composite's squared difference from the real frame
-    # and the real frames, summed, and where the face was drawn
-    errors = {"square_sum": np.zeros(original.shape[1:3], np.float32), "seen": np.zeros(original.shape[1:3], bool),
-              "real_sum": np.zeros(original.shape[1:], np.float32), "frames": n} if compare else None
+    errors = ev.ErrorSums.zeros(original.shape[1:]) if compare else None  # a self-reenactment's error map
     for j in range(n):
         alpha = render_alpha(alphas[j])
         face = composite.alone(rendered[j], alpha)  # as puppet.mp4 shows it
@@ -152,9 +149,7 @@ def analyse_frames(url: str, start: int, stop: int, identity: tuple[str, dict], 
             psnr[j] = [ev.masked_psnr(image, original[j], masks[j]) for image in (face, blended)]
             ssim[j] = ev.masked_ssims((face, blended), original[j], masks[j])
         if compare:
-            errors["square_sum"] += np.mean(np.square(blended.astype(np.float32) - original[j]), axis=-1)
-            errors["real_sum"] += original[j]
-            errors["seen"] |= masks[j]
+            errors.add(blended, original[j], masks[j])
         if (start + j) % 4 == 0:
             for name, found in composite.seams(rendered[j], original[j], alpha, blended).items():
                 if found is not None:
@@ -269,9 +264,7 @@ def evaluate(store: str, executor, *, identity: tuple[str, dict], threshold: flo
     for tag, result in executor.run(_piece, tasks):
         if tag == "frames":
             part = result.pop("errors")  # summed as they come: a long HD drive's would not all fit in memory
-            if part is not None:
-                errors = part if errors is None else {k: errors[k] | v if k == "seen" else errors[k] + v
-                                                      for k, v in part.items()}
+            errors = part if errors is None else errors + part  # None alike unless a self-reenactment
             parts.append(result)
             progress(len(result["landmarks"]))
         elif tag in described:
@@ -352,7 +345,7 @@ def evaluate(store: str, executor, *, identity: tuple[str, dict], threshold: flo
                                       "registration": ev.registration(driver_landmarks, joined["landmarks"]),
                                       "registration_composite": ev.registration(driver_landmarks,
                                                                                 joined["composite_landmarks"])}
-        picture = ev.error_picture(errors["square_sum"], errors["real_sum"], errors["seen"], errors["frames"])
+        picture = errors.picture()
         result["pictures"] = {} if picture is None else {"error_map": picture}
     return result
 

@@ -19,6 +19,7 @@ NaN when undefined, e.g. too few frames), per-frame series are float64 ndarrays.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from functools import lru_cache
 
 import cv2
@@ -826,28 +827,52 @@ def masked_psnr(a, b, mask) -> float:
     return float(10 * np.log10(255.0**2 / mse))
 
 
-#: the root-mean-square difference (grey levels) :func:`error_picture` draws red; 0 is blue
+#: the root-mean-square difference (grey levels) :meth:`ErrorSums.picture` draws red; 0 is blue
 ERROR_SCALE = 40.0
 
 
-def error_picture(square_sum: np.ndarray, real_sum: np.ndarray, seen: np.ndarray, frames: int,
-                  scale: float = ERROR_SCALE, margin: float = 0.1) -> np.ndarray | None:
-    """Where a self-reenactment differs from the real frames, as a picture (h, 2w, 3) uint8 RGB: the mean
-    real frame, and beside it the root-mean-square difference of the output from the real frames at each
-    pixel, blue at 0 to red at ``scale`` grey levels and over (OpenCV's JET colours), both cut to the pixels
-    the face covered in some frame (``seen``, (h, w) bool) and ``margin`` of that box's size around.
+@dataclass
+class ErrorSums:
+    """What a self-reenactment's error map is made of, summed over frames: each pixel's squared difference of
+    the output from the real frame (``square``, (h, w, 3) float32, per channel), the real frames (``real``,
+    (h, w, 3) float32), the pixels the face covered in some frame (``seen``, (h, w) bool) and how many
+    ``frames``. Sums of disjoint frames add (``+``)."""
 
-    ``square_sum`` (h, w): each pixel's squared difference (mean over the channels) summed over ``frames``
-    frames; ``real_sum`` (h, w, 3): the real frames summed. None where the face covered no pixel."""
-    face = mask_box(seen)
-    if face is None or frames <= 0:
-        return None
-    box = mask_box(seen, int(margin * max(s.stop - s.start for s in face)))
-    rms = np.sqrt(np.asarray(square_sum, np.float64)[box] / frames)
-    level = np.clip(np.round(255 * rms / scale), 0, 255).astype(np.uint8)
-    heat = cv2.cvtColor(cv2.applyColorMap(level, cv2.COLORMAP_JET), cv2.COLOR_BGR2RGB)
-    mean = np.clip(np.round(np.asarray(real_sum, np.float64)[box] / frames), 0, 255).astype(np.uint8)
-    return np.hstack([mean, heat])
+    square: np.ndarray
+    real: np.ndarray
+    seen: np.ndarray
+    frames: int = 0
+
+    @classmethod
+    def zeros(cls, shape: tuple[int, int, int]) -> "ErrorSums":
+        return cls(np.zeros(shape, np.float32), np.zeros(shape, np.float32), np.zeros(shape[:2], bool))
+
+    def add(self, output: np.ndarray, real: np.ndarray, face: np.ndarray) -> None:
+        """One frame: ``output`` and ``real`` (h, w, 3) uint8, ``face`` (h, w) bool. OpenCV's accumulators:
+        a tenth of NumPy's time on a 720p frame, the same sums."""
+        cv2.accumulateSquare(cv2.absdiff(output, real), self.square)
+        cv2.accumulate(real, self.real)
+        self.seen |= face
+        self.frames += 1
+
+    def __add__(self, other: "ErrorSums") -> "ErrorSums":
+        return ErrorSums(self.square + other.square, self.real + other.real, self.seen | other.seen,
+                         self.frames + other.frames)
+
+    def picture(self, scale: float = ERROR_SCALE, margin: float = 0.1) -> np.ndarray | None:
+        """Where the output differs from the real frames, (h, 2w, 3) uint8 RGB: the mean real frame, and beside it
+        the root-mean-square difference at each pixel (the mean over the channels), blue at 0 to red at ``scale``
+        grey levels and over (OpenCV's JET colours), both cut to the face's box (``seen``) and ``margin`` of its
+        size around. None where the face covered no pixel."""
+        face = mask_box(self.seen)
+        if face is None or self.frames <= 0:
+            return None
+        box = mask_box(self.seen, int(margin * max(s.stop - s.start for s in face)))
+        rms = np.sqrt(self.square[box].astype(np.float64).mean(axis=-1) / self.frames)
+        level = np.clip(np.round(255 * rms / scale), 0, 255).astype(np.uint8)
+        heat = cv2.cvtColor(cv2.applyColorMap(level, cv2.COLORMAP_JET), cv2.COLOR_BGR2RGB)
+        mean = np.clip(np.round(self.real[box].astype(np.float64) / self.frames), 0, 255).astype(np.uint8)
+        return np.hstack([mean, heat])
 
 
 #: SSIM's window (px, a box of this side, as skimage's default) and constants (Wang et al. 2004)

@@ -349,19 +349,25 @@ def test_masked_psnr_and_ssim():
     assert np.isnan(masked_psnr(a, c, np.zeros_like(mask)))
 
 
-def test_the_error_picture_shows_the_mean_real_frame_and_where_the_output_missed():
+def test_the_error_map_shows_the_mean_real_frame_and_where_the_output_missed():
     """A self-reenactment's error map: the real frames' mean beside the root-mean-square difference, cut to the
-    face's box and a tenth of its size around. Ground truth: frames of two greys, an output 40 grey levels off
-    in one 10 x 10 square in half of them (RMS 40 / sqrt 2 = 28.3, drawn at 28.3 / 40 of the colour scale)."""
+    face's box and a tenth of its size around. Ground truth: frames of one grey each, an output 40 grey levels
+    off in one 10 x 10 square in half of them (RMS 40 / sqrt 2 = 28.3, drawn at 28.3 / 40 of the colour scale),
+    summed in two parts that add."""
     rng = np.random.default_rng(0)
     h, w, frames = 120, 160, 8
-    reals = rng.integers(60, 200, (frames, 1, 1, 3)) * np.ones((1, h, w, 1))
+    reals = (rng.integers(60, 200, (frames, 1, 1, 3)) * np.ones((1, h, w, 1))).astype(np.uint8)
     outputs = reals.copy()
     outputs[::2, 50:60, 70:80] += 40
-    square_sum = np.mean(np.square(outputs - reals), axis=-1).sum(axis=0)
-    seen = np.zeros((h, w), bool)
-    seen[30:80, 40:100] = True  # the face: 50 x 60 px; its margin 6 px (a tenth of its larger side)
-    picture = ev.error_picture(square_sum, reals.sum(axis=0), seen, frames)
+    face = np.zeros((h, w), bool)
+    face[30:80, 40:100] = True  # 50 x 60 px; its margin 6 px (a tenth of its larger side)
+    halves = [ev.ErrorSums.zeros((h, w, 3)) for _ in range(2)]
+    for t in range(frames):
+        halves[t % 2].add(outputs[t], reals[t], face)
+    sums = halves[0] + halves[1]
+    assert sums.frames == frames
+    assert np.array_equal(sums.square, np.square(outputs.astype(np.float32) - reals).sum(axis=0))
+    picture = sums.picture()
     assert picture.shape == (62, 2 * 72, 3) and picture.dtype == np.uint8
     mean, heat = picture[:, :72], picture[:, 72:]
     assert np.abs(mean.astype(float) - reals.mean(axis=0)[24:86, 34:106]).max() <= 0.5
@@ -369,8 +375,8 @@ def test_the_error_picture_shows_the_mean_real_frame_and_where_the_output_missed
                          cv2.COLOR_BGR2RGB)[:, 0]
     level = lambda colour: int(np.argmin(np.abs(scale.astype(int) - colour.astype(int)).sum(axis=1)))
     assert level(heat[50 - 24 + 5, 70 - 34 + 5]) == pytest.approx(255 * 40 / np.sqrt(2) / ev.ERROR_SCALE, abs=2)
-    assert level(heat[0, 0]) == 0 and (np.abs(heat[:20].astype(int) - scale[0]).max()) == 0
-    assert ev.error_picture(square_sum, reals.sum(axis=0), np.zeros((h, w), bool), frames) is None
+    assert np.abs(heat[:20].astype(int) - scale[0]).max() == 0  # no difference: blue
+    assert ev.ErrorSums.zeros((h, w, 3)).picture() is None
 
 
 def test_masked_ssim_on_the_masks_box_is_skimages_figure_on_the_whole_image():
