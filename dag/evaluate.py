@@ -149,7 +149,7 @@ def analyse_frames(url: str, start: int, stop: int, identity: tuple[str, dict], 
             psnr[j] = [ev.masked_psnr(image, original[j], masks[j]) for image in (face, blended)]
             ssim[j] = ev.masked_ssims((face, blended), original[j], masks[j])
         if compare:
-            errors.add(blended, original[j], masks[j])
+            errors.add(blended, original[j], masks[j], theirs[j])
         if (start + j) % 4 == 0:
             for name, found in composite.seams(rendered[j], original[j], alpha, blended).items():
                 if found is not None:
@@ -345,6 +345,7 @@ def evaluate(store: str, executor, *, identity: tuple[str, dict], threshold: flo
                                       "registration": ev.registration(driver_landmarks, joined["landmarks"]),
                                       "registration_composite": ev.registration(driver_landmarks,
                                                                                 joined["composite_landmarks"])}
+        result["self_reenactment"]["error_share"] = errors.shares()
         picture = errors.picture()
         result["pictures"] = {} if picture is None else {"error_map": picture}
     return result

@@ -297,10 +297,14 @@ _FIDELITY = {"psnr_db_composite": 27.0, "ssim_composite": 0.88, "psnr_db": 25.0,
 
 def _self_reenactment_rows(figures: dict) -> list[tuple]:
     """The rows of a self-reenactment's figures: PSNR and SSIM of the face region against the real frames,
-    and the landmark registration per region (dlib's points on the output against the real frame's), whose
-    targets are the composite's, what a viewer sees."""
+    the landmark registration per region (dlib's points on the output against the real frame's), whose
+    targets are the composite's, what a viewer sees, and each part of the face's share of the composite's error."""
     rows = []
     for k, v in figures.items():
+        if k == "error_share":  # where the composite's error lies (the error map's picture, in figures)
+            rows += [(f"self-reenactment error share: {region}", share, "share of the composite's squared error "
+                      "inside the face", None) for region, share in v.items()]
+            continue
         if not k.startswith("registration"):
             aim = _FIDELITY.get(k)
             rows.append((f"self-reenactment {k}", v, "higher is better" + (f"; target ≥ {aim:g}" if aim else ""),

@@ -19,7 +19,7 @@ NaN when undefined, e.g. too few frames), per-frame series are float64 ndarrays.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import lru_cache
 
 import cv2
@@ -830,34 +830,73 @@ def masked_psnr(a, b, mask) -> float:
 #: the root-mean-square difference (grey levels) :meth:`ErrorSums.picture` draws red; 0 is blue
 ERROR_SCALE = 40.0
 
+#: the parts of the face whose shares of a self-reenactment's squared error are given (:meth:`ErrorSums.shares`):
+#: each the convex hulls of these groups of the real frame's iBUG points, grown by :data:`REGION_GROWTH`; a pixel
+#: in two goes to the first; the face's pixels in none are ``rest`` (cheeks, forehead, chin)
+ERROR_REGIONS = {"eyes": (range(36, 42), range(42, 48)), "brows": (range(17, 22), range(22, 27)),
+                 "nose": (range(27, 36),), "mouth": (range(48, 60),)}
+#: how far each region reaches beyond its points' hull, in the frame's eye distances
+REGION_GROWTH = 0.1
+
+
+def region_labels(landmarks: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """(h, w) uint8: each pixel's index in :data:`ERROR_REGIONS` by a frame's 68 ``landmarks``, or its length
+    (``rest``) where it is in none."""
+    labels = np.full(shape, len(ERROR_REGIONS), np.uint8)
+    grow = REGION_GROWTH * float(interocular(np.asarray(landmarks)[None])[0])
+    for index, groups in reversed(list(enumerate(ERROR_REGIONS.values()))):  # the first region drawn last
+        for group in groups:
+            hull = cv2.convexHull(np.asarray(landmarks, np.float32)[list(group)])[:, 0].astype(np.float64)
+            out = hull - hull.mean(axis=0)
+            hull += grow * out / np.maximum(np.linalg.norm(out, axis=1, keepdims=True), 1e-9)
+            cv2.fillPoly(labels, [np.round(hull).astype(np.int32)], index)
+    return labels
+
 
 @dataclass
 class ErrorSums:
     """What a self-reenactment's error map is made of, summed over frames: each pixel's squared difference of
     the output from the real frame (``square``, (h, w, 3) float32, per channel), the real frames (``real``,
-    (h, w, 3) float32), the pixels the face covered in some frame (``seen``, (h, w) bool) and how many
-    ``frames``. Sums of disjoint frames add (``+``)."""
+    (h, w, 3) float32), the pixels the face covered in some frame (``seen``, (h, w) bool), how many ``frames``,
+    and the squared error inside the face in each of :data:`ERROR_REGIONS` and the rest (``regions``).
+    Sums of disjoint frames add (``+``)."""
 
     square: np.ndarray
     real: np.ndarray
     seen: np.ndarray
     frames: int = 0
+    regions: np.ndarray = field(default_factory=lambda: np.zeros(len(ERROR_REGIONS) + 1))
 
     @classmethod
     def zeros(cls, shape: tuple[int, int, int]) -> "ErrorSums":
         return cls(np.zeros(shape, np.float32), np.zeros(shape, np.float32), np.zeros(shape[:2], bool))
 
-    def add(self, output: np.ndarray, real: np.ndarray, face: np.ndarray) -> None:
-        """One frame: ``output`` and ``real`` (h, w, 3) uint8, ``face`` (h, w) bool. OpenCV's accumulators:
-        a tenth of NumPy's time on a 720p frame, the same sums."""
-        cv2.accumulateSquare(cv2.absdiff(output, real), self.square)
+    def add(self, output: np.ndarray, real: np.ndarray, face: np.ndarray, landmarks: np.ndarray | None = None) -> None:
+        """One frame: ``output`` and ``real`` (h, w, 3) uint8, ``face`` (h, w) bool, and the real frame's 68
+        ``landmarks`` (none, or NaN: its error counts in no region). OpenCV's accumulators: a tenth of NumPy's
+        time on a 720p frame, the same sums."""
+        difference = cv2.absdiff(output, real)
+        cv2.accumulateSquare(difference, self.square)
         cv2.accumulate(real, self.real)
         self.seen |= face
         self.frames += 1
+        box = mask_box(face)
+        if box is not None and landmarks is not None and np.isfinite(landmarks).all():
+            inside = face[box]
+            labels = region_labels(np.asarray(landmarks) - [box[1].start, box[0].start], inside.shape)
+            squares = np.square(difference[box].astype(np.float32)).sum(axis=-1)
+            self.regions += np.bincount(labels[inside], weights=squares[inside], minlength=len(self.regions))
 
     def __add__(self, other: "ErrorSums") -> "ErrorSums":
         return ErrorSums(self.square + other.square, self.real + other.real, self.seen | other.seen,
-                         self.frames + other.frames)
+                         self.frames + other.frames, self.regions + other.regions)
+
+    def shares(self) -> dict[str, float]:
+        """Each region's share of the squared error inside the face (:data:`ERROR_REGIONS`, then ``rest``), over
+        the frames whose real face dlib found; NaN where there is none."""
+        total = self.regions.sum()
+        names = [*ERROR_REGIONS, "rest"]
+        return {name: float(v / total) if total > 0 else float("nan") for name, v in zip(names, self.regions)}
 
     def picture(self, scale: float = ERROR_SCALE, margin: float = 0.1) -> np.ndarray | None:
         """Where the output differs from the real frames, (h, 2w, 3) uint8 RGB: the mean real frame, and beside it

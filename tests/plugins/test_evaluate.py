@@ -379,6 +379,31 @@ def test_the_error_map_shows_the_mean_real_frame_and_where_the_output_missed():
     assert ev.ErrorSums.zeros((h, w, 3)).picture() is None
 
 
+def test_the_error_shares_say_which_part_of_the_face_holds_the_error():
+    """Each part of the face's share of the squared error, by the real frame's landmarks: on the demo's synthetic
+    face (ground-truth points), an error drawn only on the mouth's points is the mouth's alone, one on the two
+    eyes' the eyes', one on the cheek beside the nose in none of the four (``rest``)."""
+    from persona.plugins.face import synthetic
+
+    photo = synthetic.make_collection(1, seed=0, yaw_range=0, pitch_range=0, roll_range=0, expression_sigma=0)[0]
+    real, points = photo.image, photo.landmarks
+    face = np.zeros(real.shape[:2], bool)
+    face[int(points[:, 1].min()) - 20:, :] = True
+    for group, region in (((48, 54, 51, 57), "mouth"), ((37, 44), "eyes")):
+        output = real.copy()
+        for k in group:
+            x, y = np.round(points[k]).astype(int)
+            output[y - 1:y + 2, x - 1:x + 2] = 255 - output[y - 1:y + 2, x - 1:x + 2]
+        sums = ev.ErrorSums.zeros(real.shape)
+        sums.add(output, real, face, points)
+        shares = sums.shares()
+        assert shares[region] == pytest.approx(1.0) and sum(shares.values()) == pytest.approx(1.0), shares
+    labels = ev.region_labels(points, real.shape[:2])
+    cheek = np.round((points[31] + points[3]) / 2).astype(int)  # between the nose's wing and the jaw
+    assert labels[cheek[1], cheek[0]] == len(ev.ERROR_REGIONS)
+    assert np.isnan(ev.ErrorSums.zeros(real.shape).shares()["mouth"])
+
+
 def test_masked_ssim_on_the_masks_box_is_skimages_figure_on_the_whole_image():
     from skimage.metrics import structural_similarity
 
