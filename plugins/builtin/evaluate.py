@@ -882,10 +882,12 @@ class ErrorSums:
         self.frames += 1
         box = mask_box(face)
         if box is not None and landmarks is not None and np.isfinite(landmarks).all():
-            inside = face[box]
-            labels = region_labels(np.asarray(landmarks) - [box[1].start, box[0].start], inside.shape)
-            squares = np.square(difference[box].astype(np.float32)).sum(axis=-1)
-            self.regions += np.bincount(labels[inside], weights=squares[inside], minlength=len(self.regions))
+            off = len(self.regions)  # the label of the pixels off the face, dropped
+            labels = np.where(face[box], region_labels(np.asarray(landmarks) - [box[1].start, box[0].start],
+                                                       face[box].shape), off)
+            part = difference[box].astype(np.float32)
+            squares = np.einsum("ijk,ijk->ij", part, part)
+            self.regions += np.bincount(labels.ravel(), weights=squares.ravel(), minlength=off + 1)[:off]
 
     def __add__(self, other: "ErrorSums") -> "ErrorSums":
         return ErrorSums(self.square + other.square, self.real + other.real, self.seen | other.seen,
