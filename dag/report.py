@@ -301,7 +301,7 @@ def _self_reenactment_rows(figures: dict) -> list[tuple]:
     targets are the composite's, what a viewer sees, and each part of the face's share of the composite's error."""
     rows = []
     for k, v in figures.items():
-        if k == "error_share":  # where the composite's error lies (the error map's picture, in figures)
+        if k == "error_share":  # where the composite's error lies, as error_map.png shows it
             rows += [(f"self-reenactment error share: {region}", share, "share of the composite's squared error "
                       "inside the face", None) for region, share in v.items()]
             continue
@@ -418,7 +418,7 @@ def frames_strip(drive: Collection, frames: Collection, n: int = 6, side: int = 
     return np.concatenate(columns, axis=1)
 
 
-#: the title of a self-reenactment's error map (evaluate.error_picture)
+#: the title of a self-reenactment's error map (evaluate.ErrorSums.picture)
 ERROR_TITLE = ("Where the self-reenactment differs from the real frames: their mean (left), and the composite's "
                f"root-mean-square difference from them at each pixel (right: blue 0, red {ERROR_SCALE:.0f} grey "
                "levels and over)")

@@ -905,8 +905,8 @@ class ErrorSums:
         the root-mean-square difference at each pixel (the mean over the channels), blue at 0 to red at ``scale``
         grey levels and over (OpenCV's JET colours), both cut to the face's box (``seen``) and ``margin`` of its
         size around. None where the face covered no pixel."""
-        face = mask_box(self.seen)
-        if face is None or self.frames <= 0:
+        face = mask_box(self.seen)  # none: no frame drew a face
+        if face is None:
             return None
         box = mask_box(self.seen, int(margin * max(s.stop - s.start for s in face)))
         rms = np.sqrt(self.square[box].astype(np.float64).mean(axis=-1) / self.frames)

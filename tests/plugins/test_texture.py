@@ -307,31 +307,48 @@ def _red_over_green(texture: np.ndarray, where: np.ndarray) -> float:
     return float(energy[0] / energy[1])
 
 
+def _opened(fiducials: np.ndarray) -> np.ndarray:
+    """The fiducials with the inner lips' lower points 12 px lower: a mouth open further than anything else moves."""
+    from persona.plugins.face.warp import FACING
+
+    out = fiducials.copy()
+    out[[lower for _, lower in FACING[4:]], 1] += 12.0
+    return out
+
+
+def _part_against_the_mouth(part: np.ndarray, stripes: np.ndarray, region_of, own: str, sigma: float):
+    """The check a part's own expression weight (``eye_sigma``, ``brow_sigma``) passes: half of twelve photos have
+    the part moved and a shut mouth (fiducials ``part``, red ``stripes``), half an open mouth and the part at rest
+    (green); the target has both. The face's weights (49 fiducials, the mouth's 12 px dominate) take the green
+    photos outside the part's region (``region_of``); the part's own, at ``sigma``, the red inside it; at 0 (the
+    paper's) the green there too. Returns (cache, fiducials, target, region) for what a test checks beside."""
+    from persona.plugins.face.template import CANONICAL_HEIGHT as H, CANONICAL_WIDTH as W
+
+    cache, fiducials = _striped(part, _opened(generic_template().fiducials3d[:, :2]), stripes)
+    target = _opened(part)
+    region = region_of(mean_shape(fiducials), (H, W))
+    paper_blend = {"detail_share": 0.0, "finest_share": 0.0, "close_eyes": False, "eye_sigma": 0.0, "brow_sigma": 0.0}
+    for value in (sigma, 0.0):
+        texture = MultiscaleTexture({**paper_blend, own: value}).blend(cache, fiducials, target)
+        assert _red_over_green(texture, region == 0) < 0.2, (own, value)  # the face follows the mouth
+        inside = _red_over_green(texture, region > 0.95)
+        assert inside > 5 if value else inside < 0.2, (own, value, inside)
+    return cache, fiducials, target, region
+
+
 def test_the_eyes_take_the_photos_whose_eyes_are_as_open_as_the_targets():
     """``eye_sigma``: the eyes' region of a frame's texture is the blend of the photos whose lids are as
-    far apart as the target's, whatever their mouths. Half the photos have wide eyes and a shut mouth (a
-    red stripe pattern), half an open mouth and ordinary eyes (green); for a target with both, the face's
-    weights (49 fiducials, the mouth's 12 px dominate) take the green photos, the eyes' own the red. At the
-    defaults the fine detail given back in the eyes is the eyes' own too, not B's neutral's."""
+    far apart as the target's, whatever their mouths (:func:`_part_against_the_mouth`: wide eyes, a red stripe
+    pattern down the face). At the defaults the fine detail given back in the eyes is the eyes' own too, not
+    B's neutral's."""
     from persona.plugins.face import eyes
     from persona.plugins.face.template import CANONICAL_HEIGHT as H, CANONICAL_WIDTH as W
     from persona.plugins.face.warp import FACING
 
-    base = generic_template().fiducials3d[:, :2]
-    wide, open_mouth = base.copy(), base.copy()
-    for pairs, shape, by in ((FACING[:4], wide, 1.5), (FACING[4:], open_mouth, 12.0)):
-        shape[[lower for _, lower in pairs], 1] += by
-    target = wide.copy()
-    target[[lower for _, lower in FACING[4:]], 1] += 12.0
+    wide = generic_template().fiducials3d[:, :2].copy()
+    wide[[lower for _, lower in FACING[:4]], 1] += 1.5
     columns = np.where(np.arange(W) % 4 < 2, 20.0, -20.0)[None, :] * np.ones((H, 1))
-    cache, fiducials = _striped(wide, open_mouth, columns)
-    region = eyes.region(mean_shape(fiducials), (H, W))
-    paper_blend = {"detail_share": 0.0, "finest_share": 0.0, "close_eyes": False, "brow_sigma": 0.0}
-    for eye_sigma in (1.0, 0.0):
-        texture = MultiscaleTexture({**paper_blend, "eye_sigma": eye_sigma}).blend(cache, fiducials, target)
-        assert _red_over_green(texture, region == 0) < 0.2, eye_sigma  # the face follows the mouth
-        in_the_eyes = _red_over_green(texture, region > 0.95)
-        assert in_the_eyes > 5 if eye_sigma else in_the_eyes < 0.2, eye_sigma
+    cache, fiducials, target, region = _part_against_the_mouth(wide, columns, eyes.region, "eye_sigma", 1.0)
     # the detail given back: the face's from B's neutral (half red, half green), the eyes' their own (red);
     # given back from the neutral there too, the neutral's green came back into the eyes (red over green 27)
     texture = MultiscaleTexture({"close_eyes": False, "brow_sigma": 0.0}).blend(cache, fiducials, target)
@@ -341,29 +358,15 @@ def test_the_eyes_take_the_photos_whose_eyes_are_as_open_as_the_targets():
 
 def test_the_brows_take_the_photos_whose_brows_do_what_the_targets_do():
     """``brow_sigma``: the region above the eyes of a frame's texture is the blend of the photos whose brows sit
-    as the target's do from its eyes, whatever their mouths. Half the photos have raised brows and a shut mouth
-    (a red stripe pattern, as a raised brow's creases), half an open mouth and resting brows (green); for a
-    target with both, the face's weights (49 fiducials, the mouth's 12 px dominate) take the green photos, the
-    brows' own the red above the eyes; with ``brow_sigma`` 0 (the paper's) the green there too."""
+    as the target's do from its eyes, whatever their mouths (:func:`_part_against_the_mouth`: raised brows, red
+    lines across the face, as a raised brow's creases)."""
     from persona.plugins.face import brows
     from persona.plugins.face.template import CANONICAL_HEIGHT as H, CANONICAL_WIDTH as W
-    from persona.plugins.face.warp import FACING
 
-    base = generic_template().fiducials3d[:, :2]
-    raised, open_mouth = base.copy(), base.copy()
+    raised = generic_template().fiducials3d[:, :2].copy()
     raised[[i for brow, _ in brows.BROWS for i in brow], 1] -= 4.0
-    open_mouth[[lower for _, lower in FACING[4:]], 1] += 12.0
-    target = raised.copy()
-    target[[lower for _, lower in FACING[4:]], 1] += 12.0
-    rows = np.where(np.arange(H) % 4 < 2, 20.0, -20.0)[:, None] * np.ones((1, W))  # lines across, as creases
-    cache, fiducials = _striped(raised, open_mouth, rows)
-    region = brows.region(mean_shape(fiducials), (H, W))
-    paper_blend = {"detail_share": 0.0, "finest_share": 0.0, "close_eyes": False, "eye_sigma": 0.0}
-    for brow_sigma in (3.0, 0.0):
-        texture = MultiscaleTexture({**paper_blend, "brow_sigma": brow_sigma}).blend(cache, fiducials, target)
-        assert _red_over_green(texture, region == 0) < 0.2, brow_sigma  # the face follows the mouth
-        above = _red_over_green(texture, region > 0.95)
-        assert above > 5 if brow_sigma else above < 0.2, (brow_sigma, above)
+    rows = np.where(np.arange(H) % 4 < 2, 20.0, -20.0)[:, None] * np.ones((1, W))
+    _part_against_the_mouth(raised, rows, brows.region, "brow_sigma", 3.0)
 
 
 def test_the_eyes_take_the_photos_that_look_ahead():
