@@ -48,10 +48,14 @@ def _path(url: str) -> str:
 
 
 def holder(url: str) -> dict | None:
-    """Who holds the lock of the store at ``url`` (its JSON), or None when no one does."""
-    with contextlib.suppress(FileNotFoundError):
+    """Who holds the lock of the store at ``url`` (its JSON), or None when no one does; ``{}`` for a lock file
+    cut short by a kill while it was written, which is stale (never renewed)."""
+    try:
         return json.loads(storage.read_text(_path(url)))
-    return None
+    except FileNotFoundError:
+        return None
+    except json.JSONDecodeError:
+        return {}
 
 
 def _alive(pid: int) -> bool:
@@ -75,6 +79,8 @@ def stale(held: dict, now: float | None = None) -> bool:
 
 def describe(held: dict) -> str:
     """The holder in words: process, host and since when."""
+    if not held:
+        return "a lock file cut short"
     return f"process {held.get('pid')} on {held.get('host')}, since {held.get('since')}"
 
 
@@ -98,15 +104,32 @@ def writer(url: str) -> Iterator[dict]:
         os.makedirs(url, exist_ok=True)
     me = {"host": socket.gethostname(), "pid": os.getpid(), "token": uuid.uuid4().hex,
           "since": datetime.now(timezone.utc).isoformat(timespec="seconds"), "renewed": time.time()}
-    _write(url, me)
-    if (holder(url) or {}).get("token") != me["token"]:  # another run took it in the same moment
-        raise StoreLocked(f"the store {url} is being written by another run ({describe(holder(url) or {})}), "
-                          "which started at the same time: wait for it to end")
+    try:  # from the first byte written: a SIGTERM or Ctrl-C while taking the lock still gives it back
+        _write(url, me)
+        if _token(url) != me["token"]:  # another run took it in the same moment
+            raise StoreLocked(f"the store {url} is being written by another run ({describe(holder(url) or {})}), "
+                              "which started at the same time: wait for it to end")
+        with _renewing(url, me):
+            yield me
+    finally:
+        if _token(url) in (me["token"], None):  # ours, or our own write cut short
+            with contextlib.suppress(FileNotFoundError):
+                storage.remove(_path(url))
+
+
+def _token(url: str) -> str | None:
+    """The token of the lock's holder (None when there is no lock or its file was cut short)."""
+    return (holder(url) or {}).get("token")
+
+
+@contextlib.contextmanager
+def _renewing(url: str, me: dict) -> Iterator[None]:
+    """Renew the lock ``me`` every ``RENEW`` seconds for the block, until another run takes it."""
     done = threading.Event()
 
     def renew():
         while not done.wait(RENEW):
-            if (holder(url) or {}).get("token") != me["token"]:
+            if _token(url) != me["token"]:
                 log.warning("the store's lock was taken by another run (%s)", describe(holder(url) or {}))
                 return
             _write(url, {**me, "renewed": time.time()})
@@ -114,9 +137,7 @@ def writer(url: str) -> Iterator[dict]:
     thread = threading.Thread(target=renew, name="persona-store-lock", daemon=True)
     thread.start()
     try:
-        yield me
+        yield
     finally:
         done.set()
         thread.join()
-        if (holder(url) or {}).get("token") == me["token"]:
-            storage.remove(_path(url))

@@ -46,6 +46,32 @@ def test_the_lock_is_given_back_when_the_run_fails(tmp_path):
     assert lock.holder(url) is None
 
 
+@pytest.mark.parametrize("written", [0.5, 1.0])
+def test_a_stop_while_the_lock_is_taken_gives_it_back(tmp_path, monkeypatch, written):
+    """A SIGTERM or Ctrl-C in the moment the lock is written (cut short half way) or read back leaves no lock."""
+    url = str(tmp_path / "run.zarr")
+
+    def write_then_stop(url, held):
+        text = json.dumps(held)
+        with storage.open_file(storage.join(url, lock.NAME), "w") as f:
+            f.write(text[: int(len(text) * written)])
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(lock, "_write", write_then_stop)
+    with pytest.raises(KeyboardInterrupt), lock.writer(url):
+        pass
+    assert not (tmp_path / "run.zarr" / lock.NAME).exists()
+
+
+def test_a_lock_file_cut_short_by_a_kill_is_taken_over(tmp_path, caplog):
+    url = str(tmp_path / "run.zarr")
+    tmp_path.joinpath("run.zarr").mkdir()
+    tmp_path.joinpath("run.zarr", lock.NAME).write_text('{"host": "')
+    with caplog.at_level(logging.WARNING, logger="persona.stores.lock"), lock.writer(url) as me:
+        assert lock.holder(url)["token"] == me["token"]
+    assert "a lock file cut short" in caplog.text and lock.holder(url) is None
+
+
 def test_a_lock_left_by_a_killed_run_is_taken_over(tmp_path, caplog):
     """A process of this machine that is gone, at once; another machine's, once it has not renewed its lock
     for ``STALE`` seconds, and not before."""
