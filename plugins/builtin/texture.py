@@ -149,7 +149,7 @@ def _eyes_moved(textures: np.ndarray, targets: np.ndarray, neutral: np.ndarray, 
     if close_eyes:
         for texture, target in zip(textures, targets):
             visible = eyes.lowered(target, neutral, start=p.shut_from, end=p.shut_at)
-            texture[:] = np.clip(eyes.lower(texture, neutral, visible), 0, 255)
+            texture[:] = np.clip(eyes.lower(texture, neutral, visible, meet=p.shut_meet), 0, 255)
     return textures
 
 
@@ -163,7 +163,7 @@ class MultiscaleTexture(TextureBackend):
     #: what :meth:`weights` and :meth:`finish` read and :meth:`cache` does not (``tau`` is read by both)
     frame_params = frozenset({"sigma", "eye_sigma", "brow_sigma", "eye_gaze", "min_share", "skip", "time_sigma",
                               "detail_share", "finest_share", "detail_from", "close_eyes", "shut_from", "shut_at",
-                              "gaze", "gaze_together"})
+                              "shut_meet", "gaze", "gaze_together"})
 
     class Params(_Alignment):
         levels: int = Field(5, ge=2, le=8, description="pyramid levels p (the paper does not say; 5 gives a "
@@ -234,6 +234,11 @@ class MultiscaleTexture(TextureBackend):
                                     "converge on something near or cross do so on B's face too (docs/gaze.md)")
         shut_at: float = Field(eyes.SHUT_AT, ge=0, lt=1, description="close_eyes: the distance at which it is fully shut "
                                "(dlib's lid points of a shut eye stay 40-50 % of their open distance apart)")
+        shut_meet: float = Field(eyes.SHUT_MEET, gt=0, le=1, description="close_eyes: how far down the eye's "
+                                 "opening the upper lid comes to shut it, its line of lashes there; the lower lid "
+                                 "rises the rest of the way. 1: the lashes on the lower lid's line, which left the "
+                                 "open eye's outline around them and read open; 0.6 took Bush <- Obama's eye gain "
+                                 "0.68 -> 0.75 (docs/expression.md)")
         stretch_scale: float = Field(0.3, ge=0, description="s of the alignment confidence's flow term "
                                      "exp(-|∇w_i|² / 2s²), |∇w_i|² the local (σ 3 px) squared Jacobian norm of "
                                      "the photo's dense flow: tears, where the flow jumps, lose their weight. "

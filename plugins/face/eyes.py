@@ -68,6 +68,10 @@ def region(neutral: np.ndarray, shape: tuple[int, int], *, grow: int = 3, blur: 
 #: shut: the texture's defaults (``shut_from``, ``shut_at``), which the transfer's brow hold follows too
 SHUT_FROM, SHUT_AT = 0.9, 0.45
 
+#: how far down the opening a shut eye's upper lid comes (its line of lashes there), the lower lid rising the rest:
+#: the texture's default (``shut_meet``)
+SHUT_MEET = 0.6
+
 
 def opened(target: np.ndarray, neutral: np.ndarray) -> np.ndarray:
     """(2,) how far apart each eye's lids are in the fiducials ``target`` (49, 2), over their distance in
@@ -87,10 +91,13 @@ def lowered(target: np.ndarray, neutral: np.ndarray, *, start: float = 0.85, end
 
 
 def lower(texture: np.ndarray, neutral: np.ndarray, visible: np.ndarray, *, grow: int = 1,
-          margin: int = 6, lashes: float = 2.0) -> np.ndarray:
+          margin: int = 6, lashes: float = 2.0, meet: float = SHUT_MEET) -> np.ndarray:
     """``texture`` (H, W, 3) at the geometry of the fiducials ``neutral`` (49, 2), each eye k's upper
     lid drawn down so that the share ``visible[k]`` (:func:`lowered`) of its opening stays uncovered,
-    its line of lashes ``lashes`` texels wide hanging from its edge."""
+    its line of lashes ``lashes`` texels wide hanging from its edge. The upper lid comes down ``meet`` of the way
+    to the lower lid as the eye shuts and the lower lid rises the rest, so that a shut eye is a line of lashes
+    across skin where the lids meet, not the outline of an open eye (as at ``meet`` 1, its lashes on the lower lid's
+    line)."""
     if not np.any(visible < 1):
         return texture
     out = np.asarray(texture, np.float32).copy()
@@ -113,12 +120,16 @@ def lower(texture: np.ndarray, neutral: np.ndarray, visible: np.ndarray, *, grow
         skin = cv2.inpaint(patch, opening, 3, cv2.INPAINT_TELEA).astype(np.float32)
         inside = patch[opening > 0].astype(np.float32)
         lash = inside[np.argsort(inside.sum(axis=1))[: max(1, len(inside) // 10)]].mean(axis=0)
-        # the lid: from the upper lid's points down to its new edge, 1 - v of the way to the lower lid's
         upper, lower_lid = polygon[1:3], polygon[[5, 4]]
-        edge = np.vstack([polygon[0], upper + (1 - v) * (lower_lid - upper), polygon[3]])
+        # the lid: from the upper lid's points down to its new edge, (1 - v) · meet of the way to the lower lid;
+        # the lower lid rises the rest of the way
+        edge = np.vstack([polygon[0], upper + (1 - v) * meet * (lower_lid - upper), polygon[3]])
         lid = _drawn(opening.shape, np.vstack([polygon[:4], edge[::-1]]))
         if grow:  # up over the old lid line too, which is the lid's crease now, not its edge
             lid = cv2.dilate(lid, np.ones((2 * grow + 1, 1), np.uint8)) * opening
+        if meet < 1:
+            rim = np.vstack([polygon[0], lower_lid + (1 - v) * (1 - meet) * (upper - lower_lid), polygon[3]])
+            lid = np.maximum(lid, _drawn(opening.shape, np.vstack([polygon[0], lower_lid, polygon[3], rim[::-1]])))
         hanging = edge + [[0, 0], [0, lashes / 2], [0, lashes / 2], [0, 0]]  # from the lid's edge down
         line = np.clip(cv2.GaussianBlur(_drawn(opening.shape, hanging, line=lashes), (0, 0), 0.5) * 1.5, 0, 1)
         weight = cv2.GaussianBlur(np.maximum(lid, line), (0, 0), 0.8)[..., None]  # the lashes, below the lid too

@@ -38,7 +38,7 @@ def shut(neutral, ratio):
 def test_a_shut_eye_is_drawn_over_with_skin_and_lashes_and_an_open_one_is_left_alone():
     texture, neutral = texture_with_dark_eyes()
     assert np.array_equal(eyes.lower(texture, neutral, eyes.lowered(shut(neutral, 0.9), neutral)), texture)
-    closed = eyes.lower(texture, neutral, eyes.lowered(shut(neutral, 0.3), neutral))
+    closed = eyes.lower(texture, neutral, eyes.lowered(shut(neutral, 0.3), neutral), meet=1)
     for points, _ in eyes.EYES:
         pixels = closed[eye_mask(neutral, points)]
         skin = np.abs(pixels - (180, 140, 120)).max(axis=1) < 12
@@ -60,7 +60,7 @@ def test_the_upper_lid_comes_down_over_the_share_of_the_eye_a_real_one_would_cov
     np.testing.assert_allclose(eyes.lowered(shut(neutral, 0.7), neutral), 0.531 / 0.7, atol=0.005)
     assert np.array_equal(eyes.lower(texture, neutral, np.ones(2)), texture)
     for visible in (0.25, 0.5, 0.75):
-        lowered = eyes.lower(texture, neutral, np.full(2, visible))
+        lowered = eyes.lower(texture, neutral, np.full(2, visible), meet=1)  # the upper lid alone comes down
         for points, _ in eyes.EYES:
             inside = eye_mask(neutral, points)
             rows = np.flatnonzero(inside.any(axis=1))
@@ -81,7 +81,27 @@ def test_the_lid_comes_down_smoothly_not_in_whole_texel_steps():
     # texels, most steps changed nothing and a few a whole row at once
     texture, neutral = texture_with_dark_eyes()
     inside = eye_mask(neutral, eyes.EYES[0][0])
-    brightness = [eyes.lower(texture, neutral, np.full(2, v))[inside].mean() for v in np.arange(0.8, 0.3, -0.025)]
+    brightness = [eyes.lower(texture, neutral, np.full(2, v), meet=1)[inside].mean() for v in np.arange(0.8, 0.3, -0.025)]
     steps = np.diff(brightness)
     print(f"\nthe eye's brightness a step: {np.round(steps, 2)}")
     assert steps.min() > 0 and steps.max() < 3 * np.median(steps)
+
+
+def test_a_shut_eyes_lashes_lie_where_the_lids_meet_and_skin_covers_the_rest():
+    """``meet``: the upper lid comes that share of the way down the opening and the lower lid rises the rest, so a
+    shut eye is one line of lashes across skin, not the outline of an open eye (whose lower lid the line followed
+    at ``meet`` 1)."""
+    texture, neutral = texture_with_dark_eyes()
+    for meet in (1.0, 0.6):
+        closed = eyes.lower(texture, neutral, np.zeros(2), meet=meet)
+        for points, _ in eyes.EYES:
+            inside = eye_mask(neutral, points)
+            rows = np.flatnonzero(inside.any(axis=1))
+            x1, x2 = neutral[list(points)][1:3, 0]
+            middle = np.s_[:, int(np.ceil(x1)):int(x2) + 1]  # between the upper lid's points: the line is level
+            darkness = np.where(inside, 3 * 255 - closed.sum(axis=2), 0)[middle].sum(axis=1)
+            line = (np.argmax(darkness) - rows.min()) / (rows.max() - rows.min())
+            away = inside & (np.abs(np.arange(244) - np.argmax(darkness))[:, None] > 2)
+            skin = (closed[away].sum(axis=1) > 3 * 100).mean()
+            print(f"\nmeet {meet}: the lashes {line:.2f} of the eye's height down; {skin:.0%} skin away from them")
+            assert abs(line - meet) < 0.15 and skin > 0.9
