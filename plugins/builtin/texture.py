@@ -153,6 +153,34 @@ def _eyes_moved(textures: np.ndarray, targets: np.ndarray, neutral: np.ndarray, 
     return textures
 
 
+class _ClosingEyes(Params):
+    """The eyes a target shuts, drawn shut in its texture (persona.plugins.face.eyes; video mode)."""
+
+    close_eyes: bool = Field(True, description="when the target closes an eye (its lids less than "
+                             "`shut_from` as far apart as at B's neutral), draw that eye's upper lid down over "
+                             "it, to cover it all at `shut_at`: B's photos rarely show shut eyes, and a mesh "
+                             "squeezes an open eye rather than covers it (persona.plugins.face.eyes). Not in the "
+                             "paper")
+    shut_from: float = Field(eyes.SHUT_FROM, gt=0, le=1, description="close_eyes: the lids' distance, over B's "
+                             "neutral one, below which the upper lid starts to come down (the open-eye frames' 10th "
+                             "percentile on the self-reenactment: 0.87). 0.9 rather than 0.85 brings the "
+                             "self-reenactment's composite eye gain 0.92 -> 1.03 and Bush <- Obama's 0.69 -> "
+                             "0.71 (docs/expression.md)")
+    shut_at: float = Field(eyes.SHUT_AT, ge=0, lt=1, description="close_eyes: the distance at which it is fully "
+                           "shut (dlib's lid points of a shut eye stay 40-50 % of their open distance apart)")
+    shut_meet: float = Field(eyes.SHUT_MEET, gt=0, le=1, description="close_eyes: how far down the eye's "
+                             "opening the upper lid comes to shut it, its line of lashes there; the lower lid "
+                             "rises the rest of the way. 1: the lashes on the lower lid's line, which left the "
+                             "open eye's outline around them and read open; 0.6 took Bush <- Obama's eye gain "
+                             "0.68 -> 0.72 (docs/expression.md)")
+
+    @model_validator(mode="after")
+    def _shut(self):
+        if self.shut_at >= self.shut_from:
+            raise ValueError(f"shut_at ({self.shut_at}) must be below shut_from ({self.shut_from})")
+        return self
+
+
 class MultiscaleTexture(TextureBackend):
     name = "multiscale"
     description = ("expression-dependent texture: photos aligned to the target (TPS + flow), blended in a "
@@ -165,7 +193,7 @@ class MultiscaleTexture(TextureBackend):
                               "detail_share", "finest_share", "detail_from", "close_eyes", "shut_from", "shut_at",
                               "shut_meet", "gaze", "gaze_together"})
 
-    class Params(_Alignment):
+    class Params(_ClosingEyes, _Alignment):
         levels: int = Field(5, ge=2, le=8, description="pyramid levels p (the paper does not say; 5 gives a "
                             "16x13 coarsest level at 244x194, ALGORITHMS §16.5)")
         alpha: float = Field(1.0, ge=0, description="α: exponent of the detail (Laplacian) response in the "
@@ -211,16 +239,6 @@ class MultiscaleTexture(TextureBackend):
                                   "paper (0, the default: each frame's own weights, the paper's); 1.5 halves the "
                                   "texture's change from frame to frame on the cross-identity drives, but lowers the "
                                   "self-reenactment's mouth gain, whose teeth come from the texture (docs/texture.md)")
-        close_eyes: bool = Field(True, description="when the target closes an eye (its lids less than "
-                                 "`shut_from` as far apart as at B's neutral), draw that eye's upper lid down over "
-                                 "it, to cover it all at `shut_at`: B's photos rarely show shut eyes, and a mesh "
-                                 "squeezes an open eye rather than covers it (persona.plugins.face.eyes). Not in the "
-                                 "paper")
-        shut_from: float = Field(eyes.SHUT_FROM, gt=0, le=1, description="close_eyes: the lids' distance, over B's neutral one, "
-                                 "below which the upper lid starts to come down (the open-eye frames' 10th "
-                                 "percentile on the self-reenactment: 0.87). 0.9 rather than 0.85 brings the "
-                                 "self-reenactment's composite eye gain 0.92 -> 1.03 and Bush <- Obama's 0.69 -> "
-                                 "0.71 (docs/expression.md)")
         eye_gaze: float = Field(0.05, ge=0, le=1, description="video mode: σ (eye widths) of the eyes' weights "
                                 "for where each photo's irises sit, from where B's photos usually have them: the eyes' "
                                 "blend takes photos whose irises lie on one another (blended with those looking aside, "
@@ -232,13 +250,6 @@ class MultiscaleTexture(TextureBackend):
         gaze_together: bool = Field(True, description="gaze: both of B's eyes turn by the mean of the driver's two, "
                                     "never apart; false: each eye turns as the driver's same eye does, so eyes that "
                                     "converge on something near or cross do so on B's face too (docs/gaze.md)")
-        shut_at: float = Field(eyes.SHUT_AT, ge=0, lt=1, description="close_eyes: the distance at which it is fully shut "
-                               "(dlib's lid points of a shut eye stay 40-50 % of their open distance apart)")
-        shut_meet: float = Field(eyes.SHUT_MEET, gt=0, le=1, description="close_eyes: how far down the eye's "
-                                 "opening the upper lid comes to shut it, its line of lashes there; the lower lid "
-                                 "rises the rest of the way. 1: the lashes on the lower lid's line, which left the "
-                                 "open eye's outline around them and read open; 0.6 took Bush <- Obama's eye gain "
-                                 "0.68 -> 0.75 (docs/expression.md)")
         stretch_scale: float = Field(0.3, ge=0, description="s of the alignment confidence's flow term "
                                      "exp(-|∇w_i|² / 2s²), |∇w_i|² the local (σ 3 px) squared Jacobian norm of "
                                      "the photo's dense flow: tears, where the flow jumps, lose their weight. "
@@ -248,12 +259,6 @@ class MultiscaleTexture(TextureBackend):
                                       "grey (0-1) aligned photo and its rank-k projection: where the flow left a "
                                       "feature off the target's place. Not in the paper (0 turns it off); 0.02 "
                                       "chosen with stretch_scale")
-
-        @model_validator(mode="after")
-        def _shut(self):
-            if self.shut_at >= self.shut_from:
-                raise ValueError(f"shut_at ({self.shut_at}) must be below shut_from ({self.shut_from})")
-            return self
 
     def confidence(self, aligned: align.Aligned) -> np.ndarray | None:
         """Each photo's local alignment confidence (:func:`alignment_confidence`) at the params' scales."""
