@@ -1,4 +1,4 @@
-"""Eyelids that close: B's upper lid drawn down over the eye in a frame's texture as the target closes it.
+"""Eyelids that close: B's lids drawn together over the eye in a frame's texture as the target closes it.
 
 Not in the paper. The drive's texture keeps B's neutral geometry (paper §6), with the detail of
 the photos whose expression is the target's; a collection rarely has photos with the eyes shut,
@@ -6,15 +6,16 @@ so the texture's eyes stay open. The 3D mesh then brings B's lids together, but 
 open eye between them rather than covering it: a sliver of eye white and iris stays, and the eye
 still reads as open (dlib, and a viewer, see it so).
 
-A real eye closes by its upper lid coming down over it. dlib's lid points of a shut eye stay
-``end`` (45 %) of their open distance apart (the lashes' line; the drivers' blinks measured so), so
-an eye whose lid points are r of their neutral distance apart shows φ(r) = start · (r - end) /
+A real eye closes by its lids coming together over it, the upper most of the way. dlib's lid points of a
+shut eye stay ``end`` (45 %) of their open distance apart (the lashes' line; the drivers' blinks measured
+so), so an eye whose lid points are r of their neutral distance apart shows φ(r) = start · (r - end) /
 (start - end) of its opening below ``start`` (85 %), and all of it (φ = r) from there up: the
 target's own ratio, what the driver's eye showed. The mesh already squeezes the texture's eye to r;
-here the upper lid — the skin around the eye, inpainted from the lids, with a soft line of lashes
-the colour of the eye's darkest tenth hanging from its edge — is drawn down over the top 1 - φ(r) / r of the
-eye's opening (the polygon of its six fiducials at B's neutral, grown by a pixel) in the canonical
-texture. An eye open by ``start`` or more is left exactly as it was (docs/expression.md).
+here the lids — the skin around the eye, inpainted from the lids, with a soft line of lashes the colour of
+the eye's darkest tenth hanging from the upper one's edge — are drawn over 1 - φ(r) / r of the eye's opening
+(the polygon of its six fiducials at B's neutral, grown by a pixel) in the canonical texture: the upper lid
+``meet`` of it from the top, the lower lid the rest from the bottom, so that a shut eye is one line of lashes
+where they meet. An eye open by ``start`` or more is left exactly as it was (docs/expression.md).
 """
 
 from __future__ import annotations
