@@ -81,8 +81,8 @@ def test_the_lid_comes_down_smoothly_not_in_whole_texel_steps():
     # texels, most steps changed nothing and a few a whole row at once
     texture, neutral = texture_with_dark_eyes()
     inside = eye_mask(neutral, eyes.EYES[0][0])
-    steps = np.arange(0.8, 0.3, -0.025)
-    brightness = [eyes.lower(texture, neutral, np.full(2, v), meet=1)[inside].mean() for v in steps]
+    shares = np.arange(0.8, 0.3, -0.025)  # of the eye left uncovered
+    brightness = [eyes.lower(texture, neutral, np.full(2, v), meet=1)[inside].mean() for v in shares]
     steps = np.diff(brightness)
     print(f"\nthe eye's brightness a step: {np.round(steps, 2)}")
     assert steps.min() > 0 and steps.max() < 3 * np.median(steps)
