@@ -77,8 +77,10 @@ def stale(held: dict, now: float | None = None) -> bool:
     return now - float(held.get("renewed", 0)) > STALE
 
 
-def describe(held: dict) -> str:
-    """The holder in words: process, host and since when."""
+def describe(held: dict | None) -> str:
+    """The holder in words: process, host and since when (:func:`holder`'s answer)."""
+    if held is None:
+        return "no run now: it has let the lock go"
     if not held:
         return "a lock file cut short"
     return f"process {held.get('pid')} on {held.get('host')}, since {held.get('since')}"
@@ -107,7 +109,7 @@ def writer(url: str) -> Iterator[dict]:
     try:  # from the first byte written: a SIGTERM or Ctrl-C while taking the lock still gives it back
         _write(url, me)
         if _token(url) != me["token"]:  # another run took it in the same moment
-            raise StoreLocked(f"the store {url} is being written by another run ({describe(holder(url) or {})}), "
+            raise StoreLocked(f"the store {url} is being written by another run ({describe(holder(url))}), "
                               "which started at the same time: wait for it to end")
         with _renewing(url, me):
             yield me
@@ -130,7 +132,7 @@ def _renewing(url: str, me: dict) -> Iterator[None]:
     def renew():
         while not done.wait(RENEW):
             if _token(url) != me["token"]:
-                log.warning("the store's lock was taken by another run (%s)", describe(holder(url) or {}))
+                log.warning("the store's lock was taken by another run (%s)", describe(holder(url)))
                 return
             _write(url, {**me, "renewed": time.time()})
 
