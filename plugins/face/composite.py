@@ -11,12 +11,12 @@ coarse transitions lie inside B's face: without that, B's tone spilled as a ligh
 hair. Inside the face B's own detail and, away from the edge, B's own tone remain.
 
 Multi-band blending spreads a difference of tone over the face's edge; it does not remove it, and
-B's skin under A's lighting is rarely A's colour. ``match_lighting`` removes it first: on a band
-just inside the face's edge it compares B's render with A's frame under it (A's skin, lit by A's
-scene), and fits to their ratio a per-channel gain that is a plane in log colour (A's mean tone and
-A's gradient of light across the face), robustly, where the frame looks like A's skin. B's face
-times that gain has A's colour and light at its edge, so little step is left to blend; B's shading,
-detail and the differences of tone between B's regions remain.
+B's skin under A's lighting is rarely A's colour. ``match_lighting`` removes it first: on the face's
+outer ring (a fifth of its smaller side deep, ``LIGHT_BAND``) it compares B's render with A's frame
+under it (A's skin, lit by A's scene), and fits to their ratio a per-channel gain that is a plane in
+log colour (A's mean tone and A's gradient of light across the face), robustly, where the frame looks
+like A's skin. B's face times that gain has A's colour and light, so little step is left to blend at
+its edge; B's shading, detail and the differences of tone between B's regions remain.
 
 Fitted on each frame alone, the gain jumps wherever hair, glasses or a turned head change what lies
 under B's edge for a frame or two: the whole face brightens and darkens (on a driver with glasses
@@ -141,6 +141,13 @@ def _pyramid_blend(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, level
     return np.clip(bottom + out, 0, 255).round().astype(np.uint8)
 
 
+#: the depth inside B's face, as a share of its smaller side, over which :func:`light_plane` compares B's render
+#: with A's frame: a fifth, the face's outer ring, cheeks and forehead included. The plane's gradient is set by
+#: that ring; on a ring of 6 % it was the light of the face's rim alone (the fringe woman's self-reenactment
+#: then lit her face twice as steeply from one side as her real frames show, docs/composite.md)
+LIGHT_BAND = 0.2
+
+
 def _robust_plane(xy: np.ndarray, values: np.ndarray, weight: np.ndarray, *, delta: float = 0.1,
                   rounds: int = 4) -> np.ndarray:
     """Coefficients (3, c) of the plane ``[1, x, y] @ coef`` that fits ``values`` (m, c) at points
@@ -170,13 +177,13 @@ def _skin_likeness(logc: np.ndarray, skin: np.ndarray, tint: float, shade: float
 
 
 def match_lighting(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, lighting: float = 1.0,
-                   tone: float = 1.0, tone_reach: float = 0.5, band: float = 0.06, max_gain: float = 2.0, tint: float = 0.1,
-                   shade: float = 0.5) -> np.ndarray:
+                   tone: float = 1.0, tone_reach: float = 0.5, band: float = LIGHT_BAND, max_gain: float = 2.0,
+                   tint: float = 0.1, shade: float = 0.5) -> np.ndarray:
     """``face`` (h, w, 3) uint8 with its colour and light matched to ``frame`` at the edge of the mask
     ``alpha`` (h, w) in [0, 1] (see the module's docstring).
 
     The gain is a plane in log colour per channel (a mean and a gradient of light across the face),
-    fitted robustly to the ratio of A's frame to B's render on a band just inside the edge, so it
+    fitted robustly to the ratio of A's frame to B's render on a band inside the edge, so it
     varies slowly and leaves B's detail and shading alone. Only where A's frame under B's edge looks
     like A's skin (the frame under B's middle) does the band count, so that A's hair, collar or
     background there cannot darken or tint B's edge: tint is the tolerance (σ) of its chromaticity
@@ -186,8 +193,8 @@ def match_lighting(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, li
     lighting: how much of the gain is applied (0: none); tone: how much of the difference of mean
     colour between A's skin and B's is taken (1: all, so no step is left at the edge; 0: B's mean
     skin tone kept and only A's gradient of light matched, the multi-band blend spreads the rest);
-    band: width of the band, as a fraction of the face's smaller side (at least 2 px); max_gain:
-    the largest factor (and 1/factor the smallest) by which a channel may be scaled anywhere.
+    band: width of the band, as a fraction of the face's smaller side (at least 2 px; ``LIGHT_BAND``);
+    max_gain: the largest factor (and 1/factor the smallest) by which a channel may be scaled anywhere.
     Outside the mask the face is returned unchanged (the composite takes the frame there)."""
     if lighting <= 0:
         return face
@@ -195,7 +202,7 @@ def match_lighting(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, li
     return apply_light(face, alpha, plane, lighting=lighting, tone=tone, tone_reach=tone_reach, max_gain=max_gain)
 
 
-def light_plane(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, band: float = 0.06,
+def light_plane(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, band: float = LIGHT_BAND,
                 tint: float = 0.1, shade: float = 0.5) -> np.ndarray:
     """(4, 3): :func:`match_lighting`'s gain in log colour, per channel (columns), as a plane over the
     bounding box of the mask: its value at the box's top left corner, its change across the box's width
@@ -209,8 +216,9 @@ def light_plane(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, band:
     y0, y1, x0, x1 = bounds
     width = max(2.0, band * min(y1 - y0, x1 - x0))
     box = np.s_[y0:y1, x0:x1]
-    # the fit needs no more than a few thousand samples: at a scale where the band is about 2 px wide
-    q = max(1.0, width / 2)
+    # the fit needs no more than a few thousand samples: at a scale where a pixel is 3 % of the face's smaller side
+    # (coarser, a pixel astride hair and skin is neither, passes for a darker skin and tilts the plane)
+    q = max(1.0, 0.03 * min(y1 - y0, x1 - x0))
     small = (max(1, round((x1 - x0) / q)), max(1, round((y1 - y0) / q)))
     shrink = lambda img: cv2.resize(img, small, interpolation=cv2.INTER_AREA)  # noqa: E731
     depth = cv2.distanceTransform((shrink(inside[box].astype(np.float32)) > 0.5).astype(np.uint8), cv2.DIST_L2, 5)
@@ -219,7 +227,7 @@ def light_plane(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, band:
         return nothing
     a = np.log1p(shrink(np.asarray(frame)[box].astype(np.float32)))
     b = np.log1p(shrink(np.asarray(face)[box].astype(np.float32)))
-    middle = depth > 2 * width / q
+    middle = depth > 4  # A's and B's skin: the colours under B's middle, deeper than 12 % of the face's side
     centre = middle if middle.any() else ring
     weight = (_skin_likeness(a[ring], np.median(a[centre], axis=0), tint, shade)
               * _skin_likeness(b[ring], np.median(b[centre], axis=0), tint, shade))
