@@ -15,7 +15,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from persona.plugins.builtin.evaluate import ERROR_SCALE, GAIN_BLOCK, expression_peaks
+from persona.plugins.builtin.evaluate import BIAS_SCALE, ERROR_SCALE, GAIN_BLOCK, expression_peaks
 from persona.plugins.face import composite
 from persona.stores import media, storage
 from persona.stores.layout import Cast, Collection
@@ -419,9 +419,11 @@ def frames_strip(drive: Collection, frames: Collection, n: int = 6, side: int = 
 
 
 #: the title of a self-reenactment's error map (evaluate.ErrorSums.picture)
-ERROR_TITLE = ("Where the self-reenactment differs from the real frames: their mean (left), and the composite's "
-               f"root-mean-square difference from them at each pixel (right: blue 0, red {ERROR_SCALE:.0f} grey "
-               "levels and over)")
+ERROR_TITLE = ("Where the self-reenactment differs from the real frames: their mean (left); the composite's "
+               f"root-mean-square difference from them at each pixel (middle: blue 0, red {ERROR_SCALE:.0f} grey "
+               "levels and over); and its mean difference, real less composite (right: green 0, red where the "
+               f"composite is {BIAS_SCALE:.0f} levels darker on average, blue where it is as much lighter: its light "
+               "or tone rather than its detail)")
 
 
 def write_run_report(wf, root, metrics: dict, series: dict | None, *, cast: Cast | None = Cast(),

@@ -830,6 +830,10 @@ def masked_psnr(a, b, mask) -> float:
 #: the root-mean-square difference (grey levels) :meth:`ErrorSums.picture` draws red; 0 is blue
 ERROR_SCALE = 40.0
 
+#: the mean difference, real less output (grey levels), :meth:`ErrorSums.picture` draws red (the output darker);
+#: minus it is blue (lighter), 0 green
+BIAS_SCALE = 20.0
+
 #: the parts of the face whose shares of a self-reenactment's squared error are given (:meth:`ErrorSums.shares`):
 #: each the convex hulls of these groups of the real frame's iBUG points, grown by :data:`REGION_GROWTH`; a pixel
 #: in two goes to the first; the face's pixels in none are ``rest`` (cheeks, forehead, chin)
@@ -857,19 +861,21 @@ def region_labels(landmarks: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
 class ErrorSums:
     """What a self-reenactment's error map is made of, summed over frames: each pixel's squared difference of
     the output from the real frame (``square``, (h, w, 3) float32, per channel), the real frames (``real``,
-    (h, w, 3) float32), the pixels the face covered in some frame (``seen``, (h, w) bool), how many ``frames``,
-    and the squared error inside the face in each of :data:`ERROR_REGIONS` and the rest (``regions``).
-    Sums of disjoint frames add (``+``)."""
+    (h, w, 3) float32), the outputs (``output``, the same), the pixels the face covered in some frame
+    (``seen``, (h, w) bool), how many ``frames``, and the squared error inside the face in each of
+    :data:`ERROR_REGIONS` and the rest (``regions``). Sums of disjoint frames add (``+``)."""
 
     square: np.ndarray
     real: np.ndarray
+    output: np.ndarray
     seen: np.ndarray
     frames: int = 0
     regions: np.ndarray = field(default_factory=lambda: np.zeros(len(ERROR_REGIONS) + 1))
 
     @classmethod
     def zeros(cls, shape: tuple[int, int, int]) -> "ErrorSums":
-        return cls(np.zeros(shape, np.float32), np.zeros(shape, np.float32), np.zeros(shape[:2], bool))
+        return cls(np.zeros(shape, np.float32), np.zeros(shape, np.float32), np.zeros(shape, np.float32),
+                   np.zeros(shape[:2], bool))
 
     def add(self, output: np.ndarray, real: np.ndarray, face: np.ndarray, landmarks: np.ndarray | None = None) -> None:
         """One frame: ``output`` and ``real`` (h, w, 3) uint8, ``face`` (h, w) bool, and the real frame's 68
@@ -878,6 +884,7 @@ class ErrorSums:
         difference = cv2.absdiff(output, real)
         cv2.accumulateSquare(difference, self.square)
         cv2.accumulate(real, self.real)
+        cv2.accumulate(output, self.output)
         self.seen |= face
         self.frames += 1
         box = mask_box(face)
@@ -890,8 +897,8 @@ class ErrorSums:
             self.regions += np.bincount(labels.ravel(), weights=squares.ravel(), minlength=off + 1)[:off]
 
     def __add__(self, other: "ErrorSums") -> "ErrorSums":
-        return ErrorSums(self.square + other.square, self.real + other.real, self.seen | other.seen,
-                         self.frames + other.frames, self.regions + other.regions)
+        return ErrorSums(self.square + other.square, self.real + other.real, self.output + other.output,
+                         self.seen | other.seen, self.frames + other.frames, self.regions + other.regions)
 
     def shares(self) -> dict[str, float]:
         """Each region's share of the squared error inside the face (:data:`ERROR_REGIONS`, then ``rest``), over
@@ -900,20 +907,23 @@ class ErrorSums:
         names = [*ERROR_REGIONS, "rest"]
         return {name: float(v / total) if total > 0 else float("nan") for name, v in zip(names, self.regions)}
 
-    def picture(self, scale: float = ERROR_SCALE, margin: float = 0.1) -> np.ndarray | None:
-        """Where the output differs from the real frames, (h, 2w, 3) uint8 RGB: the mean real frame, and beside it
-        the root-mean-square difference at each pixel (the mean over the channels), blue at 0 to red at ``scale``
-        grey levels and over (OpenCV's JET colours), both cut to the face's box (``seen``) and ``margin`` of its
-        size around. None where the face covered no pixel."""
+    def picture(self, scale: float = ERROR_SCALE, bias: float = BIAS_SCALE, margin: float = 0.1) -> np.ndarray | None:
+        """Where the output differs from the real frames, (h, 3w, 3) uint8 RGB, in OpenCV's JET colours: the mean
+        real frame; the root-mean-square difference at each pixel (the mean over the channels), blue at 0 to red
+        at ``scale`` grey levels and over; and the mean difference, real less output, green at 0, red at ``bias``
+        and over (the output darker there on average: its light or tone, not its detail), blue at -``bias``. All
+        cut to the face's box (``seen``) and ``margin`` of its size around. None where the face covered no pixel."""
         face = mask_box(self.seen)  # none: no frame drew a face
         if face is None:
             return None
         box = mask_box(self.seen, int(margin * max(s.stop - s.start for s in face)))
         rms = np.sqrt(self.square[box].astype(np.float64).mean(axis=-1) / self.frames)
-        level = np.clip(np.round(255 * rms / scale), 0, 255).astype(np.uint8)
-        heat = cv2.cvtColor(cv2.applyColorMap(level, cv2.COLORMAP_JET), cv2.COLOR_BGR2RGB)
+        darker = (self.real[box].astype(np.float64) - self.output[box]).mean(axis=-1) / self.frames
+        heats = [cv2.cvtColor(cv2.applyColorMap(np.clip(np.round(255 * level), 0, 255).astype(np.uint8),
+                                                cv2.COLORMAP_JET), cv2.COLOR_BGR2RGB)
+                 for level in (rms / scale, 0.5 + darker / (2 * bias))]
         mean = np.clip(np.round(self.real[box].astype(np.float64) / self.frames), 0, 255).astype(np.uint8)
-        return np.hstack([mean, heat])
+        return np.hstack([mean, *heats])
 
 
 #: SSIM's window (px, a box of this side, as skimage's default) and constants (Wang et al. 2004)

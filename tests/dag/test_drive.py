@@ -241,11 +241,13 @@ def test_a_self_reenactment_gives_each_frames_psnr_and_shows_the_frame_least_lik
     assert "psnr_composite" not in unjudged and least_like_the_frame(unjudged) == []
     assert "fidelity" not in plots(unjudged, 0.6, 25.0)
     # where the composite missed, as a picture: the real frames' mean beside the error, which is 0 (blue)
-    # far from the face the composite drew into the frame, and above it somewhere on the face
+    # far from the face the composite drew into the frame, and above it somewhere on the face; then the mean
+    # difference, 0 (the scale's middle) far from the face
     picture = judged["pictures"]["error_map"]
-    mean, heat = np.split(picture, 2, axis=1)
-    blue = cv2.cvtColor(cv2.applyColorMap(np.zeros((1, 1), np.uint8), cv2.COLORMAP_JET), cv2.COLOR_BGR2RGB)[0, 0]
-    assert (heat[0, 0] == blue).all() and (heat != blue).any(axis=-1).mean() > 0.1
+    mean, heat, bias = np.split(picture, 3, axis=1)
+    jet = cv2.cvtColor(cv2.applyColorMap(np.array([[0, 128]], np.uint8), cv2.COLORMAP_JET), cv2.COLOR_BGR2RGB)[0]
+    assert (heat[0, 0] == jet[0]).all() and (heat != jet[0]).any(axis=-1).mean() > 0.1
+    assert (bias[0, 0] == jet[1]).all() and (bias != jet[1]).any(axis=-1).mean() > 0.1
     assert not (folder / "output" / "error_map.png").exists()  # the run's drive was not judged so
     write_pictures(str(folder / "output"), judged["pictures"])
     assert (folder / "output" / "error_map.png").is_file()

@@ -350,10 +350,11 @@ def test_masked_psnr_and_ssim():
 
 
 def test_the_error_map_shows_the_mean_real_frame_and_where_the_output_missed():
-    """A self-reenactment's error map: the real frames' mean beside the root-mean-square difference, cut to the
-    face's box and a tenth of its size around. Ground truth: frames of one grey each, an output 40 grey levels
-    off in one 10 x 10 square in half of them (RMS 40 / sqrt 2 = 28.3, drawn at 28.3 / 40 of the colour scale),
-    summed in two parts that add."""
+    """A self-reenactment's error map: the real frames' mean, the root-mean-square difference and the mean
+    difference (real less output), cut to the face's box and a tenth of its size around. Ground truth: frames of
+    one grey each, an output 40 grey levels lighter in one 10 x 10 square in half of them (RMS 40 / sqrt 2 =
+    28.3, drawn at 28.3 / 40 of the colour scale; mean difference -20, the bias scale's lightest), summed in two
+    parts that add."""
     rng = np.random.default_rng(0)
     h, w, frames = 120, 160, 8
     reals = (rng.integers(60, 200, (frames, 1, 1, 3)) * np.ones((1, h, w, 1))).astype(np.uint8)
@@ -368,14 +369,16 @@ def test_the_error_map_shows_the_mean_real_frame_and_where_the_output_missed():
     assert sums.frames == frames
     assert np.array_equal(sums.square, np.square(outputs.astype(np.float32) - reals).sum(axis=0))
     picture = sums.picture()
-    assert picture.shape == (62, 2 * 72, 3) and picture.dtype == np.uint8
-    mean, heat = picture[:, :72], picture[:, 72:]
+    assert picture.shape == (62, 3 * 72, 3) and picture.dtype == np.uint8
+    mean, heat, bias = picture[:, :72], picture[:, 72:144], picture[:, 144:]
     assert np.abs(mean.astype(float) - reals.mean(axis=0)[24:86, 34:106]).max() <= 0.5
     scale = cv2.cvtColor(cv2.applyColorMap(np.arange(256, dtype=np.uint8)[:, None], cv2.COLORMAP_JET),
                          cv2.COLOR_BGR2RGB)[:, 0]
     level = lambda colour: int(np.argmin(np.abs(scale.astype(int) - colour.astype(int)).sum(axis=1)))
     assert level(heat[50 - 24 + 5, 70 - 34 + 5]) == pytest.approx(255 * 40 / np.sqrt(2) / ev.ERROR_SCALE, abs=2)
     assert np.abs(heat[:20].astype(int) - scale[0]).max() == 0  # no difference: blue
+    assert level(bias[50 - 24 + 5, 70 - 34 + 5]) == round(255 * (0.5 - 20 / (2 * ev.BIAS_SCALE)))  # lighter: blue
+    assert {level(c) for c in bias[:20].reshape(-1, 3)} == {128}  # no difference on average: the scale's middle
     assert ev.ErrorSums.zeros((h, w, 3)).picture() is None
 
 
