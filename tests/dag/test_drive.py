@@ -172,6 +172,33 @@ def test_report_is_one_self_contained_page(drive_run):
     assert page.count("data:image/png;base64,") >= 6
 
 
+def test_the_texture_leak_benchmark_finds_the_mesh_on_its_targets(drive_run, capsys):
+    """benchmarks/texture_leak.py on a finished drive: per expression signal, the frame textures' and B's meshes'
+    slopes on the targets. The fiducial follower moves B's mesh so that its fiducials land on the targets, smoothed
+    over half a frame in time (which takes some of this fast synthetic driver's amplitude): every signal the driver
+    moves, the mesh follows with a slope of 0.75-1.1 and r over 0.95 (0.83-0.91 and 0.98-0.99 here); the script
+    prints a line per signal."""
+    import importlib.util
+
+    from persona.stores.layout import Cast, open_store
+
+    _, path, _ = drive_run
+    script = Path(__file__).resolve().parents[2] / "benchmarks" / "texture_leak.py"
+    spec = importlib.util.spec_from_file_location("texture_leak", script)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    found = module.slopes(open_store(load_workflow(path).store, mode="r"), Cast())
+    moved = [name for name, figures in found.items() if figures["range"] > 0.02]
+    assert moved, found
+    for name in moved:
+        slope, r = found[name]["mesh"]
+        assert 0.75 < slope < 1.1 and r > 0.95, (name, found[name])
+    capsys.readouterr()
+    module.main([str(path)])
+    lines = capsys.readouterr().out.splitlines()
+    assert len(lines) == 6 and all("mesh on target" in line for line in lines[1:]), lines
+
+
 def test_the_series_carry_the_composites_signals_for_a_paired_comparison(drive_run, capsys):
     """series.json holds composite.mp4's expression signals beside the face alone's, whose gains are the
     evaluation's amplitude_composite; benchmarks/gain_difference.py --composite judges them (a run against
