@@ -10,7 +10,7 @@ store holds ``texture/rgb``), this fits dlib's 68 points on each frame texture (
 fiducials) and prints, per expression signal (evaluate.expression_signals), the slope of the texture's signal on
 the target's (0: the texture holds still, as it should; 1: it moves as far as the target), its correlation, and the
 slope of B's meshes' fiducials on the targets (1: the mesh lands on them). Texture plus mesh is what the render
-draws: a texture slope of 0.5 with a mesh slope of 1 draws the lids half as far again as the driver's.
+draws: a texture slope of 0.5 with a mesh slope of 1 draws the lids half as far again as the target moves them.
 """
 
 from __future__ import annotations
