@@ -31,7 +31,7 @@ def slopes(root, cast, every: int = 1) -> dict[str, dict] | None:
     import cv2
     import dlib
 
-    from persona.plugins.builtin.evaluate import expression_signals, moved_landmarks
+    from persona.plugins.builtin.evaluate import amplitude, expression_signals, moved_landmarks
     from persona.plugins.builtin.landmarks import dlib_models
     from persona.plugins.face.template import IDX49
     from persona.stores.layout import Collection
@@ -54,13 +54,9 @@ def slopes(root, cast, every: int = 1) -> dict[str, dict] | None:
                 ("mesh", moved_landmarks(drive.rows("mesh", rows), neutral)))}
     out = {}
     for name, target in signals["target"].items():
-        out[name] = {"range": float(np.nanpercentile(target, 95) - np.nanpercentile(target, 5))}
-        for who in ("texture", "mesh"):
-            values = signals[who][name]
-            seen = np.isfinite(target) & np.isfinite(values)
-            fit = seen.sum() >= 3 and np.ptp(target[seen]) > 0
-            out[name][who] = (float(np.polyfit(target[seen], values[seen], 1)[0]),
-                              float(np.corrcoef(target[seen], values[seen])[0, 1])) if fit else None
+        fits = {who: amplitude(target, signals[who][name]) for who in ("texture", "mesh")}  # gain = the slope
+        out[name] = {"range": fits["mesh"]["driver_range"],
+                     **{who: None if np.isnan(fit["gain"]) else (fit["gain"], fit["r"]) for who, fit in fits.items()}}
     return out
 
 

@@ -172,21 +172,27 @@ def test_report_is_one_self_contained_page(drive_run):
     assert page.count("data:image/png;base64,") >= 6
 
 
+def _benchmark(name: str):
+    """The script benchmarks/<name>.py, loaded as a module (the benchmarks are not a package)."""
+    import importlib.util
+
+    script = Path(__file__).resolve().parents[2] / "benchmarks" / f"{name}.py"
+    spec = importlib.util.spec_from_file_location(name, script)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
 def test_the_texture_leak_benchmark_finds_the_mesh_on_its_targets(drive_run, capsys):
     """benchmarks/texture_leak.py on a finished drive: per expression signal, the frame textures' and B's meshes'
     slopes on the targets. The fiducial follower moves B's mesh so that its fiducials land on the targets, smoothed
     over half a frame in time (which takes some of this fast synthetic driver's amplitude): every signal the driver
     moves, the mesh follows with a slope of 0.75-1.1 and r over 0.95 (0.83-0.91 and 0.98-0.99 here); the script
     prints a line per signal."""
-    import importlib.util
-
     from persona.stores.layout import Cast, open_store
 
     _, path, _ = drive_run
-    script = Path(__file__).resolve().parents[2] / "benchmarks" / "texture_leak.py"
-    spec = importlib.util.spec_from_file_location("texture_leak", script)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
+    module = _benchmark("texture_leak")
     found = module.slopes(open_store(load_workflow(path).store, mode="r"), Cast())
     moved = [name for name, figures in found.items() if figures["range"] > 0.02]
     assert moved, found
@@ -203,8 +209,6 @@ def test_the_series_carry_the_composites_signals_for_a_paired_comparison(drive_r
     """series.json holds composite.mp4's expression signals beside the face alone's, whose gains are the
     evaluation's amplitude_composite; benchmarks/gain_difference.py --composite judges them (a run against
     itself: no difference)."""
-    import importlib.util
-
     from persona.plugins.builtin.evaluate import amplitude
 
     folder, _, report = drive_run
@@ -216,10 +220,7 @@ def test_the_series_carry_the_composites_signals_for_a_paired_comparison(drive_r
     creases = (np.asarray(series[f"{who}_creases"], float) for who in ("driver", "output"))  # between the brows
     between = report["evaluation"]["creases"]["face_alone"]
     assert amplitude(*creases)["gain"] == pytest.approx(between["gain"], nan_ok=True)
-    script = Path(__file__).resolve().parents[2] / "benchmarks" / "gain_difference.py"
-    spec = importlib.util.spec_from_file_location("gain_difference", script)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
+    module = _benchmark("gain_difference")
     capsys.readouterr()
     assert module.main([str(folder / "output"), str(folder / "output"), "--composite"]) == 0
     lines = capsys.readouterr().out.splitlines()[1:]
