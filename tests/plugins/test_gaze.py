@@ -49,6 +49,20 @@ def test_the_iris_is_found_where_it_was_drawn(width, tolerance):
             assert np.abs(found - (u, v)).max() < tolerance, (width, u, v, found)
 
 
+@pytest.mark.parametrize("width", [60, 25, 14])
+def test_an_iris_half_under_a_lid_is_found_where_it_is(width):
+    """Irises drawn from 0.15 eye widths up to 0.15 down (the lids hide up to a third of them) and from 0.3 left
+    to 0.3 right: what the measure finds rises with where they were drawn at a slope of 0.85-1.15 across the eye
+    and 0.95-1.05 along it (measured 0.87-0.99 and 0.97-1.01; a disc whose centre had to lie in the opening,
+    0.39-0.58 and 0.88-0.92)."""
+    across = np.linspace(-0.15, 0.15, 7)
+    along = np.linspace(-0.3, 0.3, 7)
+    found_across = [gaze.iris_offset(*drawn_eye(width, 0.1, v))[1] for v in across]
+    found_along = [gaze.iris_offset(*drawn_eye(width, u, 0.0))[0] for u in along]
+    assert 0.85 < np.polyfit(across, found_across, 1)[0] < 1.15
+    assert 0.95 < np.polyfit(along, found_along, 1)[0] < 1.05
+
+
 def test_a_closed_eye_or_no_face_has_no_gaze():
     image, points = drawn_eye(40, 0.1, 0.0)
     shut = points.copy()
@@ -61,8 +75,8 @@ def test_a_closed_eye_or_no_face_has_no_gaze():
 def test_a_texture_eye_turns_by_the_shift_under_its_lids(width):
     """B's texture's eye with its iris in the middle, turned 0.1, 0.2 and 0.3 of its width right, 0.2 left and
     0.05 down, 0.1 down: the iris is then found there, within 0.03 eye widths along the eye and 0.06 across it,
-    0.07 on the 14-px eye (the lids, close above and below, hide part of an iris that moves up or down, as they
-    do a real one); where
+    0.035 and 0.07 on the 14-px eye (half a pixel along; the lids, close above and below, hide part of an iris
+    that moves up or down, as they do a real one); where
     it was, the eye is white again (no iris left behind: the grey of the old centre over 200 when it went 0.3);
     the texels more than two beyond the opening do not change; no shift returns the texture itself."""
     image, points = drawn_eye(width, 0.0, 0.0)
@@ -71,7 +85,7 @@ def test_a_texture_eye_turns_by_the_shift_under_its_lids(width):
     for shift in ((0.1, 0.0), (0.2, 0.0), (0.3, 0.0), (-0.2, 0.05), (0.0, 0.1)):
         moved = gaze.look(image.astype(np.float32), neutral, np.array([shift, shift]))
         found = gaze.iris_offset(np.clip(moved, 0, 255).round().astype(np.uint8), points)
-        assert np.all(np.abs(found - shift) < (0.03, 0.07 if width < 20 else 0.06)), (shift, found)
+        assert np.all(np.abs(found - shift) < ((0.035, 0.07) if width < 20 else (0.03, 0.06))), (shift, found)
     x, y = np.round((points[0] + points[3]) / 2).astype(int)
     assert moved.shape == image.shape and image[y, x].mean() < 60  # the drawn iris' middle, before
     far = gaze.look(image.astype(np.float32), neutral, np.array([[0.3, 0.0], [0.3, 0.0]]))
@@ -119,9 +133,10 @@ def test_the_turned_disc_reaches_a_dark_iris_edge_and_keeps_its_size_on_a_light_
 
 def test_the_white_behind_a_turned_iris_is_white_beside_a_dark_inner_corner():
     """An eye whose white shows little either side of its iris, its inner (left) corner a dark pink and its
-    white shaded grey under the upper lid: turned 0.3 of its width right, the place the iris left is filled
-    from the white, not from the corner (its grey within 12 of the white's brightest tenth; filled from all the
-    opening either side it was 50 darker), and the measure finds the iris where it went (within 0.05)."""
+    white shaded grey under the upper lid: turned 0.3 of its width right, the place the iris left (a tenth of
+    the eye's width left of its middle, clear of the turned iris' rim) is filled from the white, not from the
+    corner (its grey within 12 of the white's brightest tenth; filled from all the opening either side it was
+    50 darker), and the measure finds the iris where it went (within 0.05)."""
     width = 25
     image, points = drawn_eye(width, 0.0, 0.0, seed=1)
     opening = np.zeros(image.shape[:2], np.uint8)
@@ -132,7 +147,7 @@ def test_the_white_behind_a_turned_iris_is_white_beside_a_dark_inner_corner():
     neutral = np.full((49, 2), np.nan)
     neutral[list(gaze.EYES49[0])] = points
     far = gaze.look(image.astype(np.float32), neutral, np.array([[0.3, 0.0], [0.3, 0.0]]))
-    x, y = np.round((points[0] + points[3]) / 2).astype(int)
+    x, y = np.round((points[0] + points[3]) / 2 - (0.1 * width, 0)).astype(int)
     white = np.percentile(image[(opening > 0) & (corner == 0)].mean(axis=1), 90)
     assert far[y, x].mean() > white - 12, (far[y, x], white)
     found = gaze.iris_offset(np.clip(far, 0, 255).round().astype(np.uint8), points)
