@@ -10,10 +10,11 @@ the disc about ``IRIS`` eye widths across that holds the most iris and the least
 opening it covers counts its darkness (the opening's brightest tenth less the grey) less ``IRIS_SHARE`` of
 the opening's dark end, so white counts against a disc and the lids and skin beyond the opening count
 nothing. A disc half under a lid is found where the iris is, not pushed back into the opening; it must
-have ``IRIS_SEEN`` of itself in the opening. The best disc's place is refined to a fraction of a pixel by
-a parabola through its neighbours. Its offset is taken from the middle of the eye's two corners, along the
-line from corner to corner (u, positive towards the image's right) and across it (v, positive down), in eye
-widths: a measure that does not depend on the size of the face or its roll.
+have ``IRIS_SEEN`` as much of itself in the opening as the disc with the most. The best disc's place is
+refined to a fraction of a pixel by a parabola through its neighbours. Its offset is taken from the middle
+of the eye's two corners, along the line from corner to corner (u, positive towards the image's right) and
+across it (v, positive down), in eye widths: a measure that does not depend on the size of the face or its
+roll.
 
 Given (:func:`look`): in B's texture (at B's neutral fiducials) each eye turns under its lids by the
 driver's offset from the driver's own usual gaze (the clip's median), times B's eye width: the iris, found
@@ -52,8 +53,10 @@ MIN_OPENING = 0.12
 #: darkness summed alone, the disc's centre kept in the opening, found 0.39-0.58 (tests/plugins/test_gaze.py)
 IRIS_SHARE = 0.4
 
-#: the least share of a disc that must lie in the eye's opening for its centre to be taken
-IRIS_SEEN = 0.3
+#: the least share of a disc that must lie in the eye's opening for its centre to be taken, over the share the
+#: disc with the most of itself there has: an iris half under a lid is found, but the lashes of a narrowed eye,
+#: beyond its opening, are not taken for it
+IRIS_SEEN = 0.5
 
 #: the largest offset given to a texture (eye widths, along and across): beyond it the white in front of
 #: the iris is squeezed to nothing
@@ -104,7 +107,7 @@ def iris_offset(image: np.ndarray, points: np.ndarray) -> np.ndarray:
     seen = cv2.filter2D(inside.astype(np.float32), -1, disc, borderType=cv2.BORDER_CONSTANT)  # share in the opening
     threshold = IRIS_SHARE * np.percentile(dark[inside], 95)
     score = cv2.filter2D(dark, -1, disc, borderType=cv2.BORDER_CONSTANT) - threshold * seen
-    score[seen < IRIS_SEEN] = -np.inf  # the iris' centre may lie under a lid, but most of the opening not
+    score[seen < IRIS_SEEN * seen.max()] = -np.inf  # the iris' centre may lie under a lid, not beyond it
     y, x = np.unravel_index(int(np.argmax(score)), score.shape)
     if not np.isfinite(score[y, x]) or score[y, x] <= 0:
         return np.full(2, np.nan)
@@ -324,8 +327,8 @@ def look(texture: np.ndarray, neutral: np.ndarray, shift: np.ndarray) -> np.ndar
     (:func:`_iris_radius`), whichever is wider, moves as one; the white it leaves is
     filled from the white either side of it (:func:`_white_behind`); and it is drawn again only inside the
     eye's opening (through its six fiducials, :func:`_almond`, antialiased), so that the lids cut an iris
-    gone towards a corner or a lid as they cut a real one. What the measure then finds has moved less than
-    the iris (the lids hide part of it, as they hid part of the driver's), so an eye asked to look
+    gone towards a corner or a lid as they cut a real one. What the measure then finds may have moved less
+    than the iris (the lids hide part of it, as they hid part of the driver's), so an eye asked to look
     ``MEASURED_FROM`` or more away is measured and turned again by what is missing, up to ``PASSES`` times,
     the best kept, never further than 1.5 times what was asked; where the measure does not follow the iris
     (a light one, whose darkest disc is the lashes) it is turned once, as asked. The lids, the corners and
