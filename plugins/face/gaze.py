@@ -44,8 +44,9 @@ EYES68 = (tuple(range(36, 42)), tuple(range(42, 48)))
 #: the same eyes' six points among the paper's 49 fiducials
 EYES49 = tuple(tuple(IDX49.index(i) for i in eye) for eye in EYES68)
 
-#: an eye whose lids are closer than this share of its width shows too little iris to measure
-MIN_OPENING = 0.12
+#: an eye whose lids are closer than this share of its width shows too little iris to measure: dlib's lids of a
+#: shut eye stay 0.12-0.16 of its width apart (the expressions woman's blinks), an open eye's are 0.25-0.45
+MIN_OPENING = 0.16
 
 #: a texel of the opening counts for a disc as the iris by its darkness less this share of the opening's dark
 #: end (its 95th percentile), against it below: a disc is pulled onto the iris and kept off the white. Irises
