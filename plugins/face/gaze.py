@@ -184,7 +184,7 @@ def together(shift: np.ndarray) -> np.ndarray:
 
 
 #: what :func:`look` draws, as a version: a drive's frame textures record it and are made again when it changes
-LOOK_VERSION = "7"
+LOOK_VERSION = "8"
 
 #: the disc moved as the iris (:func:`look`), over the iris the measure looks for, at least: it takes the iris' dark
 #: rim and the blur around it along, so that none of it is left behind in the white; a texel beyond the iris'
