@@ -50,8 +50,8 @@ MIN_OPENING = 0.16
 
 #: a texel of the opening counts for a disc as the iris by its darkness less this share of the opening's dark
 #: end (its 95th percentile), against it below: a disc is pulled onto the iris and kept off the white. Irises
-#: drawn up to 0.15 eye widths up and down in eyes 14-60 px wide are found 0.88-0.94 times as far, where the
-#: darkness summed alone, the disc's centre kept in the opening, found 0.39-0.58 (tests/plugins/test_gaze.py)
+#: drawn up to 0.15 eye widths up and down in eyes 14-60 px wide are found 0.88-0.94 times as far, where a disc
+#: that sums darkness alone, its centre kept in the opening, finds 0.39-0.58 (tests/plugins/test_gaze.py)
 IRIS_SHARE = 0.4
 
 #: the least share of a disc that must lie in the eye's opening for its centre to be taken, over the share the

@@ -53,7 +53,7 @@ def test_the_iris_is_found_where_it_was_drawn(width, tolerance):
 def test_an_iris_half_under_a_lid_is_found_where_it_is(width):
     """Irises drawn from 0.15 eye widths up to 0.15 down (the lids hide up to a third of them) and from 0.3 left
     to 0.3 right: what the measure finds rises with where they were drawn at a slope of 0.85-1.15 across the eye
-    and 0.95-1.05 along it (measured 0.88-0.94 and 0.97-1.01; a disc whose centre had to lie in the opening,
+    and 0.95-1.05 along it (measured 0.88-0.94 and 0.97-1.01; a disc whose centre must lie in the opening finds
     0.39-0.58 and 0.88-0.92)."""
     across = np.linspace(-0.15, 0.15, 7)
     along = np.linspace(-0.3, 0.3, 7)
