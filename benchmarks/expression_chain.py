@@ -33,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from persona.dag.evaluate import driver_frame_landmarks, mesh_expression
+from persona.dag.evaluate import driver_frame_landmarks, expression_gains, mesh_landmarks
 from persona.dag.motion import prepared_transfer
 from persona.dag.workflow import load_workflow
 from persona.plugins.builtin import evaluate as ev
@@ -111,10 +111,11 @@ def main() -> None:
           + ", ".join(f"{k} {np.subtract(*np.nanpercentile(driver[k], [95, 5])):.3f}" for k in SIGNALS))
     print("| step | " + " | ".join(f"{k} gain / r" for k in SIGNALS) + " |")
     print("|---|" + "---|" * len(SIGNALS))
-    print(row("A's meshes", mesh_expression(root, f"{cast.drive}/motion/driver_mesh", cast.driver, landmarks)[0]))
-    moved, posed = mesh_expression(root, f"{cast.drive}/mesh", cast.puppet, landmarks, poses=drive.array("pose")[:])
-    print(row("B's meshes (the run)", moved))
-    print(row("B's meshes at the frames' poses", posed))
+    print(row("A's meshes", expression_gains(landmarks, mesh_landmarks(root, f"{cast.drive}/motion/driver_mesh",
+                                                                      cast.driver)[0])))
+    moved, posed = mesh_landmarks(root, f"{cast.drive}/mesh", cast.puppet, poses=drive.array("pose")[:])
+    print(row("B's meshes (the run)", expression_gains(landmarks, moved)))
+    print(row("B's meshes at the frames' poses", expression_gains(landmarks, posed)))
 
     chosen = np.arange(0, drive.n, args.every)
     sub = {k: v[chosen] for k, v in driver.items()}

@@ -35,7 +35,8 @@ Figures (paper §6, with dlib's descriptor and landmarks only; nothing downloade
 - self-reenactment (when asked): PSNR and SSIM of the output against A's real frames
   inside the rendered face, of the render and of composite.mp4's frame, and the landmark registration:
   how far dlib's 68 points on each lie from those on the real frame, per region (jaw, brows, nose, eyes,
-  mouth), median % of the eye distance;
+  mouth), median % of the eye distance; and, of a drive rendered in 3D, how far B's 49 fiducials lie from
+  them where the mesh and the pose put them, before the face is drawn (the motion's share of the error);
 - motion (3D runs): the same expression signals computed from the fiducials moved by A's
   per-frame meshes M_D^t and by B's meshes M_P^t after the transfer, against A's landmarks
   (gain, correlation, ranges): how much of A's expression each step of the 3D method carries,
@@ -66,7 +67,7 @@ from .stages import RENDER_3D, accepted, backend_key, provenance, render_alpha
 
 #: the figures' version: a run keeps its last evaluation only when this is the same (raise it whenever a
 #: figure is added or computed differently)
-VERSION = 11
+VERSION = 12
 
 #: a person's descriptor centroid (128,), kept in its collection: the mean descriptor of the sample of its
 #: accepted photos that every drive of the person is judged against (:func:`centroid_plan`)
@@ -200,19 +201,24 @@ def centroid_plan(store: str, root, actor: str, path: str, identity: tuple[str, 
                       persona_version=version), chosen
 
 
-def motion_figures(store: str, cast: Cast) -> dict | None:
-    """The expression signals of A's meshes, B's meshes and B's meshes as posed (:func:`mesh_expression`)
-    against A's landmarks; None for a drive not rendered from the motion step's meshes."""
+def motion_figures(store: str, cast: Cast, self_reenactment: bool = False) -> dict | None:
+    """The expression signals of A's meshes, B's meshes and B's meshes as posed (:func:`mesh_landmarks`)
+    against A's landmarks; in a self-reenactment also the registration of B's fiducials as posed on the real
+    frame's landmarks (where the motion puts the face's features before it is drawn, beside where dlib finds
+    them on the drawn face); None for a drive not rendered from the motion step's meshes."""
     root = open_store(store, mode="r")
     drive = Collection(root, cast.drive)
     if drive.provenance("render/rgb").stage != RENDER_3D.name:
         return None
     driver_landmarks = driver_frame_landmarks(root, cast.frames)
-    puppet, posed = mesh_expression(root, f"{cast.drive}/mesh", cast.puppet, driver_landmarks,
-                                    poses=drive.array("pose")[:])
-    return {"driver_meshes": mesh_expression(root, f"{cast.drive}/motion/driver_mesh", cast.driver,
-                                             driver_landmarks)[0],
-            "puppet_meshes": puppet, "puppet_meshes_posed": posed}
+    moved, posed = mesh_landmarks(root, f"{cast.drive}/mesh", cast.puppet, poses=drive.array("pose")[:])
+    figures = {"driver_meshes": expression_gains(driver_landmarks, mesh_landmarks(
+                   root, f"{cast.drive}/motion/driver_mesh", cast.driver)[0]),
+               "puppet_meshes": expression_gains(driver_landmarks, moved),
+               "puppet_meshes_posed": expression_gains(driver_landmarks, posed)}
+    if self_reenactment:
+        figures["registration_posed"] = ev.registration(driver_landmarks, posed)
+    return figures
 
 
 def _piece(tag: str, kind: str, *args):
@@ -259,7 +265,7 @@ def evaluate(store: str, executor, *, identity: tuple[str, dict], threshold: flo
             wanted[actor] = (path, made)
             tasks += [(actor, "photos", store, path, chosen[i::2], identity) for i in range(2)]
     # the drive's two single pieces first: each is several shards' work, and started last they ran alone
-    tasks = [("motion", "motion", store, cast), ("texture", "texture", store, cast, collection_sample), *tasks]
+    tasks = [("motion", "motion", store, cast, self_reenactment), ("texture", "texture", store, cast, collection_sample), *tasks]
     parts, described, pieces, errors = [], {actor: [] for actor in wanted}, {}, None
     for tag, result in executor.run(_piece, tasks):
         if tag == "frames":
@@ -345,6 +351,8 @@ def evaluate(store: str, executor, *, identity: tuple[str, dict], threshold: flo
                                       "registration": ev.registration(driver_landmarks, joined["landmarks"]),
                                       "registration_composite": ev.registration(driver_landmarks,
                                                                                 joined["composite_landmarks"])}
+        if pieces["motion"] is not None:  # where the motion puts B's fiducials, before the face is drawn
+            result["self_reenactment"]["registration_posed"] = pieces["motion"].pop("registration_posed")
         result["self_reenactment"]["error_share"] = errors.shares()
         picture = errors.picture()
         result["pictures"] = {} if picture is None else {"error_map": picture}
@@ -429,28 +437,28 @@ def driver_frame_landmarks(root, path: str = Cast.frames, rows: slice = slice(No
     return landmarks
 
 
-def mesh_expression(root, meshes: str, actor: str, driver_landmarks: np.ndarray,
-                    poses: np.ndarray | None = None) -> tuple[dict[str, dict], dict[str, dict] | None]:
-    """The :func:`amplitude` (gain, r, ranges) of each expression signal of the actor's mean fiducials moved by the per-frame
-    meshes at ``meshes`` (T, H, W, 3; their (x, y) at each fiducial's canonical pixel, rigid pose
-    already removed) and the driver's landmarks (T, 68, 2); and with the frames' ``poses`` (T, 10), from
-    the same read of the meshes, that of the fiducials seen at each frame's pose, as the renderer draws them
-    (ev.posed_landmarks; the step between these and dlib's landmarks on the rendered frames is what dlib
-    reads of the drawn face), else None."""
+def mesh_landmarks(root, meshes: str, actor: str, poses: np.ndarray | None = None
+                   ) -> tuple[np.ndarray, np.ndarray | None]:
+    """(T, 68, 2) the actor's mean fiducials moved by the per-frame meshes at ``meshes`` (T, H, W, 3; their
+    (x, y) at each fiducial's canonical pixel, rigid pose already removed: ev.moved_landmarks); and with the
+    frames' ``poses`` (T, 10), from the same read of the meshes, the fiducials seen at each frame's pose, as
+    the renderer draws them (ev.posed_landmarks; the step between these and dlib's landmarks on the rendered
+    frames is what dlib reads of the drawn face), else None."""
     fiducials = root[f"{actor}/aligned/mean_fiducials"][...]
     moved, posed = [], []
-    for start in range(0, len(driver_landmarks), 256):  # a few frames at a time
+    for start in range(0, root[meshes].shape[0], 256):  # a few frames at a time
         chunk = root[meshes][start:start + 256]
         moved.append(ev.moved_landmarks(chunk, fiducials))
         if poses is not None:
             posed.append(ev.posed_landmarks(chunk, fiducials, poses[start:start + 256]))
-    theirs = ev.expression_signals(driver_landmarks)
+    return np.concatenate(moved), np.concatenate(posed) if poses is not None else None
 
-    def gains(landmarks: list[np.ndarray]) -> dict[str, dict]:
-        ours = ev.expression_signals(np.concatenate(landmarks))
-        return {k: ev.amplitude(theirs[k], ours[k]) for k in theirs}
 
-    return gains(moved), gains(posed) if poses is not None else None
+def expression_gains(driver_landmarks: np.ndarray, landmarks: np.ndarray) -> dict[str, dict]:
+    """The :func:`amplitude` (gain, r, ranges) of each expression signal of ``landmarks`` (T, 68, 2) on the
+    driver's landmarks (T, 68, 2)."""
+    theirs, ours = ev.expression_signals(driver_landmarks), ev.expression_signals(landmarks)
+    return {k: ev.amplitude(theirs[k], ours[k]) for k in theirs}
 
 
 def _ratio(a: float, b: float) -> float:

@@ -1024,15 +1024,17 @@ def registration(reference, found) -> dict[str, float]:
     ``reference`` (n, 68, 2) at the same moments (a self-reenactment: the frames the output replaces),
     per region of :data:`REGIONS` and over all 68: the median over frames of each frame's mean point
     distance, in % of the real frame's inter-ocular distance. Frames where either has no face are left
-    out; NaN when none is left."""
+    out; NaN when none is left. Points that ``found`` has in no frame at all are left out of their region
+    (B's 49 fiducials posed by the mesh have no jaw line: their "all" is over the 49, their jaw NaN)."""
     reference, found = _track(reference), _track(found)
     if reference.shape != found.shape:
         raise ValueError(f"registration: {reference.shape} and {found.shape} landmark tracks")
     error = np.linalg.norm(found - reference, axis=-1) / interocular(reference)[:, None] * 100  # (n, 68)
-    both = np.isfinite(error).all(axis=1)
+    drawn = np.flatnonzero(np.isfinite(found).all(axis=-1).any(axis=0))  # the points found has at all
     out = {}
     for name, points in {"all": slice(None), **REGIONS}.items():
-        per_frame = error[both][:, points].mean(axis=1)
+        region = error[:, np.intersect1d(np.arange(68)[points], drawn)]
+        per_frame = region[np.isfinite(region).all(axis=1)].mean(axis=1) if region.shape[1] else []
         out[name] = float(np.median(per_frame)) if len(per_frame) else float("nan")
     return out
 

@@ -462,6 +462,21 @@ def test_registration_per_region_in_percent_of_the_eye_distance():
     assert np.isnan(ev.registration(real[:1], np.full((1, 68, 2), np.nan))["all"])
 
 
+def test_registration_of_points_an_output_never_has_leaves_them_out():
+    """B's fiducials posed by the mesh are 49 of the 68 points, with no jaw line: their registration is over
+    the points they have (every frame's brows 2 px high, 5 % of the eye distance of 40, over the 10 brow points
+    of the 49 counted in "all"), and NaN for the jaw rather than NaN everywhere."""
+    real = np.repeat(hand_face()[None], 3, axis=0)
+    posed = real.copy()
+    posed[:, 17:27, 1] -= 2.0
+    posed[:, :17] = np.nan  # no jaw line
+    posed[:, [60, 64]] = np.nan  # nor the inner lips' corners
+    found = ev.registration(real, posed)
+    assert np.isnan(found["jaw"])
+    assert found["brows"] == pytest.approx(5.0) and found["all"] == pytest.approx(5.0 * 10 / 49)
+    assert found["mouth"] == 0 and found["eyes"] == 0
+
+
 # --------------------------------------------------------------------------- identity
 
 
