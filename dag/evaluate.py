@@ -339,6 +339,7 @@ def evaluate(store: str, executor, *, identity: tuple[str, dict], threshold: flo
                for k, v in ev.expression_signals(points).items()},
             **{f"{who}_gaze_{k}": v for who, signals in gazes.items() for k, v in signals.items()},
             **{f"{who}_creases": joined["creases"][:, k] for k, who in enumerate(("driver", "output", "composite"))},
+            "driver_head_turn": ev.head_turns(drive.array("pose")[:]),  # for the report's frames at the widest turns
         },
     }
     if pieces["motion"] is not None:  # rendered from the motion step's meshes

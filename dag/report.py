@@ -507,7 +507,8 @@ def write_report(path, *, metrics: dict, pictures: dict[str, np.ndarray], strip:
     if peaks is not None:
         found, image = peaks
         columns = ", ".join(f"{label} (frame {t})" for label, t in found)
-        parts += ["<h2>The driver's expression peaks (and a self-reenactment's frame least like the real one): "
+        parts += ["<h2>The driver's expression peaks and widest head turns (and a self-reenactment's frame least "
+                  "like the real one): "
                   "driver (top), composite (middle), puppet alone (bottom)</h2>",
                   f"<p>Left to right: {html.escape(columns)}.</p>", _img(_png(image), "peaks", min(1200, image.shape[1]))]
     if series:

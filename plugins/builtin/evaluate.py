@@ -240,13 +240,28 @@ PEAKS = (("widest mouth", "mouth_open", 1), ("widest lips", "mouth_width", 1),
          ("brows highest", "brow_height", 1), ("brows lowest", "brow_height", -1),
          ("looks furthest to the image's left", "gaze_along", -1),
          ("looks furthest to the image's right", "gaze_along", 1),
-         ("eyes most crossed", "gaze_apart", -1), ("deepest creases between the brows", "creases", 1))
+         ("eyes most crossed", "gaze_apart", -1), ("deepest creases between the brows", "creases", 1),
+         ("head turned furthest to the image's left", "head_turn", -1),
+         ("head turned furthest to the image's right", "head_turn", 1))
+
+
+def head_turns(poses) -> np.ndarray:
+    """(T,) how far each frame's head is turned: the sideways part of the direction its face looks in (the
+    canonical face looks along -z, towards the camera), the sine of the turn; + when the nose points to the
+    image's right, NaN for a frame without a pose. ``poses``: (T, k) rows that begin with the rotation vector
+    (kinds.Pose.as_vector), as a drive's ``pose`` holds them."""
+    poses = np.asarray(poses, np.float64).reshape(len(poses), -1)
+    out = np.full(len(poses), np.nan)
+    for t, rvec in enumerate(poses[:, :3]):
+        if np.isfinite(rvec).all():
+            out[t] = -cv2.Rodrigues(rvec)[0][0, 2]  # x of R @ (0, 0, -1)
+    return out
 
 
 def expression_peaks(signals: dict) -> list[tuple[str, int]]:
     """The frame of each of :data:`PEAKS` in a face's :func:`expression_signals`, ``gaze_``-prefixed
-    :func:`gaze_signals` and ``creases`` (:func:`crease_energy`): (what it shows, frame), leaving out a signal
-    that is missing or NaN in every frame."""
+    :func:`gaze_signals`, ``creases`` (:func:`crease_energy`) and ``head_turn`` (:func:`head_turns`): (what it
+    shows, frame), leaving out a signal that is missing or NaN in every frame."""
     peaks = []
     for label, name, sign in PEAKS:
         x = sign * np.asarray(signals.get(name, np.nan), np.float64)

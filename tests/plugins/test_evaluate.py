@@ -806,3 +806,27 @@ def test_the_peaks_a_viewer_looks_at_include_where_the_eyes_look_furthest_and_cr
     assert peaks["looks furthest to the image's left"] == 3 and peaks["looks furthest to the image's right"] == 7
     assert peaks["eyes most crossed"] == 5
     assert "eyes widest" not in peaks and "brows highest" not in peaks
+
+
+def test_a_head_turned_towards_the_image_s_right_has_a_positive_turn_and_is_a_peak():
+    """head_turns is the sine of the turn about the vertical axis (a rotation vector (0, θ, 0) gives -sin θ), and
+    its sign is where the renderer draws the nose: right of the middle of the jaw's two ends when it is positive.
+    A frame without a pose has none; the furthest turn each way is a peak of the report's strip."""
+    from persona.plugins.builtin.render3d import project
+    from persona.plugins.face.template import generic_template
+    from persona.plugins.kinds import Pose
+
+    face = generic_template().landmarks3d.astype(np.float64)
+    face -= face.mean(axis=0)
+    angles = np.radians([0.0, -20.0, 10.0, 30.0])
+    camera = np.array([[500.0, 0, 128], [0, 500.0, 128], [0, 0, 1]])
+    rows = [Pose(np.array([0.0, a, 0.0]), np.array([0.0, 0.0, 600.0]), camera, 0.0).as_vector() for a in angles]
+    turns = ev.head_turns(np.array([*rows, np.full(10, np.nan)]))
+    np.testing.assert_allclose(turns[:4], -np.sin(angles), atol=1e-12)
+    assert np.isnan(turns[4])
+    for row, turn in zip(rows[1:], turns[1:4]):
+        xy = project(face, Pose.from_vector(row))[0]
+        assert np.sign(xy[30, 0] - (xy[0, 0] + xy[16, 0]) / 2) == np.sign(turn)  # the nose's tip, the jaw's ends
+    peaks = dict(ev.expression_peaks({"head_turn": turns}))
+    assert peaks["head turned furthest to the image's left"] == 3  # θ 30°: the nose furthest to the left
+    assert peaks["head turned furthest to the image's right"] == 1  # θ -20°
