@@ -265,8 +265,8 @@ def evaluate(store: str, executor, *, identity: tuple[str, dict], threshold: flo
             wanted[actor] = (path, made)
             tasks += [(actor, "photos", store, path, chosen[i::2], identity) for i in range(2)]
     # the drive's two single pieces first: each is several shards' work, and started last they ran alone
-    tasks = [("motion", "motion", store, cast, self_reenactment), ("texture", "texture", store, cast, collection_sample),
-             *tasks]
+    tasks = [("motion", "motion", store, cast, self_reenactment),
+             ("texture", "texture", store, cast, collection_sample), *tasks]
     parts, described, pieces, errors = [], {actor: [] for actor in wanted}, {}, None
     for tag, result in executor.run(_piece, tasks):
         if tag == "frames":
