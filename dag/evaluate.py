@@ -447,9 +447,10 @@ def mesh_landmarks(root, meshes: str, actor: str, poses: np.ndarray | None = Non
     the renderer draws them (ev.posed_landmarks; the step between these and dlib's landmarks on the rendered
     frames is what dlib reads of the drawn face), else None."""
     fiducials = root[f"{actor}/aligned/mean_fiducials"][...]
+    array = root[meshes]
     moved, posed = [], []
-    for start in range(0, root[meshes].shape[0], 256):  # a few frames at a time
-        chunk = root[meshes][start:start + 256]
+    for start in range(0, array.shape[0], 256):  # a few frames at a time
+        chunk = array[start:start + 256]
         moved.append(ev.moved_landmarks(chunk, fiducials))
         if poses is not None:
             posed.append(ev.posed_landmarks(chunk, fiducials, poses[start:start + 256]))

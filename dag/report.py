@@ -322,7 +322,7 @@ def _self_reenactment_rows(figures: dict) -> list[tuple]:
         judged = k.endswith("_composite")
         what, guide = _REGISTRATIONS[k]
         for region, d in v.items():
-            if d is None or d != d:  # a region the motion's fiducials do not have: the jaw line
+            if np.isnan(d):  # a region the motion's fiducials do not have: the jaw line
                 continue
             bound = 3.0 if region == "jaw" else 2.0
             rows.append((f"self-reenactment landmark registration ({what}): {region}", d,

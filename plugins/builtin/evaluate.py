@@ -25,6 +25,7 @@ from functools import lru_cache
 import cv2
 import numpy as np
 from pydantic import Field
+from scipy.spatial.transform import Rotation
 
 from ..base import Backend, Params, Rejected
 from ..face.composite import mask_box
@@ -250,11 +251,11 @@ def head_turns(poses) -> np.ndarray:
     canonical face looks along -z, towards the camera), the sine of the turn; + when the nose points to the
     image's right, NaN for a frame without a pose. ``poses``: (T, k) rows that begin with the rotation vector
     (kinds.Pose.as_vector), as a drive's ``pose`` holds them."""
-    poses = np.asarray(poses, np.float64).reshape(len(poses), -1)
-    out = np.full(len(poses), np.nan)
-    for t, rvec in enumerate(poses[:, :3]):
-        if np.isfinite(rvec).all():
-            out[t] = -cv2.Rodrigues(rvec)[0][0, 2]  # x of R @ (0, 0, -1)
+    rvecs = np.asarray(poses, np.float64).reshape(len(poses), -1)[:, :3]
+    posed = np.isfinite(rvecs).all(axis=1)
+    out = np.full(len(rvecs), np.nan)
+    if posed.any():
+        out[posed] = -Rotation.from_rotvec(rvecs[posed]).as_matrix()[:, 0, 2]  # x of R @ (0, 0, -1)
     return out
 
 
