@@ -247,9 +247,11 @@ class MultiscaleTexture(TextureBackend):
                            "where they usually are as the driver's are from where the driver's usually are in the "
                            "clip, in eye widths (persona.plugins.face.gaze): the eyes look where the driver's look. "
                            "Not in the paper (false: B's irises stay where B's photos have them; docs/gaze.md)")
-        gaze_together: bool = Field(True, description="gaze: both of B's eyes turn by the mean of the driver's two, "
-                                    "never apart; false: each eye turns as the driver's same eye does, so eyes that "
-                                    "converge on something near or cross do so on B's face too (docs/gaze.md)")
+        gaze_together: bool = Field(False, description="gaze: true: both of B's eyes turn by the mean of the "
+                                    "driver's two, never apart; false: each eye turns as the driver's same eye does, "
+                                    "by as much of the eyes' turn against each other as the clip shows above its "
+                                    "measure's noise, so eyes that converge on something near or cross do so on B's "
+                                    "face too (persona.plugins.face.gaze.apart_share; docs/gaze.md)")
         stretch_scale: float = Field(0.3, ge=0, description="s of the alignment confidence's flow term "
                                      "exp(-|∇w_i|² / 2s²), |∇w_i|² the local (σ 3 px) squared Jacobian norm of "
                                      "the photo's dense flow: tears, where the flow jumps, lose their weight. "
