@@ -63,6 +63,13 @@ IRIS_SEEN = 0.5
 #: the iris is squeezed to nothing
 MAX_SHIFT = (0.3, 0.1)
 
+#: the furthest two eyes turn apart along the eye (eye widths, the image's right one's shift less the left one's)
+#: from where they usually are in a clip. Eyes converge on what is near and can cross, but do not part beyond
+#: looking far: from looking at a camera half a metre away, each turns out about 4°, 0.03 eye widths. A larger
+#: parting is the measure's error: a glare on glasses over one iris (the man with glasses looking up: 0.16-0.32),
+#: a wink or an eye half shut (the expressions woman: 0.10-0.33)
+MAX_PART = 0.1
+
 
 def _frame(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
     """(origin, unit axis from the first corner to the second, width) of an eye's six points (6, 2)."""
@@ -166,8 +173,8 @@ def gaze_shift(offsets: np.ndarray) -> np.ndarray:
     """(T, 2, 2) a clip's iris offsets (:func:`iris_offsets` of every frame) from its own usual gaze, each eye's
     from its own (its median over the clip), clipped to MAX_SHIFT: the eyes may turn apart, as they do when
     they look at something near or cross, by as much of the clip's turn of one eye against the other as
-    stands above the measure's noise (:func:`apart_share`). An eye not measured in a frame takes the other's
-    shift; 0 in a frame where neither was. Frame by frame, not smoothed in time: the eyes glance for two or
+    stands above the measure's noise (:func:`apart_share`), and never parted further than MAX_PART. An eye not
+    measured in a frame takes the other's shift; 0 in a frame where neither was. Frame by frame, not smoothed in time: the eyes glance for two or
     three frames, and a mean over time halved those glances on the fringe clip (σ 0.75 frames: gain 0.72; a
     running median of three, 0.76; none, 0.995). :func:`together` moves both eyes by their mean."""
     offsets = np.asarray(offsets, np.float64)
@@ -178,6 +185,9 @@ def gaze_shift(offsets: np.ndarray) -> np.ndarray:
     moved = np.where(np.isnan(moved), moved[:, ::-1], moved)  # an eye not seen: the other's
     middle = moved.mean(axis=1, keepdims=True)
     moved = middle + share * (moved - middle)
+    beyond = np.maximum(moved[:, 1, 0] - moved[:, 0, 0] - MAX_PART, 0) / 2  # parted further than eyes do
+    moved[:, 0, 0] += beyond
+    moved[:, 1, 0] -= beyond
     return np.clip(np.nan_to_num(moved), -np.asarray(MAX_SHIFT), MAX_SHIFT)
 
 
@@ -186,8 +196,8 @@ def apart_share(apart: np.ndarray) -> np.ndarray:
     where an eye was not measured), that is not the measure's noise, 1 - σ²/var(apart), in [0, 1]. σ, the
     noise frame by frame, is read from the changes between consecutive frames (their median absolute
     deviation, over √2): eyes turn apart slowly or hold a cross, where the measure of a small eye jumps from
-    frame to frame. Along the eye, 0.96-0.98 on the HD clips whose eyes converge or cross (the fringe woman,
-    the expressions woman, the man with glasses); 0 and 0.43 on the MEAD actor's 256² clips (eyes 25 px wide),
+    frame to frame. Along the eye, 0.96-0.98 on the HD clips (the fringe woman, whose eyes converge; the
+    expressions woman; the man with glasses); 0 and 0.43 on the MEAD actor's 256² clips (eyes 25 px wide),
     0.20 on the phone clip, 0.69 on the Obama address."""
     apart = np.asarray(apart, np.float64)
     apart = apart[np.isfinite(apart).all(axis=1)]
