@@ -83,3 +83,15 @@ def test_each_target_is_marked_met_or_not():
     near = targets_summary([("eye gain", 0.696, "", (0.7, 1.4)), ("brow gain", 0.6996, "", (0.7, 1.4))])
     # never "0.70" or "0.700": they missed
     assert near == "0 of 2 targets met; not met: eye gain 0.696; brow gain 0.6996."
+
+
+def test_the_mouth_correlation_has_a_target_only_where_the_drivers_mouth_opens():
+    """The mouth's correlation with the driver is judged against 0.85 where the driver's mouth ranges over
+    0.2 IOD; over 0.01 (lips that stay shut: dlib's noise) it has no target, as its gain has none."""
+    ev = evaluation(0.3, 0.9)
+    ev["expression"]["mouth_open"] = 0.5
+    row = {r[0]: r for r in figure_rows(ev)}["expression correlation: mouth open"]
+    assert row[3] == (0.85, None) and met(row[1], row[3]) is False
+    ev["amplitude"]["mouth_open"]["driver_range"] = 0.01
+    row = {r[0]: r for r in figure_rows(ev)}["expression correlation: mouth open"]
+    assert row[3] is None and "0.010 IOD, under 0.05" in row[2]
