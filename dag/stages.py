@@ -440,7 +440,7 @@ STAGES = {stage.name: stage for stage in (
           ("video:screen", "puppet:mean", "driver:mean"), ("status/retarget/state",), "2",
           run="persona.dag.drive:run_retarget", runs="the client"),
     Stage("gaze", ("drive",), ("texture",), "where the driver's irises sit in their eyes in each frame, from the "
-          "clip's usual gaze", "drive", ("retarget", "video:screen"), ("eyes/gaze",), "6",
+          "clip's usual gaze", "drive", ("retarget", "video:screen"), ("eyes/gaze",), "7",
           run="persona.dag.drive:run_gaze", runs="the client"),
     Stage("frame textures", ("drive",), ("texture",), "B's face for each frame's expression and gaze", "drive",
           ("retarget", "gaze", "puppet:texture"), ("texture/rgb",), run="persona.dag.texture:run_frame_textures",

@@ -248,10 +248,10 @@ class MultiscaleTexture(TextureBackend):
                            "clip, in eye widths (persona.plugins.face.gaze): the eyes look where the driver's look. "
                            "Not in the paper (false: B's irises stay where B's photos have them; docs/gaze.md)")
         gaze_together: bool = Field(False, description="gaze: true: both of B's eyes turn by the mean of the "
-                                    "driver's two, never apart; false: each eye turns as the driver's same eye does, "
-                                    "by as much of the eyes' turn against each other as the clip shows above its "
+                                    "driver's two, never apart; false: each eye turns as the driver's same eye does "
+                                    "where the clip's turn of one eye against the other stands out from its "
                                     "measure's noise, so eyes that converge on something near or cross do so on B's "
-                                    "face too (persona.plugins.face.gaze.apart_share; docs/gaze.md)")
+                                    "face too (persona.plugins.face.gaze.turns_apart; docs/gaze.md)")
         stretch_scale: float = Field(0.3, ge=0, description="s of the alignment confidence's flow term "
                                      "exp(-|∇w_i|² / 2s²), |∇w_i|² the local (σ 3 px) squared Jacobian norm of "
                                      "the photo's dense flow: tears, where the flow jumps, lose their weight. "

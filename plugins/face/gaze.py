@@ -63,6 +63,12 @@ IRIS_SEEN = 0.5
 #: the iris is squeezed to nothing
 MAX_SHIFT = (0.3, 0.1)
 
+#: each eye turns its own way where the spread of a clip's turn of one eye against the other is at least this
+#: many times the measure's noise (:func:`turns_apart`): the HD clips stand at 5.1-6.5, the clips of small or
+#: light eyes at 2.3 or less. Below it the noise turned B's eyes apart at random, and the gaze along the eye lost
+#: 0.15-0.35 of its gain on the frontal man, the Obama address and the MEAD actor
+APART_SNR = 3.0
+
 #: the furthest two eyes turn apart along the eye (eye widths, the image's right one's shift less the left one's)
 #: from where they usually are in a clip. Eyes converge on what is near and can cross, but do not part beyond
 #: looking far: from looking at a camera half a metre away, each turns out about 4°, 0.03 eye widths. A larger
@@ -171,42 +177,42 @@ def ahead(gazes: np.ndarray, sigma: float) -> np.ndarray:
 
 def gaze_shift(offsets: np.ndarray) -> np.ndarray:
     """(T, 2, 2) a clip's iris offsets (:func:`iris_offsets` of every frame) from its own usual gaze, each eye's
-    from its own (its median over the clip), clipped to MAX_SHIFT: the eyes may turn apart, as they do when
-    they look at something near or cross, by as much of the clip's turn of one eye against the other as
-    stands above the measure's noise (:func:`apart_share`), and never parted further than MAX_PART. An eye not
-    measured in a frame takes the other's shift; 0 in a frame where neither was. Frame by frame, not smoothed in time: the eyes glance for two or
-    three frames, and a mean over time halved those glances on the fringe clip (σ 0.75 frames: gain 0.72; a
-    running median of three, 0.76; none, 0.995). :func:`together` moves both eyes by their mean."""
+    from its own (its median over the clip), clipped to MAX_SHIFT. The eyes turn apart, as they do when they look
+    at something near or cross, where the clip's turn of one eye against the other stands out from the
+    measure's noise (:func:`turns_apart`), and never part further than MAX_PART; elsewhere both turn by their
+    mean. An eye not measured in a frame takes the other's shift; 0 in a frame where neither was. Frame by
+    frame, not smoothed in time: the eyes glance for two or three frames, and a mean over time halved those
+    glances on the fringe clip (σ 0.75 frames: gain 0.72; a running median of three, 0.76; none, 0.995).
+    :func:`together` moves both eyes by their mean."""
     offsets = np.asarray(offsets, np.float64)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # an eye never measured: NaN, then 0
         moved = offsets - np.nanmedian(offsets, axis=0)  # (T, 2 eyes, 2)
-    share = apart_share(moved[:, 1] - moved[:, 0])
+    own = turns_apart(moved[:, 1] - moved[:, 0])
     moved = np.where(np.isnan(moved), moved[:, ::-1], moved)  # an eye not seen: the other's
-    middle = moved.mean(axis=1, keepdims=True)
-    moved = middle + share * (moved - middle)
+    moved = np.where(own, moved, moved.mean(axis=1, keepdims=True))
     beyond = np.maximum(moved[:, 1, 0] - moved[:, 0, 0] - MAX_PART, 0) / 2  # parted further than eyes do
     moved[:, 0, 0] += beyond
     moved[:, 1, 0] -= beyond
     return np.clip(np.nan_to_num(moved), -np.asarray(MAX_SHIFT), MAX_SHIFT)
 
 
-def apart_share(apart: np.ndarray) -> np.ndarray:
-    """(2,) along and across: the share of a clip's turn of one eye against the other, ``apart`` (T, 2; NaN
-    where an eye was not measured), that is not the measure's noise, 1 - σ²/var(apart), in [0, 1]. σ, the
-    noise frame by frame, is read from the changes between consecutive frames (their median absolute
-    deviation, over √2): eyes turn apart slowly or hold a cross, where the measure of a small eye jumps from
-    frame to frame. Along the eye, 0.96-0.98 on the HD clips (the fringe woman, whose eyes converge; the
-    expressions woman; the man with glasses); 0 and 0.43 on the MEAD actor's 256² clips (eyes 25 px wide),
-    0.20 on the phone clip, 0.69 on the Obama address."""
+def turns_apart(apart: np.ndarray) -> np.ndarray:
+    """(2,) along and across: whether a clip's turn of one eye against the other, ``apart`` (T, 2; NaN where an
+    eye was not measured), stands out from the measure's noise, its spread at least APART_SNR times the noise
+    frame by frame; where it does not, the eyes turn together. The noise is read from the changes between
+    consecutive frames (their median absolute deviation, over √2): eyes turn apart slowly or hold a cross,
+    where the measure of a small eye jumps from frame to frame. Along the eye the ratio is 5.1-6.5 on the HD
+    clips (the fringe woman, whose eyes converge; the expressions woman; the man with glasses) and at most 2.3
+    on the others (the MEAD actor's 256² clips, whose eyes are 25 px wide, the phone clip, the Obama address, the
+    frontal man's light irises, the smiling man)."""
     apart = np.asarray(apart, np.float64)
     apart = apart[np.isfinite(apart).all(axis=1)]
     if len(apart) < 3:
-        return np.zeros(2)
+        return np.zeros(2, bool)
     steps = np.diff(apart, axis=0)
     noise = 1.4826 * np.median(np.abs(steps - np.median(steps, axis=0)), axis=0) / np.sqrt(2)
-    spread = apart.var(axis=0)
-    return np.clip(1 - noise ** 2 / np.maximum(spread, 1e-12), 0, 1)
+    return apart.std(axis=0) >= APART_SNR * noise
 
 
 def together(shift: np.ndarray) -> np.ndarray:

@@ -174,24 +174,23 @@ def test_a_clips_gaze_is_taken_from_its_usual_one_each_eye_from_its_own_and_clip
     assert both[3, 0, 0] == pytest.approx(0.01) and np.array_equal(both[:, 0], both[:, 1])
 
 
-def test_eyes_turn_apart_as_far_as_the_clip_shows_it_above_the_measures_noise():
+def test_eyes_turn_apart_where_the_clip_shows_it_above_the_measures_noise():
     """Two clips of 200 frames whose eyes look about together (a shared glance of 0.1 eye widths), each eye's
     measure with its own noise of 0.01 eye widths a frame (as on the HD clips). In the first the eyes also
-    converge once, slowly, and part again (0.15 eye widths apart at most): the shifts keep at least 0.9 of that
-    turn of one eye against the other. In the second they never turn apart: what the noise makes of one against
-    the other is shrunk to at most a third, where each eye alone would keep all of it. Either way both eyes'
-    mean is the measure's."""
+    converge once, slowly, and part again (0.15 eye widths apart at most): each eye keeps its own turn. In the
+    second they never turn apart, and both turn by their mean, where each eye alone would add its own noise.
+    Either way both eyes' mean is the measure's."""
     rng = np.random.default_rng(5)
     t = np.arange(200)
     glance = 0.1 * np.sin(t / 9)
-    for converge, keeps in ((0.075 * np.exp(-((t - 100) / 25) ** 2), (0.9, 1.0)), (np.zeros(200), (0.0, 0.34))):
+    for converge, keeps in ((0.075 * np.exp(-((t - 100) / 25) ** 2), (1.0, 1.0)), (np.zeros(200), (0.0, 0.0))):
         offsets = np.zeros((200, 2, 2))
         offsets[:, 0, 0] = glance + converge + rng.normal(0, 0.01, 200)
         offsets[:, 1, 0] = glance - converge + rng.normal(0, 0.01, 200)
         shift = gaze.gaze_shift(offsets)
         apart, measured = shift[:, 1, 0] - shift[:, 0, 0], offsets[:, 1, 0] - offsets[:, 0, 0]
         kept = np.polyfit(measured - measured.mean(), apart, 1)[0]
-        assert keeps[0] <= kept <= keeps[1], (kept, keeps)
+        assert keeps[0] - 1e-9 <= kept <= keeps[1] + 1e-9, (kept, keeps)
         wanted = offsets[:, :, 0].mean(axis=1) - np.median(offsets[:, :, 0], axis=0).mean()
         assert np.abs(shift[:, :, 0].mean(axis=1) - wanted).max() < 1e-9
 
