@@ -221,6 +221,12 @@ def _crease_rows(figures: dict) -> list[tuple]:
     return rows
 
 
+def _moves(amplitude: dict) -> bool:
+    """Whether the driver's expression signal of ``amplitude`` (ev.amplitude) ranges over more than
+    SIGNAL_RANGE: below it the signal is dlib's noise, and neither its gain nor its correlation has a target."""
+    return amplitude.get("driver_range", 1.0) > SIGNAL_RANGE
+
+
 def _correlation_row(signal: str, r: float, amplitude: dict) -> tuple:
     """The output's correlation with the driver on one expression signal; the mouth's opening has a target
     where the driver's mouth opens further than its noise (SIGNAL_RANGE), as its gain has: a driver whose lips
@@ -228,7 +234,7 @@ def _correlation_row(signal: str, r: float, amplitude: dict) -> tuple:
     label = f"expression correlation: {signal.replace('_', ' ')}"
     if signal != "mouth_open":
         return label, r, "higher is better", None
-    if amplitude.get("driver_range", 1.0) > SIGNAL_RANGE:
+    if _moves(amplitude):
         return label, r, "higher is better; target ≥ 0.85", (0.85, None)
     return (label, r, f"higher is better; no target: the driver's mouth opening ranges over "
             f"{amplitude['driver_range']:.3f} IOD, under {SIGNAL_RANGE}", None)
@@ -237,7 +243,7 @@ def _correlation_row(signal: str, r: float, amplitude: dict) -> tuple:
 def _gain_rows(where: str, amplitudes: dict) -> list[tuple]:
     rows = []
     for k, a in amplitudes.items():
-        counted = a.get("driver_range", 1.0) > SIGNAL_RANGE
+        counted = _moves(a)
         guide = (f"1 = the driver's amplitude; r {a['r']:.2f}; target 0.7-1.4" if counted else
                  f"1 = the driver's amplitude; no target: the driver's {k.replace('_', ' ')} ranges over "
                  f"{a['driver_range']:.3f} IOD, under {SIGNAL_RANGE}")

@@ -190,7 +190,7 @@ def gaze_shift(offsets: np.ndarray) -> np.ndarray:
         moved = offsets - np.nanmedian(offsets, axis=0)  # (T, 2 eyes, 2)
     own = turns_apart(moved[:, 1] - moved[:, 0])
     moved = np.where(np.isnan(moved), moved[:, ::-1], moved)  # an eye not seen: the other's
-    moved = np.where(own, moved, moved.mean(axis=1, keepdims=True))
+    moved = np.where(own, moved, together(moved))
     beyond = np.maximum(moved[:, 1, 0] - moved[:, 0, 0] - MAX_PART, 0) / 2  # parted further than eyes do
     moved[:, 0, 0] += beyond
     moved[:, 1, 0] -= beyond
