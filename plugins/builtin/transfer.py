@@ -24,7 +24,7 @@ class DeformationTransferBackend(TransferBackend):
                    "moved onto their retargeted places and the skin below the mouth kept from folding")
     default = True
     key_name = "-"
-    version = "6"  # 6: the skin under the brows held up as the eyes shut (brow_hold)
+    version = "7"  # 6: the skin under the brows held up as the eyes shut (brow_hold); 7: in full from eyes.SHUT_AT 0.3
     Params = TransferParams
 
     def prepare(self, pair):

@@ -7,10 +7,10 @@ open eye between them rather than covering it: a sliver of eye white and iris st
 still reads as open (dlib, and a viewer, see it so).
 
 A real eye closes by its lids coming together over it, the upper most of the way. dlib's lid points of a
-shut eye stay ``end`` (45 %) of their open distance apart (the lashes' line; the drivers' blinks measured
-so), so an eye whose lid points are r of their neutral distance apart shows φ(r) = start · (r - end) /
-(start - end) of its opening below ``start`` (85 %), and all of it (φ = r) from there up: the
-target's own ratio, what the driver's eye showed. The mesh already squeezes the texture's eye to r;
+shut eye stay ``end`` of their open distance apart (the lashes' line; the drivers' blinks measure 0.25-0.46
+on HD clips and 0.39-0.49 on a 256² one), so an eye whose lid points are r of their neutral distance apart
+shows φ(r) = start · (r - end) / (start - end) of its opening below ``start``, and all of it (φ = r) from
+there up: the target's own ratio, what the driver's eye showed. The mesh already squeezes the texture's eye to r;
 here the lids — the skin around the eye, inpainted from the lids, with a soft line of lashes the colour of
 the eye's darkest tenth hanging from the upper one's edge — are drawn over 1 - φ(r) / r of the eye's opening
 (the polygon of its six fiducials at B's neutral, grown by a pixel) in the canonical texture: the upper lid
@@ -66,8 +66,9 @@ def region(neutral: np.ndarray, shape: tuple[int, int], *, grow: int = 3, blur: 
 
 
 #: the distance of a target's lids over B's neutral one below which the eye starts to shut, and at which it is
-#: shut: the texture's defaults (``shut_from``, ``shut_at``), which the transfer's brow hold follows too
-SHUT_FROM, SHUT_AT = 0.9, 0.45
+#: shut: the texture's defaults (``shut_from``, ``shut_at``), which the transfer's brow hold follows too. A shut
+#: eye at 0.45 drew the HD drivers' half-shut eyes (0.6-0.7) as slits of lashes; docs/expression.md
+SHUT_FROM, SHUT_AT = 0.9, 0.3
 
 #: how far down the opening a shut eye's upper lid comes (its line of lashes there), the lower lid rising the rest:
 #: the texture's default (``shut_meet``)
@@ -80,7 +81,7 @@ def opened(target: np.ndarray, neutral: np.ndarray) -> np.ndarray:
     return np.array([gap(target, pairs) / max(float(gap(neutral, pairs)), 1e-6) for _, pairs in EYES])
 
 
-def lowered(target: np.ndarray, neutral: np.ndarray, *, start: float = 0.85, end: float = 0.45) -> np.ndarray:
+def lowered(target: np.ndarray, neutral: np.ndarray, *, start: float = SHUT_FROM, end: float = SHUT_AT) -> np.ndarray:
     """(2,) the share of each eye's opening the upper lid leaves uncovered in the texture, in [0, 1]:
     φ(r) / r, r the distance of the eye's lids in the fiducials ``target`` (49, 2) over ``neutral``'s
     (:func:`opened`; the module's docstring); 1 from ``start`` up, 0 at ``end`` and below."""

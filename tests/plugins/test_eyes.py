@@ -52,12 +52,13 @@ def test_a_shut_eye_is_drawn_over_with_skin_and_lashes_and_an_open_one_is_left_a
 
 def test_the_upper_lid_comes_down_over_the_share_of_the_eye_a_real_one_would_cover():
     texture, neutral = texture_with_dark_eyes()
+    lowered = lambda r: eyes.lowered(shut(neutral, r), neutral, start=0.85, end=0.45)
     np.testing.assert_allclose(eyes.lowered(neutral, neutral), 1)  # open: nothing covered
-    np.testing.assert_allclose(eyes.lowered(shut(neutral, 0.86), neutral), 1)  # above 85 %: the mesh alone
-    np.testing.assert_allclose(eyes.lowered(shut(neutral, 0.4), neutral), 0)  # below 45 %: shut
+    np.testing.assert_allclose(lowered(0.86), 1)  # above 85 %: the mesh alone
+    np.testing.assert_allclose(lowered(0.4), 0)  # below 45 %: shut
     # at 0.7 of the neutral distance a real eye shows 0.85 (0.7 - 0.45) / (0.85 - 0.45) = 0.531 of its
     # opening; the mesh squeezes it to 0.7, so the lid covers all but 0.531 / 0.7 = 0.759 of the squeezed eye
-    np.testing.assert_allclose(eyes.lowered(shut(neutral, 0.7), neutral), 0.531 / 0.7, atol=0.005)
+    np.testing.assert_allclose(lowered(0.7), 0.531 / 0.7, atol=0.005)
     assert np.array_equal(eyes.lower(texture, neutral, np.ones(2)), texture)
     for visible in (0.25, 0.5, 0.75):
         lowered = eyes.lower(texture, neutral, np.full(2, visible), meet=1)  # the upper lid alone comes down
@@ -106,3 +107,18 @@ def test_a_shut_eyes_lashes_lie_where_the_lids_meet_and_skin_covers_the_rest():
             skin = (closed[away].sum(axis=1) > 3 * 100).mean()
             print(f"\nmeet {meet}: the lashes {line:.2f} of the eye's height down; {skin:.0%} skin away from them")
             assert abs(line - meet) < 0.15 and skin > 0.9
+
+
+def test_by_default_a_half_shut_eye_is_drawn_half_open_and_a_blink_shut():
+    """The texture's defaults: dlib reads the half-shut eyes of HD drivers at 0.6-0.7 of their usual opening and
+    their blinks at 0.25-0.4. A half-shut eye keeps most of what the mesh squeezes it to (at ``shut_at`` 0.45 the lid
+    covered 0.38 of it, and the eye was drawn as a slit of lashes), a blink's eye is all but covered, and a shut
+    one wholly."""
+    from persona.plugins.builtin.texture import MultiscaleTexture
+    p = MultiscaleTexture.Params()
+    _, neutral = texture_with_dark_eyes()
+    assert (p.shut_from, p.shut_at) == (eyes.SHUT_FROM, eyes.SHUT_AT)
+    visible = {r: eyes.lowered(shut(neutral, r), neutral) for r in (0.65, 0.38, 0.3)}
+    print({r: np.round(v, 3) for r, v in visible.items()})
+    assert (visible[0.65] > 0.8).all()  # 0.9 (0.65 - 0.3) / (0.9 - 0.3) / 0.65 = 0.808
+    assert (visible[0.38] < 0.35).all() and (visible[0.3] == 0).all()

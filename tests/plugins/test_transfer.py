@@ -502,14 +502,14 @@ def test_a_lower_lip_hanging_below_its_own_edge_is_spread_between_its_edges():
 def test_the_built_in_transfer_backend_is_the_transfer_the_follower_and_the_unfolding():
     """The ``transfer`` kind's default (plugins/builtin/transfer.py) prepares, once, the deformation transfer,
     the fiducial follower on the targets smoothed in time and the unfolding below the mouth, with its params;
-    its cache key is the motion stage's before the kind existed: "-", and version 6."""
+    its cache key is the motion stage's before the kind existed: "-", and version 7."""
     from persona.plugins.builtin.transfer import DeformationTransferBackend
     from persona.plugins.face.dynamics import smooth_in_time
     from persona.plugins.kinds import MotionPair
     from persona.plugins.manager import default_registry
 
     assert default_registry().default("transfer") == "deformation"
-    assert (DeformationTransferBackend.key_name, DeformationTransferBackend.version) == ("-", "6")
+    assert (DeformationTransferBackend.key_name, DeformationTransferBackend.version) == ("-", "7")
     mask, fiducials, mesh, below = _template_at_rest()
     rng = np.random.default_rng(3)
     targets = fiducials + rng.normal(0, 0.5, (4, 49, 2))
