@@ -205,6 +205,39 @@ def test_the_texture_leak_benchmark_finds_the_mesh_on_its_targets(drive_run, cap
     assert len(lines) == 6 and all("mesh on target" in line for line in lines[1:]), lines
 
 
+def test_the_self_reenactment_budget_moves_the_face_onto_the_real_one_and_pastes_its_features(drive_run):
+    """benchmarks/self_reenactment_budget.py: on a textured face drawn 3 px right and 2 px down of the real one, the
+    shift and the smoothed flow bring it back (within 1.5 grey levels RMS, measured 0.0 and 0.1; 46 as it is), and
+    each feature pasted from the real frame is the real frame there; on a finished drive, a pasted feature never
+    costs. A workflow that is not a self-reenactment is refused."""
+    from persona.plugins.builtin.evaluate import masked_psnr
+    from persona.plugins.face.template import generic_template
+    from persona.stores.layout import Cast, open_store
+
+    module = _benchmark("self_reenactment_budget")
+    template = generic_template()
+    rng = np.random.default_rng(0)
+    real = cv2.GaussianBlur(rng.uniform(0, 255, (244, 194, 3)), (0, 0), 2.5)
+    real = np.clip((real - real.mean()) * 6 + 128, 0, 255).astype(np.uint8)
+    drawn = np.roll(real, (2, 3), axis=(0, 1))
+    mask, points = template.mask, template.landmarks3d[:, :2]
+    found = module.variants(real, drawn, mask, points)
+    inner = cv2.erode(mask.astype(np.uint8), np.ones((15, 15), np.uint8)) > 0  # the roll's wrapped edge left out
+    rms = {name: 255 / 10 ** (masked_psnr(image, real, inner) / 20) for name, image in found.items()}
+    print({name: round(value, 2) for name, value in rms.items()})
+    assert rms["as it is"] > 10 and rms["shift"] < 1.5 and rms["warp h/40"] < 1.5
+    eyes = np.zeros(mask.shape, np.uint8)
+    cv2.fillConvexPoly(eyes, cv2.convexHull(np.round(points[36:42]).astype(np.int32)), 1)
+    assert np.array_equal(found["real eyes"][eyes > 0], real[eyes > 0])
+
+    _, path, _ = drive_run
+    scores = module.budget(open_store(load_workflow(path).store, mode="r"), Cast(), every=4)
+    for feature in module.FEATURES:
+        assert scores[f"real {feature}"][0] >= scores["as it is"][0], scores
+    with pytest.raises(SystemExit, match="not a self-reenactment"):
+        module.main([str(path)])
+
+
 def test_the_series_carry_the_composites_signals_for_a_paired_comparison(drive_run, capsys):
     """series.json holds composite.mp4's expression signals beside the face alone's, whose gains are the
     evaluation's amplitude_composite; benchmarks/gain_difference.py --composite judges them (a run against
