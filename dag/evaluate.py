@@ -67,7 +67,7 @@ from .stages import RENDER_3D, accepted, backend_key, provenance, render_alpha
 
 #: the figures' version: a run keeps its last evaluation only when this is the same (raise it whenever a
 #: figure is added or computed differently)
-VERSION = 12
+VERSION = 13
 
 #: a person's descriptor centroid (128,), kept in its collection: the mean descriptor of the sample of its
 #: accepted photos that every drive of the person is judged against (:func:`centroid_plan`)

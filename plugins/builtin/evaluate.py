@@ -1017,17 +1017,28 @@ def masked_ssims(images, reference, mask) -> list[float]:
     return [float(np.mean(full[inside], dtype=np.float64)) for full in maps]
 
 
+#: a parting of the eyes measured further than this (eye widths) beyond the clip's usual one is the measure's error,
+#: not a turn: eyes part at most gaze.MAX_PART (0.1) beyond where they usually are, and the measure's noise at HD is
+#: 0.03-0.05 a frame. The errors looked at: an eye half open after a blink (the fringe woman's 0.70), a glare on
+#: glasses over one iris (the man with glasses: 0.16-0.32 beyond his usual)
+PART_MEASURED = 0.2
+
+
 def gaze_signals(offsets) -> dict[str, np.ndarray]:
     """Per frame, where the eyes look: the iris offsets (n, 2 eyes, 2) of
     :func:`persona.plugins.face.gaze.iris_offsets`, the two eyes' mean along the eye (``along``, positive
     towards the image's right) and across it (``across``, positive down), in eye widths, NaN where neither
     eye was measured; and how far they turn apart (``apart``: the image's right eye's offset along less the
-    left one's, positive as they diverge, negative as they converge or cross), NaN where either was not."""
+    left one's, positive as they diverge, negative as they converge or cross), NaN where either was not, or
+    where they part further than :data:`PART_MEASURED` beyond the median over the frames."""
     offsets = np.asarray(offsets, np.float64).reshape(-1, 2, 2)
     seen = np.isfinite(offsets[..., 0]).sum(axis=1)
     total = np.nansum(offsets, axis=1)
     mean = np.where(seen[:, None] > 0, total / np.maximum(seen, 1)[:, None], np.nan)
-    return {"along": mean[:, 0], "across": mean[:, 1], "apart": offsets[:, 1, 0] - offsets[:, 0, 0]}
+    apart = offsets[:, 1, 0] - offsets[:, 0, 0]
+    if np.isfinite(apart).any():
+        apart[apart > np.nanmedian(apart) + PART_MEASURED] = np.nan
+    return {"along": mean[:, 0], "across": mean[:, 1], "apart": apart}
 
 
 #: the regions of dlib's 68 points the landmark registration is given for (iBUG indices)

@@ -448,6 +448,20 @@ def test_gaze_signals_are_the_two_eyes_mean_one_eye_when_the_other_is_not_seen_a
     assert np.isnan(signals["apart"][1:]).all()  # one eye or none seen: how far apart is not known
 
 
+def test_eyes_measured_parting_further_than_eyes_part_are_the_measures_error():
+    """A parting more than ev.PART_MEASURED beyond the clip's usual (its median) is left out as the measure's
+    error (an eye half open after a blink, a glare on one lens); converging and crossing, however far, are
+    kept, and so is a parting up to that far."""
+    rng = np.random.default_rng(2)
+    apart = np.concatenate([rng.normal(0.02, 0.03, 40), [0.7, 0.26, -0.4, 0.15]])  # the usual, then four frames
+    offsets = np.zeros((len(apart), 2, 2))
+    offsets[:, 1, 0] = apart
+    found = ev.gaze_signals(offsets)["apart"]
+    assert np.isnan(found[40]) and np.isnan(found[41])  # 0.7 and 0.26: beyond about 0.02 + 0.2
+    np.testing.assert_allclose(found[[42, 43]], [-0.4, 0.15])  # crossed, and parted within reach
+    np.testing.assert_allclose(found[:40], apart[:40])
+
+
 def test_registration_per_region_in_percent_of_the_eye_distance():
     """Known answers: the hand-made face has an eye distance of 40; its jaw moved 2 px down in every frame
     is 5 % of it there, 17/68 of that over all points, and 0 in every other region; a frame without a
