@@ -1020,7 +1020,7 @@ def masked_ssims(images, reference, mask) -> list[float]:
 #: a parting of the eyes measured further than this (eye widths) beyond the clip's usual one is the measure's error,
 #: not a turn: eyes part at most gaze.MAX_PART (0.1) beyond where they usually are, and the measure's noise at HD is
 #: 0.03-0.05 a frame. The errors looked at: an eye half open after a blink (the fringe woman's 0.70), a glare on
-#: glasses over one iris (the man with glasses: 0.16-0.32 beyond his usual)
+#: glasses over one iris (the man with glasses: up to 0.32 beyond his usual)
 PART_MEASURED = 0.2
 
 

@@ -66,8 +66,9 @@ def region(neutral: np.ndarray, shape: tuple[int, int], *, grow: int = 3, blur: 
 
 
 #: the distance of a target's lids over B's neutral one below which the eye starts to shut, and at which it is
-#: shut: the texture's defaults (``shut_from``, ``shut_at``), which the transfer's brow hold follows too. A shut
-#: eye at 0.45 drew the HD drivers' half-shut eyes (0.6-0.7) as slits of lashes; docs/expression.md
+#: shut: the texture's defaults (``shut_from``, ``shut_at``), which the transfer's brow hold follows too. dlib puts
+#: the lids of a shut eye 0.25-0.5 of their open distance apart, the less the sharper the clip; at 0.3 an HD
+#: driver's half-shut eye (0.6-0.7) is drawn half open, not as a slit of lashes (docs/expression.md)
 SHUT_FROM, SHUT_AT = 0.9, 0.3
 
 #: how far down the opening a shut eye's upper lid comes (its line of lashes there), the lower lid rising the rest:
