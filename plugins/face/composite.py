@@ -332,23 +332,26 @@ def eyes_of(points: np.ndarray | None, shape: tuple[int, int], grow: float = 0.5
     return out
 
 
-def hair_in_front(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, reach: float = 0.12,
+def hair_in_front(frame: np.ndarray, alpha: np.ndarray, *, reach: float = 0.12,
                   chin: float = 35.0, tint: float = 0.1, shade: float = 0.5,
                   eyes: np.ndarray | None = None) -> np.ndarray:
     """How much of A's frame stays in front of B's face (h, w) in [0, 1]: what is not A's skin inside
-    the edge of B's mask, where B's render shows skin: A's hair that falls over it (a fringe, strands
-    at the temples) and, where A's head is turned or narrower than B's, the background beside A's
-    cheek. It counts where A's frame is far from A's skin (skin likeness, as :func:`match_lighting`'s,
-    under 0.1: all; over 0.5: none) and B's render near B's skin, only within ``reach`` (a fraction of
-    the face's smaller side) of the mask's edge and outside the sector of the chin: the edge within
-    ``chin`` degrees of straight down from the mask's centre (its jaw, chin and the collar below are
-    left to B), fading in over the next 20 degrees; and never within A's ``eyes`` ((h, w) bool,
-    :func:`eyes_of`): their lashes and corners are dark and not skin, but not in front of B's face
-    either (they showed as a smudge beside B's eye where A's face is narrower than B's); and only where
-    what is not A's skin there reaches in from beyond B's edge (:func:`_reaching_in`); softened over
-    a pixel. (The hair's first version
-    counted the upper half only, then faded it over a tenth of the height: B's cheek was drawn over
-    the wall beside a turned head as a soft band.)"""
+    the edge of B's mask: A's hair that falls over it (a fringe, strands at the temples) and, where A's
+    head is turned or narrower than B's, the background beside A's cheek.
+
+    It counts where A's frame is far from A's skin (skin likeness, as :func:`match_lighting`'s, under
+    0.1: all; over 0.5: none), whatever B's render shows there: B's own hair, which B's texture keeps
+    where B's photos all had it (a fringe, strands at the temples, a face from one video), lies behind
+    A's hair as B's skin does. It counts only
+    - within ``reach`` (a fraction of the face's smaller side) of the mask's edge;
+    - all round the face (B's cheek drawn over the wall beside a turned head showed as a soft band), but
+      for the sector of the chin: the edge within ``chin`` degrees of straight down from the mask's
+      centre (its jaw, chin and the collar below are left to B), fading in over the next 20 degrees;
+    - never within A's ``eyes`` ((h, w) bool, :func:`eyes_of`): their lashes and corners are dark and
+      not skin, but not in front of B's face either (they showed as a smudge beside B's eye where A's
+      face is narrower than B's);
+    - only where what is not A's skin there reaches in from beyond B's edge (:func:`_reaching_in`).
+    It is softened over a pixel."""
     alpha = np.asarray(alpha, np.float32)
     inside = (alpha > 0.5).astype(np.uint8)
     out = np.zeros(alpha.shape, np.float32)
@@ -366,19 +369,17 @@ def hair_in_front(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, rea
     down = np.degrees(np.arctan2(np.abs(xs - m["m10"] / m["m00"]), ys - m["m01"] / m["m00"]))  # 0: straight down
     beside = np.clip((down - chin) / 20, 0, 1).astype(np.float32)  # 0 in the chin's sector
     box = np.s_[y0:y1, x0:x1]
-    a, b = np.asarray(frame)[box], np.asarray(face)[box]
-    step = max(1, side // 256)  # each skin's median colour from a grid of the middle's pixels: at HD 1 in 4
+    a = np.asarray(frame)[box]
+    step = max(1, side // 256)  # A's skin's median colour from a grid of the middle's pixels: at HD 1 in 4
     grid = np.zeros_like(centre)
     grid[::step, ::step] = centre[::step, ::step]
-    skin_a, skin_b = (np.log1p(np.median(img[grid].astype(np.float32), axis=0)) for img in (a, b))
+    skin_a = np.log1p(np.median(a[grid].astype(np.float32), axis=0))
     not_skin = np.clip((0.5 - _skin_likeness(np.log1p(a[ys, xs].astype(np.float32)), skin_a, tint, shade)) / 0.4, 0, 1)
     seen = np.zeros(centre.shape, bool)  # what is not A's skin in the whole band, chin's sector too
     seen[ys, xs] = not_skin > 0
     reaching = _reaching_in(seen, inside[box] == 0)[ys, xs]
     keep = (beside > 0) & reaching
-    ys, xs = ys[keep], xs[keep]
-    b = np.log1p(b[ys, xs].astype(np.float32))
-    out[y0 + ys, x0 + xs] = not_skin[keep] * _skin_likeness(b, skin_b, tint, shade) * beside[keep]  # 0 off the band
+    out[y0 + ys[keep], x0 + xs[keep]] = not_skin[keep] * beside[keep]  # 0 off the band
     if eyes is not None:
         out[eyes] = 0
     near = np.s_[max(y0 - 4, 0):y1 + 4, max(x0 - 4, 0):x1 + 4]  # softened over a pixel: nothing further
@@ -419,7 +420,7 @@ def blend(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, lighting: f
         matched = np.round(face * kept + matched * (1 - kept)).astype(np.uint8)
     if hair > 0:
         eyes = None if points is None else eyes_of(points, np.shape(alpha))
-        alpha = np.asarray(alpha, np.float32) * (1 - hair * hair_in_front(face, frame, alpha, eyes=eyes))
+        alpha = np.asarray(alpha, np.float32) * (1 - hair * hair_in_front(frame, alpha, eyes=eyes))
     return multiband(matched, frame, alpha)
 
 

@@ -181,7 +181,23 @@ def test_a_fringe_stays_in_front_and_a_collar_does_not():
     middle = np.s_[70:130, 70:130]
     assert np.abs(kept[middle].astype(float) - covered[middle]).mean() < 1  # B's face itself unchanged
     alone = np.zeros_like(alpha)  # no face, nothing in front
-    assert not composite.hair_in_front(face, frame, alone).any()
+    assert not composite.hair_in_front(frame, alone).any()
+
+
+def test_the_drivers_fringe_stays_in_front_of_the_puppets_own_fringe():
+    """B built from one video keeps B's fringe in its texture: B's render is dark hair along its top edge
+    too, not skin. A's fringe there is what A's frame shows now, and stays in front as it does over B's
+    skin (the map was A's not-skin times B's skin likeness, so B's own hair was drawn over A's)."""
+    face, frame, alpha = lit_scene()  # the disk spans rows 40-160; the band: 14 px inside its edge
+    hair, own = (30, 22, 18), (200, 170, 80)  # A dark-haired, B blond
+    frame[:50] = hair  # A's fringe, 10 px into the top of B's face
+    face[:52] = own  # B's own fringe, baked into its texture, as far in and a little further
+    kept, covered = composite.blend(face, frame, alpha), composite.blend(face, frame, alpha, hair=0)
+    fringe = np.s_[44:48, 90:110]
+    print(f"\nover B's own fringe: kept {kept[fringe].mean():.1f}, covered {covered[fringe].mean():.1f}, "
+          f"A's hair {np.mean(hair):.1f}")
+    assert np.abs(kept[fringe].astype(float) - hair).mean() < 15  # A's hair in front
+    assert composite.hair_in_front(frame, alpha)[fringe].min() > 0.9
 
 
 def test_a_blot_inside_the_edge_is_covered_but_a_strand_that_reaches_in_is_kept():
@@ -199,7 +215,7 @@ def test_a_blot_inside_the_edge_is_covered_but_a_strand_that_reaches_in_is_kept(
           f"strand: {kept[strand].mean():.1f} (covered: {covered[strand].mean():.1f})")
     assert np.abs(kept[blot].astype(float) - covered[blot]).max() <= 2  # B's face over the blot
     assert covered[strand].mean() > kept[strand].mean() + 40  # the strand in front: darker
-    in_front = composite.hair_in_front(face, frame, alpha)
+    in_front = composite.hair_in_front(frame, alpha)
     assert in_front[blot].max() < 0.05 and in_front[strand].min() > 0.5
 
 
@@ -235,7 +251,7 @@ def test_a_background_beside_a_turned_head_is_kept_down_to_the_jaw_without_a_ste
     (a hard cut at half the height jumped by 0.36), and falls off only towards the chin."""
     face, frame, alpha = lit_scene()  # the disk spans rows 40-160, columns 40-160
     frame[:, 150:] = (230, 160, 60)  # an orange wall beside his face
-    kept = composite.hair_in_front(face, frame, alpha)[:, 150:].max(axis=1)
+    kept = composite.hair_in_front(frame, alpha)[:, 150:].max(axis=1)
     rows = np.arange(75, 126)  # the wall lies under the disk from row 67 to 133, a sliver at its ends
     print(f"\nlargest change from row to row: {np.abs(np.diff(kept[rows])).max():.2f}; "
           f"kept at rows 80 / 100 / 125: {kept[80]:.2f} / {kept[100]:.2f} / {kept[125]:.2f}")
@@ -309,7 +325,7 @@ def test_the_built_in_composite_and_light_backends_are_the_blend_and_the_steady_
     planes[4] = np.nan
     assert np.array_equal(SteadyLight({"sigma": 2}).light(planes), composite.steady_light(planes, 2), equal_nan=True)
     # their cache keys are those of the stages before they had backends: "-" and those stages' versions
-    assert (MultibandComposite.key_name, MultibandComposite.version) == ("-", "6")
+    assert (MultibandComposite.key_name, MultibandComposite.version) == ("-", "7")
     assert (SteadyLight.key_name, SteadyLight.version) == ("-", "1")
     try:
         SteadyLight().light(planes[0])
