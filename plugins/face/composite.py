@@ -305,28 +305,34 @@ def steady_light(planes: np.ndarray, sigma: float) -> np.ndarray:
     return out.reshape(planes.shape)
 
 
-def eyes_of(points: np.ndarray | None, shape: tuple[int, int], grow: float = 0.5) -> np.ndarray:
-    """(h, w) bool of an image ``shape``: the face's eyes by its iBUG landmarks ``points`` (68, 2), each
-    the hull of its six points (36-41, 42-47) grown by ``grow`` times its width sideways and half that
-    up and down, so that its corners, lids and lashes are in and the brow above is not; all False for
-    an eye with a missing point, or without points."""
+#: A's features that are never kept in front of B's face, by their iBUG landmarks, and how far each one's hull
+#: is grown (times its width sideways, half that up and down): an eye by half its width, so that its corners,
+#: lids and lashes are in and the brow above is not; a brow by a fifth, so that its hairs above and beyond its
+#: points are in
+FEATURES = ((slice(36, 42), 0.5), (slice(42, 48), 0.5), (slice(17, 22), 0.2), (slice(22, 27), 0.2))
+
+
+def features_of(points: np.ndarray | None, shape: tuple[int, int]) -> np.ndarray:
+    """(h, w) bool of an image ``shape``: the face's eyes and brows by its iBUG landmarks ``points`` (68, 2),
+    each the hull of its points grown as :data:`FEATURES` says; nothing for a feature with a missing point,
+    or without points."""
     out = np.zeros(shape[:2], bool)
     if points is None:
         return out
-    for eye in (slice(36, 42), slice(42, 48)):
-        p = np.asarray(points, np.float64)[eye]
+    for feature, grow in FEATURES:
+        p = np.asarray(points, np.float64)[feature]
         if not np.all(np.isfinite(p)):
             continue
         rx = max(1, int(round(grow * np.ptp(p[:, 0]))))
         ry = max(1, int(round(grow * np.ptp(p[:, 0]) / 2)))
         p = np.round(p)
-        # drawn and grown in a box about the eye, not over the whole frame (an HD composite's every frame)
+        # drawn and grown in a box about the feature, not over the whole frame (an HD composite's every frame)
         lo = np.maximum(p.min(axis=0).astype(int) - (rx, ry), 0)
         hi = np.minimum(p.max(axis=0).astype(int) + (rx, ry) + 1, (shape[1], shape[0]))
         if np.any(hi <= lo):
             continue
         one = np.zeros((hi[1] - lo[1], hi[0] - lo[0]), np.uint8)
-        cv2.fillConvexPoly(one, (p - lo).astype(np.int32), 1)
+        cv2.fillConvexPoly(one, cv2.convexHull((p - lo).astype(np.int32)), 1)
         grown = cv2.dilate(one, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * rx + 1, 2 * ry + 1)))
         out[lo[1]:hi[1], lo[0]:hi[0]] |= grown.astype(bool)
     return out
@@ -334,7 +340,7 @@ def eyes_of(points: np.ndarray | None, shape: tuple[int, int], grow: float = 0.5
 
 def hair_in_front(frame: np.ndarray, alpha: np.ndarray, *, reach: float = 0.12,
                   chin: float = 35.0, tint: float = 0.1, shade: float = 0.5,
-                  eyes: np.ndarray | None = None) -> np.ndarray:
+                  features: np.ndarray | None = None) -> np.ndarray:
     """How much of A's frame stays in front of B's face (h, w) in [0, 1]: what is not A's skin inside
     the edge of B's mask: A's hair that falls over it (a fringe, strands at the temples) and, where A's
     head is turned or narrower than B's, the background beside A's cheek.
@@ -347,9 +353,10 @@ def hair_in_front(frame: np.ndarray, alpha: np.ndarray, *, reach: float = 0.12,
     - all round the face (B's cheek drawn over the wall beside a turned head showed as a soft band), but
       for the sector of the chin: the edge within ``chin`` degrees of straight down from the mask's
       centre (its jaw, chin and the collar below are left to B), fading in over the next 20 degrees;
-    - never within A's ``eyes`` ((h, w) bool, :func:`eyes_of`): their lashes and corners are dark and
-      not skin, but not in front of B's face either (they showed as a smudge beside B's eye where A's
-      face is narrower than B's);
+    - never within A's eyes and brows, ``features`` ((h, w) bool, :func:`features_of`): they are dark and
+      not skin, but B's own are drawn where they are. Kept, A's lashes showed as a smudge beside B's eye
+      where A's face is narrower than B's, and a brow's end that A's hair or glasses join to the edge cut
+      B's brow short (and dlib then took the composite for A more often);
     - only where what is not A's skin there reaches in from beyond B's edge (:func:`_reaching_in`).
     It is softened over a pixel."""
     alpha = np.asarray(alpha, np.float32)
@@ -380,8 +387,8 @@ def hair_in_front(frame: np.ndarray, alpha: np.ndarray, *, reach: float = 0.12,
     reaching = _reaching_in(seen, inside[box] == 0)[ys, xs]
     keep = (beside > 0) & reaching
     out[y0 + ys[keep], x0 + xs[keep]] = not_skin[keep] * beside[keep]  # 0 off the band
-    if eyes is not None:
-        out[eyes] = 0
+    if features is not None:
+        out[features] = 0
     near = np.s_[max(y0 - 4, 0):y1 + 4, max(x0 - 4, 0):x1 + 4]  # softened over a pixel: nothing further
     out[near] = cv2.GaussianBlur(out[near], (0, 0), 1.0)
     return out
@@ -412,15 +419,15 @@ def blend(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, lighting: f
     :func:`steady_light`), but for ``own`` (h, w) in [0, 1], the share of each pixel that is the
     driver's own already (its mouth interior drawn into B's gap, Rendered.own), which keeps its colour;
     then blended band by band (:func:`multiband`) through the mask less ``hair`` (in [0, 1]) times
-    :func:`hair_in_front`, which leaves A's eyes out by A's landmarks ``points`` (68, 2), when given."""
+    :func:`hair_in_front`, which leaves A's eyes and brows out by A's landmarks ``points`` (68, 2), when given."""
     light = {"lighting": lighting, "tone": tone, "tone_reach": tone_reach}
     matched = (match_lighting(face, frame, alpha, **light) if plane is None else apply_light(face, alpha, plane, **light))
     if own is not None and np.any(own > 0):
         kept = np.asarray(own, np.float32)[..., None]
         matched = np.round(face * kept + matched * (1 - kept)).astype(np.uint8)
     if hair > 0:
-        eyes = None if points is None else eyes_of(points, np.shape(alpha))
-        alpha = np.asarray(alpha, np.float32) * (1 - hair * hair_in_front(frame, alpha, eyes=eyes))
+        features = None if points is None else features_of(points, np.shape(alpha))
+        alpha = np.asarray(alpha, np.float32) * (1 - hair * hair_in_front(frame, alpha, features=features))
     return multiband(matched, frame, alpha)
 
 

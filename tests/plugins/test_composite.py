@@ -222,7 +222,7 @@ def test_a_blot_inside_the_edge_is_covered_but_a_strand_that_reaches_in_is_kept(
 def test_the_drivers_eye_beside_the_edge_is_not_kept_in_front_but_its_fringe_is():
     """A's eye whose outer corner and lashes (dark, not skin) lie in B's edge band, where A's face is
     narrower than B's: kept in front of B's face as if it were hair without A's landmarks (a smudge
-    beside B's eye, seen on Powell driven by the woman), covered by B's face with them (``eyes_of``:
+    beside B's eye, seen on Powell driven by the woman), covered by B's face with them (``features_of``:
     the eye's hull grown by half its width sideways); A's fringe across the top is kept either way."""
     face, frame, alpha = lit_scene()  # the disk spans columns 40-160; the band: 14 px inside its edge
     hair = (30, 22, 18)
@@ -238,10 +238,31 @@ def test_the_drivers_eye_beside_the_edge_is_not_kept_in_front_but_its_fringe_is(
     assert without[lashes].mean() < covered[lashes].mean() - 20  # the lashes in front: darker
     assert np.abs(with_eyes[lashes].astype(float) - covered[lashes]).mean() < 3  # B's face over them
     assert np.array_equal(with_eyes[fringe], without[fringe])  # the fringe as before
-    eyes = composite.eyes_of(points, alpha.shape)
+    eyes = composite.features_of(points, alpha.shape)
     assert eyes[100, 35] and eyes[100, 70] and not eyes[100, 75]  # grown 9 px sideways, not more
     assert eyes[92, 53] and not eyes[90, 53]  # and 4-5 px up (96 - 4.5), short of a brow
-    assert not composite.eyes_of(None, alpha.shape).any()
+    assert not composite.features_of(None, alpha.shape).any()
+
+
+def test_the_drivers_brow_joined_to_its_hair_at_the_edge_is_covered_but_the_hair_is_kept():
+    """A's brow whose outer end lies in B's edge band, joined there to A's hair at the temple (or to a
+    glasses' arm): without A's landmarks it reaches in from beyond B's edge with the hair and is kept in
+    front, cutting B's own brow short; with them it is covered by B's face (``features_of``: the brow's
+    hull grown by a fifth of its width sideways, a tenth up and down), and the hair beyond it is kept."""
+    face, frame, alpha = lit_scene()  # the disk spans columns 40-160; the band: 14 px inside its edge
+    hair = (30, 22, 18)
+    frame[78:100, :47] = hair  # hair at the temple, from beyond B's left edge (x 40-42 here) into it
+    points = np.full((68, 2), np.nan)
+    points[17:22] = [[44, 97], [52, 93], [60, 92], [68, 93], [76, 95]]  # A's right brow, 32 px wide
+    frame[92:100, 40:78] = (35, 28, 24)  # the brow, its outer end joined to the hair
+    brow, temple = np.s_[95:98, 48:53], np.s_[81:85, 44:47]
+    without, with_brow = (composite.hair_in_front(frame, alpha, features=f)
+                          for f in (None, composite.features_of(points, alpha.shape)))
+    print(f"\nbrow's end in front: without landmarks {without[brow].min():.2f}, with {with_brow[brow].max():.2f}; "
+          f"the temple's hair {with_brow[temple].min():.2f}")
+    assert without[brow].min() > 0.5  # the brow's end in front, joined to the hair
+    assert with_brow[brow].max() < 0.05  # B's face over it
+    assert with_brow[temple].min() > 0.5  # the hair above the brow's end kept
 
 
 def test_a_background_beside_a_turned_head_is_kept_down_to_the_jaw_without_a_step():
@@ -325,7 +346,7 @@ def test_the_built_in_composite_and_light_backends_are_the_blend_and_the_steady_
     planes[4] = np.nan
     assert np.array_equal(SteadyLight({"sigma": 2}).light(planes), composite.steady_light(planes, 2), equal_nan=True)
     # their cache keys are those of the stages before they had backends: "-" and those stages' versions
-    assert (MultibandComposite.key_name, MultibandComposite.version) == ("-", "7")
+    assert (MultibandComposite.key_name, MultibandComposite.version) == ("-", "9")
     assert (SteadyLight.key_name, SteadyLight.version) == ("-", "1")
     try:
         SteadyLight().light(planes[0])
