@@ -305,22 +305,23 @@ def steady_light(planes: np.ndarray, sigma: float) -> np.ndarray:
     return out.reshape(planes.shape)
 
 
-#: A's features that are never kept in front of B's face, by their iBUG landmarks, and how far each one's hull
-#: is grown (times its width sideways, half that up and down): an eye by half its width, so that its corners,
-#: lids and lashes are in and the brow above is not; a brow by a fifth, so that its hairs above and beyond its
-#: points are in
-FEATURES = ((slice(36, 42), 0.5), (slice(42, 48), 0.5), (slice(17, 22), 0.2), (slice(22, 27), 0.2))
+#: A's eyes and brows by their iBUG landmarks, and how far each one's hull is grown (times its width sideways,
+#: half that up and down): an eye by half its width, so that its corners, lids and lashes are in and the brow
+#: above is not; a brow by a fifth, so that its hairs above and beyond its points are in
+EYES = ((slice(36, 42), slice(42, 48)), 0.5)
+BROWS = ((slice(17, 22), slice(22, 27)), 0.2)
 
 
-def features_of(points: np.ndarray | None, shape: tuple[int, int]) -> np.ndarray:
-    """(h, w) bool of an image ``shape``: the face's eyes and brows by its iBUG landmarks ``points`` (68, 2),
-    each the hull of its points grown as :data:`FEATURES` says; nothing for a feature with a missing point,
-    or without points."""
+def features_of(points: np.ndarray | None, shape: tuple[int, int], features=EYES) -> np.ndarray:
+    """(h, w) bool of an image ``shape``: the face's eyes (:data:`EYES`) or brows (:data:`BROWS`) by its iBUG
+    landmarks ``points`` (68, 2), each the hull of its points grown as ``features`` says; nothing for one
+    with a missing point, or without points."""
     out = np.zeros(shape[:2], bool)
     if points is None:
         return out
-    for feature, grow in FEATURES:
-        p = np.asarray(points, np.float64)[feature]
+    groups, grow = features
+    for group in groups:
+        p = np.asarray(points, np.float64)[group]
         if not np.all(np.isfinite(p)):
             continue
         rx = max(1, int(round(grow * np.ptp(p[:, 0]))))
@@ -338,9 +339,9 @@ def features_of(points: np.ndarray | None, shape: tuple[int, int]) -> np.ndarray
     return out
 
 
-def hair_in_front(frame: np.ndarray, alpha: np.ndarray, *, reach: float = 0.12,
+def hair_in_front(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, reach: float = 0.12,
                   chin: float = 35.0, tint: float = 0.1, shade: float = 0.5,
-                  features: np.ndarray | None = None) -> np.ndarray:
+                  eyes: np.ndarray | None = None, brows: np.ndarray | None = None) -> np.ndarray:
     """How much of A's frame stays in front of B's face (h, w) in [0, 1]: what is not A's skin inside
     the edge of B's mask: A's hair that falls over it (a fringe, strands at the temples) and, where A's
     head is turned or narrower than B's, the background beside A's cheek.
@@ -353,10 +354,12 @@ def hair_in_front(frame: np.ndarray, alpha: np.ndarray, *, reach: float = 0.12,
     - all round the face (B's cheek drawn over the wall beside a turned head showed as a soft band), but
       for the sector of the chin: the edge within ``chin`` degrees of straight down from the mask's
       centre (its jaw, chin and the collar below are left to B), fading in over the next 20 degrees;
-    - never within A's eyes and brows, ``features`` ((h, w) bool, :func:`features_of`): they are dark and
-      not skin, but B's own are drawn where they are. Kept, A's lashes showed as a smudge beside B's eye
-      where A's face is narrower than B's, and a brow's end that A's hair or glasses join to the edge cut
-      B's brow short (and dlib then took the composite for A more often);
+    - never within A's ``eyes`` ((h, w) bool, :func:`features_of`): their lashes and corners are dark and
+      not skin, but not in front of B's face either (they showed as a smudge beside B's eye where A's
+      face is narrower than B's);
+    - within A's ``brows`` ((h, w) bool), only where B's render is B's skin (as :func:`match_lighting`
+      judges it): B's own brow is drawn where A's is, and a brow's end that A's hair or glasses join to
+      the edge cut B's brow short (dlib then took the composite for A more often);
     - only where what is not A's skin there reaches in from beyond B's edge (:func:`_reaching_in`).
     It is softened over a pixel."""
     alpha = np.asarray(alpha, np.float32)
@@ -387,8 +390,13 @@ def hair_in_front(frame: np.ndarray, alpha: np.ndarray, *, reach: float = 0.12,
     reaching = _reaching_in(seen, inside[box] == 0)[ys, xs]
     keep = (beside > 0) & reaching
     out[y0 + ys[keep], x0 + xs[keep]] = not_skin[keep] * beside[keep]  # 0 off the band
-    if features is not None:
-        out[features] = 0
+    if brows is not None:
+        b, kept = np.asarray(face)[box], out[box]  # a view: what is kept within the box
+        skin_b = np.log1p(np.median(b[grid].astype(np.float32), axis=0))
+        over = brows[box] & (kept > 0)
+        kept[over] *= _skin_likeness(np.log1p(b[over].astype(np.float32)), skin_b, tint, shade)
+    if eyes is not None:
+        out[eyes] = 0
     near = np.s_[max(y0 - 4, 0):y1 + 4, max(x0 - 4, 0):x1 + 4]  # softened over a pixel: nothing further
     out[near] = cv2.GaussianBlur(out[near], (0, 0), 1.0)
     return out
@@ -419,15 +427,16 @@ def blend(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, lighting: f
     :func:`steady_light`), but for ``own`` (h, w) in [0, 1], the share of each pixel that is the
     driver's own already (its mouth interior drawn into B's gap, Rendered.own), which keeps its colour;
     then blended band by band (:func:`multiband`) through the mask less ``hair`` (in [0, 1]) times
-    :func:`hair_in_front`, which leaves A's eyes and brows out by A's landmarks ``points`` (68, 2), when given."""
+    :func:`hair_in_front`, which finds A's eyes and brows by A's landmarks ``points`` (68, 2), when given."""
     light = {"lighting": lighting, "tone": tone, "tone_reach": tone_reach}
     matched = (match_lighting(face, frame, alpha, **light) if plane is None else apply_light(face, alpha, plane, **light))
     if own is not None and np.any(own > 0):
         kept = np.asarray(own, np.float32)[..., None]
         matched = np.round(face * kept + matched * (1 - kept)).astype(np.uint8)
     if hair > 0:
-        features = None if points is None else features_of(points, np.shape(alpha))
-        alpha = np.asarray(alpha, np.float32) * (1 - hair * hair_in_front(frame, alpha, features=features))
+        eyes, brows = (features_of(points, np.shape(alpha), f) if points is not None else None for f in (EYES, BROWS))
+        in_front = hair_in_front(face, frame, alpha, eyes=eyes, brows=brows)
+        alpha = np.asarray(alpha, np.float32) * (1 - hair * in_front)
     return multiband(matched, frame, alpha)
 
 

@@ -181,7 +181,7 @@ def test_a_fringe_stays_in_front_and_a_collar_does_not():
     middle = np.s_[70:130, 70:130]
     assert np.abs(kept[middle].astype(float) - covered[middle]).mean() < 1  # B's face itself unchanged
     alone = np.zeros_like(alpha)  # no face, nothing in front
-    assert not composite.hair_in_front(frame, alone).any()
+    assert not composite.hair_in_front(face, frame, alone).any()
 
 
 def test_the_drivers_fringe_stays_in_front_of_the_puppets_own_fringe():
@@ -197,7 +197,7 @@ def test_the_drivers_fringe_stays_in_front_of_the_puppets_own_fringe():
     print(f"\nover B's own fringe: kept {kept[fringe].mean():.1f}, covered {covered[fringe].mean():.1f}, "
           f"A's hair {np.mean(hair):.1f}")
     assert np.abs(kept[fringe].astype(float) - hair).mean() < 15  # A's hair in front
-    assert composite.hair_in_front(frame, alpha)[fringe].min() > 0.9
+    assert composite.hair_in_front(face, frame, alpha)[fringe].min() > 0.9
 
 
 def test_a_blot_inside_the_edge_is_covered_but_a_strand_that_reaches_in_is_kept():
@@ -215,7 +215,7 @@ def test_a_blot_inside_the_edge_is_covered_but_a_strand_that_reaches_in_is_kept(
           f"strand: {kept[strand].mean():.1f} (covered: {covered[strand].mean():.1f})")
     assert np.abs(kept[blot].astype(float) - covered[blot]).max() <= 2  # B's face over the blot
     assert covered[strand].mean() > kept[strand].mean() + 40  # the strand in front: darker
-    in_front = composite.hair_in_front(frame, alpha)
+    in_front = composite.hair_in_front(face, frame, alpha)
     assert in_front[blot].max() < 0.05 and in_front[strand].min() > 0.5
 
 
@@ -244,25 +244,29 @@ def test_the_drivers_eye_beside_the_edge_is_not_kept_in_front_but_its_fringe_is(
     assert not composite.features_of(None, alpha.shape).any()
 
 
-def test_the_drivers_brow_joined_to_its_hair_at_the_edge_is_covered_but_the_hair_is_kept():
+def test_the_puppets_brow_is_not_cut_by_the_drivers_brow_joined_to_its_hair_at_the_edge():
     """A's brow whose outer end lies in B's edge band, joined there to A's hair at the temple (or to a
-    glasses' arm): without A's landmarks it reaches in from beyond B's edge with the hair and is kept in
-    front, cutting B's own brow short; with them it is covered by B's face (``features_of``: the brow's
-    hull grown by a fifth of its width sideways, a tenth up and down), and the hair beyond it is kept."""
+    glasses' arm), over B's own brow: without A's landmarks it reaches in from beyond B's edge with the
+    hair and is kept in front, cutting B's brow short; with them (``features_of(..., BROWS)``: the
+    brow's hull grown by a fifth of its width sideways, a tenth up and down) B's brow is drawn there,
+    and the hair beyond it is kept. Within A's brow, what is B's skin is still covered by A's hair."""
     face, frame, alpha = lit_scene()  # the disk spans columns 40-160; the band: 14 px inside its edge
     hair = (30, 22, 18)
     frame[78:100, :47] = hair  # hair at the temple, from beyond B's left edge (x 40-42 here) into it
     points = np.full((68, 2), np.nan)
     points[17:22] = [[44, 97], [52, 93], [60, 92], [68, 93], [76, 95]]  # A's right brow, 32 px wide
     frame[92:100, 40:78] = (35, 28, 24)  # the brow, its outer end joined to the hair
-    brow, temple = np.s_[95:98, 48:53], np.s_[81:85, 44:47]
-    without, with_brow = (composite.hair_in_front(frame, alpha, features=f)
-                          for f in (None, composite.features_of(points, alpha.shape)))
-    print(f"\nbrow's end in front: without landmarks {without[brow].min():.2f}, with {with_brow[brow].max():.2f}; "
-          f"the temple's hair {with_brow[temple].min():.2f}")
-    assert without[brow].min() > 0.5  # the brow's end in front, joined to the hair
-    assert with_brow[brow].max() < 0.05  # B's face over it
-    assert with_brow[temple].min() > 0.5  # the hair above the brow's end kept
+    face[95:99, 44:78] = (50, 38, 30)  # B's own brow, thinner, where A's is (in the band from x 44)
+    brow, skin, temple = np.s_[96:98, 47:53], np.s_[92:94, 48:53], np.s_[81:85, 44:47]  # skin: B's above it
+    brows = composite.features_of(points, alpha.shape, composite.BROWS)
+    without, with_brow = (composite.hair_in_front(face, frame, alpha, brows=b) for b in (None, brows))
+    print(f"\nB's brow under A's: in front without landmarks {without[brow].min():.2f}, "
+          f"with {with_brow[brow].max():.2f}; "
+          f"B's skin within A's brow {with_brow[skin].min():.2f}; the temple's hair {with_brow[temple].min():.2f}")
+    assert brows[brow].all() and brows[skin].all() and not brows[temple].any()
+    assert without[brow].min() > 0.5  # A's brow's end in front of B's, joined to the hair
+    assert with_brow[brow].max() < 0.15  # B's brow drawn (a brown brow is a little like skin: 0.1 of A's stays)
+    assert with_brow[skin].min() > 0.5 and with_brow[temple].min() > 0.5  # A's hair over B's skin kept
 
 
 def test_a_background_beside_a_turned_head_is_kept_down_to_the_jaw_without_a_step():
@@ -272,7 +276,7 @@ def test_a_background_beside_a_turned_head_is_kept_down_to_the_jaw_without_a_ste
     (a hard cut at half the height jumped by 0.36), and falls off only towards the chin."""
     face, frame, alpha = lit_scene()  # the disk spans rows 40-160, columns 40-160
     frame[:, 150:] = (230, 160, 60)  # an orange wall beside his face
-    kept = composite.hair_in_front(frame, alpha)[:, 150:].max(axis=1)
+    kept = composite.hair_in_front(face, frame, alpha)[:, 150:].max(axis=1)
     rows = np.arange(75, 126)  # the wall lies under the disk from row 67 to 133, a sliver at its ends
     print(f"\nlargest change from row to row: {np.abs(np.diff(kept[rows])).max():.2f}; "
           f"kept at rows 80 / 100 / 125: {kept[80]:.2f} / {kept[100]:.2f} / {kept[125]:.2f}")
@@ -346,7 +350,7 @@ def test_the_built_in_composite_and_light_backends_are_the_blend_and_the_steady_
     planes[4] = np.nan
     assert np.array_equal(SteadyLight({"sigma": 2}).light(planes), composite.steady_light(planes, 2), equal_nan=True)
     # their cache keys are those of the stages before they had backends: "-" and those stages' versions
-    assert (MultibandComposite.key_name, MultibandComposite.version) == ("-", "9")
+    assert (MultibandComposite.key_name, MultibandComposite.version) == ("-", "10")
     assert (SteadyLight.key_name, SteadyLight.version) == ("-", "1")
     try:
         SteadyLight().light(planes[0])
