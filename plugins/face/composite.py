@@ -380,10 +380,11 @@ def hair_in_front(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, rea
     beside = np.clip((down - chin) / 20, 0, 1).astype(np.float32)  # 0 in the chin's sector
     box = np.s_[y0:y1, x0:x1]
     a = np.asarray(frame)[box]
-    step = max(1, side // 256)  # A's skin's median colour from a grid of the middle's pixels: at HD 1 in 4
+    step = max(1, side // 256)  # a skin's median colour from a grid of the middle's pixels: at HD 1 in 4
     grid = np.zeros_like(centre)
     grid[::step, ::step] = centre[::step, ::step]
-    skin_a = np.log1p(np.median(a[grid].astype(np.float32), axis=0))
+    skin_of = lambda img: np.log1p(np.median(img[grid].astype(np.float32), axis=0))  # noqa: E731
+    skin_a = skin_of(a)
     not_skin = np.clip((0.5 - _skin_likeness(np.log1p(a[ys, xs].astype(np.float32)), skin_a, tint, shade)) / 0.4, 0, 1)
     seen = np.zeros(centre.shape, bool)  # what is not A's skin in the whole band, chin's sector too
     seen[ys, xs] = not_skin > 0
@@ -391,10 +392,11 @@ def hair_in_front(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, rea
     keep = (beside > 0) & reaching
     out[y0 + ys[keep], x0 + xs[keep]] = not_skin[keep] * beside[keep]  # 0 off the band
     if brows is not None:
-        b, kept = np.asarray(face)[box], out[box]  # a view: what is kept within the box
-        skin_b = np.log1p(np.median(b[grid].astype(np.float32), axis=0))
+        kept = out[box]  # a view: what is kept within the box
         over = brows[box] & (kept > 0)
-        kept[over] *= _skin_likeness(np.log1p(b[over].astype(np.float32)), skin_b, tint, shade)
+        if over.any():  # B's skin is looked for only where something is kept within A's brows
+            b = np.asarray(face)[box]
+            kept[over] *= _skin_likeness(np.log1p(b[over].astype(np.float32)), skin_of(b), tint, shade)
     if eyes is not None:
         out[eyes] = 0
     near = np.s_[max(y0 - 4, 0):y1 + 4, max(x0 - 4, 0):x1 + 4]  # softened over a pixel: nothing further
@@ -434,9 +436,10 @@ def blend(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, lighting: f
         kept = np.asarray(own, np.float32)[..., None]
         matched = np.round(face * kept + matched * (1 - kept)).astype(np.uint8)
     if hair > 0:
-        eyes, brows = (features_of(points, np.shape(alpha), f) if points is not None else None for f in (EYES, BROWS))
-        in_front = hair_in_front(face, frame, alpha, eyes=eyes, brows=brows)
-        alpha = np.asarray(alpha, np.float32) * (1 - hair * in_front)
+        eyes = brows = None
+        if points is not None:
+            eyes, brows = (features_of(points, np.shape(alpha), f) for f in (EYES, BROWS))
+        alpha = np.asarray(alpha, np.float32) * (1 - hair * hair_in_front(face, frame, alpha, eyes=eyes, brows=brows))
     return multiband(matched, frame, alpha)
 
 
