@@ -149,7 +149,7 @@ def _eyes_moved(textures: np.ndarray, targets: np.ndarray, neutral: np.ndarray, 
     if close_eyes:
         for texture, target in zip(textures, targets):
             visible = eyes.lowered(target, neutral, start=p.shut_from, end=p.shut_at)
-            texture[:] = np.clip(eyes.lower(texture, neutral, visible, meet=p.shut_meet), 0, 255)
+            texture[:] = np.clip(eyes.lower(texture, neutral, visible, meet=p.shut_meet, fade=p.shut_fade), 0, 255)
     return textures
 
 
@@ -175,6 +175,11 @@ class _ClosingEyes(Params):
                              "rises the rest of the way. 1: the lashes on the lower lid's line, which left the "
                              "open eye's outline around them and read open; 0.6 took Bush <- Obama's eye gain "
                              "0.68 -> 0.72 (docs/expression.md)")
+    shut_fade: float = Field(eyes.SHUT_FADE, ge=0, description="close_eyes: over how many texels of its travel "
+                             "a lid and its line of lashes fade in (0: drawn in full as soon as the eye narrows "
+                             "past `shut_from`, as before). A lid that has come down a fraction of a texel lies on "
+                             "the texture's own lashes, and new ones drawn over them made a dark line of eyeliner "
+                             "across an eye barely narrower than B's neutral (docs/expression.md)")
 
     @model_validator(mode="after")
     def _shut(self):
@@ -193,7 +198,7 @@ class MultiscaleTexture(TextureBackend):
     #: what :meth:`weights` and :meth:`finish` read and :meth:`cache` does not (``tau`` is read by both)
     frame_params = frozenset({"sigma", "eye_sigma", "brow_sigma", "eye_gaze", "min_share", "skip", "time_sigma",
                               "detail_share", "finest_share", "detail_from", "close_eyes", "shut_from", "shut_at",
-                              "shut_meet", "gaze", "gaze_together"})
+                              "shut_meet", "shut_fade", "gaze", "gaze_together"})
 
     class Params(_ClosingEyes, _Alignment):
         levels: int = Field(5, ge=2, le=8, description="pyramid levels p (the paper does not say; 5 gives a "

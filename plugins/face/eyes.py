@@ -75,6 +75,11 @@ SHUT_FROM, SHUT_AT = 0.9, 0.3
 #: the texture's default (``shut_meet``)
 SHUT_MEET = 0.6
 
+#: over how many texels of its travel a lid and its lashes fade in (the texture's default, ``shut_fade``): a lid
+#: that has come down a fraction of a texel still lies on the texture's own lash line, and new lashes drawn at full
+#: strength over those thickened them into a dark line of eyeliner across an eye barely narrower than B's neutral
+SHUT_FADE = 0.5
+
 
 def opened(target: np.ndarray, neutral: np.ndarray) -> np.ndarray:
     """(2,) how far apart each eye's lids are in the fiducials ``target`` (49, 2), over their distance in
@@ -94,13 +99,14 @@ def lowered(target: np.ndarray, neutral: np.ndarray, *, start: float = SHUT_FROM
 
 
 def lower(texture: np.ndarray, neutral: np.ndarray, visible: np.ndarray, *, grow: int = 1,
-          margin: int = 6, lashes: float = 2.0, meet: float = SHUT_MEET) -> np.ndarray:
+          margin: int = 6, lashes: float = 2.0, meet: float = SHUT_MEET, fade: float = SHUT_FADE) -> np.ndarray:
     """``texture`` (H, W, 3) at the geometry of the fiducials ``neutral`` (49, 2), each eye k's upper
     lid drawn down so that the share ``visible[k]`` (:func:`lowered`) of its opening stays uncovered,
     its line of lashes ``lashes`` texels wide hanging from its edge. The upper lid comes down ``meet`` of the way
     to the lower lid as the eye shuts and the lower lid rises the rest, so that a shut eye is a line of lashes
     across skin where the lids meet, not the outline of an open eye (as at ``meet`` 1, its lashes on the lower lid's
-    line)."""
+    line). The lids and lashes fade in over the first ``fade`` texels their edges travel (0: at once), so the
+    texture does not change at a step as an eye narrows past ``SHUT_FROM``."""
     if not np.any(visible < 1):
         return texture
     out = np.asarray(texture, np.float32).copy()
@@ -135,7 +141,9 @@ def lower(texture: np.ndarray, neutral: np.ndarray, visible: np.ndarray, *, grow
             lid = np.maximum(lid, _drawn(opening.shape, np.vstack([polygon[0], lower_lid, polygon[3], rim[::-1]])))
         hanging = edge + [[0, 0], [0, lashes / 2], [0, lashes / 2], [0, 0]]  # from the lid's edge down
         line = np.clip(cv2.GaussianBlur(_drawn(opening.shape, hanging, line=lashes), (0, 0), 0.5) * 1.5, 0, 1)
-        weight = cv2.GaussianBlur(np.maximum(lid, line), (0, 0), 0.8)[..., None]  # the lashes, below the lid too
+        travel = (1 - v) * max(meet, 1 - meet) * float(np.abs(lower_lid - upper)[:, 1].max())  # texels
+        strength = min(travel / fade, 1.0) if fade > 0 else 1.0
+        weight = strength * cv2.GaussianBlur(np.maximum(lid, line), (0, 0), 0.8)[..., None]  # the lashes too
         line = line[..., None]
         skin = skin * (1 - line) + lash * line
         out[y0:y1, x0:x1] = out[y0:y1, x0:x1] * (1 - weight) + skin * weight

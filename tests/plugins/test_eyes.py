@@ -122,3 +122,21 @@ def test_by_default_a_half_shut_eye_is_drawn_half_open_and_a_blink_shut():
     print({r: np.round(v, 3) for r, v in visible.items()})
     assert (visible[0.65] > 0.8).all()  # 0.9 (0.65 - 0.3) / (0.9 - 0.3) / 0.65 = 0.808
     assert (visible[0.38] < 0.35).all() and (visible[0.3] == 0).all()
+
+
+def test_a_lid_fades_in_over_its_first_texel_so_an_eye_just_narrower_than_neutral_keeps_its_look():
+    """Past ``shut_from`` the lid starts down; drawn at full strength at once, it and its line of lashes lay over
+    the texture's own lid and lashes and made a dark line of eyeliner across an eye the lid had barely moved over."""
+    texture, neutral = texture_with_dark_eyes()
+    inside = np.logical_or(*(eye_mask(neutral, points) for points, _ in eyes.EYES))
+
+    def changed(ratio, **kw):
+        lowered = eyes.lower(texture, neutral, eyes.lowered(shut(neutral, ratio), neutral), **kw)
+        return float(np.abs(texture - lowered)[inside].sum(axis=1).max())  # the most any texel of the eyes moved
+
+    just_past, further = changed(0.88), changed(0.45)
+    print(f"\nchanged at 0.88 of the neutral opening: {just_past:.0f} (drawn at once: {changed(0.88, fade=0):.0f}); "
+          f"at 0.45: {further:.0f} (at once: {changed(0.45, fade=0):.0f})")
+    assert changed(0.88, fade=0) > 100  # as it was: a lid and lashes drawn in full on a lid moved 0.1 texel
+    assert just_past < 0.15 * changed(0.88, fade=0)  # now a trace
+    assert further == changed(0.45, fade=0)  # a lid that came down a texel and more is drawn as before
