@@ -257,7 +257,7 @@ def test_weights_smoothed_in_time_change_gradually_and_a_shard_with_its_margin_g
 #: a value other than the default for each of MultiscaleTexture's frame_params
 FRAME_PARAMS = {"sigma": 3.0, "eye_sigma": 0.0, "brow_sigma": 2.0, "min_share": 0.5, "skip": 0.1, "time_sigma": 2.0,
                 "detail_share": 1.0, "finest_share": 0.5, "detail_from": "frame", "close_eyes": False, "shut_from": 0.8,
-                "shut_at": 0.3, "shut_meet": 1.0, "shut_fade": 0.0, "gaze": False, "gaze_together": False,
+                "shut_at": 0.2, "shut_meet": 1.0, "shut_fade": 0.0, "gaze": False, "gaze_together": False,
                 "eye_gaze": 0.1}
 
 
