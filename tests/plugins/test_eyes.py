@@ -124,7 +124,7 @@ def test_by_default_a_half_shut_eye_is_drawn_half_open_and_a_blink_shut():
     assert (visible[0.38] < 0.35).all() and (visible[0.3] == 0).all()
 
 
-def test_a_lid_fades_in_over_its_first_texel_so_an_eye_just_narrower_than_neutral_keeps_its_look():
+def test_a_lid_fades_in_so_an_eye_just_narrower_than_neutral_keeps_its_look():
     """Past ``shut_from`` the lid starts down; drawn at full strength at once, it and its line of lashes lay over
     the texture's own lid and lashes and made a dark line of eyeliner across an eye the lid had barely moved over."""
     texture, neutral = texture_with_dark_eyes()
@@ -139,4 +139,4 @@ def test_a_lid_fades_in_over_its_first_texel_so_an_eye_just_narrower_than_neutra
           f"at 0.45: {further:.0f} (at once: {changed(0.45, fade=0):.0f})")
     assert changed(0.88, fade=0) > 100  # as it was: a lid and lashes drawn in full on a lid moved 0.1 texel
     assert just_past < 0.15 * changed(0.88, fade=0)  # now a trace
-    assert further == changed(0.45, fade=0)  # a lid that came down a texel and more is drawn as before
+    assert further == changed(0.45, fade=0)  # a lid that came down further than the fade is drawn as before
