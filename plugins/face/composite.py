@@ -383,7 +383,10 @@ def hair_in_front(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, rea
     step = max(1, side // 256)  # a skin's median colour from a grid of the middle's pixels: at HD 1 in 4
     grid = np.zeros_like(centre)
     grid[::step, ::step] = centre[::step, ::step]
-    skin_of = lambda img: np.log1p(np.median(img[grid].astype(np.float32), axis=0))  # noqa: E731
+
+    def skin_of(image):
+        return np.log1p(np.median(image[grid].astype(np.float32), axis=0))
+
     skin_a = skin_of(a)
     not_skin = np.clip((0.5 - _skin_likeness(np.log1p(a[ys, xs].astype(np.float32)), skin_a, tint, shade)) / 0.4, 0, 1)
     seen = np.zeros(centre.shape, bool)  # what is not A's skin in the whole band, chin's sector too
