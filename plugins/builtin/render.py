@@ -63,8 +63,9 @@ class Tps2dRender(RenderBackend):
     name = "tps2d"
     description = "the paper's 2D baseline: the puppet's average face TPS-warped to the target fiducials, at the driver's pose"
     default = False
-    version = "4"  # 2: rgb is the face's own colour across its soft edge (Rendered); no background param; 3: the
-    # render step stores render/own (none of this backend's pixels); 4: its light plane from a deeper ring (LIGHT_BAND)
+    version = "5"  # 2: rgb is the face's own colour across its soft edge (Rendered); no background param; 3: the
+    # render step stores render/own (none of this backend's pixels); 4: its light plane from a deeper ring (LIGHT_BAND);
+    # 5: the light plane judges skin in the face's own light (composite.skin_light)
 
     class Params(Params):
         tps_lambda: float = Field(10.0, ge=0, description="λ of the smoothing TPS (Eq. 1; paper: 10)")

@@ -195,7 +195,7 @@ class RaycastRender(RenderBackend):
     uses_mesh = True
     #: raised whenever the same inputs are drawn differently, so a stored render is drawn again (the history
     #: is in docs/CHANGELOG.md)
-    version = "17"
+    version = "19"
 
     class Params(Params):
         min_coverage: float = Field(0.3, ge=0, le=1, description="canonical pixels seen in fewer "

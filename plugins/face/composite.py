@@ -167,13 +167,42 @@ def _robust_plane(xy: np.ndarray, values: np.ndarray, weight: np.ndarray, *, del
 
 
 def _skin_likeness(logc: np.ndarray, skin: np.ndarray, tint: float, shade: float) -> np.ndarray:
-    """How much each pixel of ``logc`` (..., 3), log colour, looks like ``skin`` (3,), the median log
-    colour of a face's middle: a Gaussian in chromaticity (σ ``tint``) and in brightness (σ ``shade``)
-    about the skin's."""
+    """How much each pixel of ``logc`` (..., 3), log colour, looks like ``skin`` (3,) or (..., 3), the log
+    colour of a face's skin (there: :func:`skin_light`): a Gaussian in chromaticity (σ ``tint``) and in
+    brightness (σ ``shade``) about the skin's."""
     brightness = logc.mean(axis=-1, keepdims=True)
-    off = (np.sum((logc - brightness - (skin - skin.mean())) ** 2, axis=-1) / tint ** 2
-           + (brightness[..., 0] - skin.mean()) ** 2 / shade ** 2)
+    level = np.mean(skin, axis=-1, keepdims=True)
+    off = (np.sum((logc - brightness - (skin - level)) ** 2, axis=-1) / tint ** 2
+           + (brightness[..., 0] - level[..., 0]) ** 2 / shade ** 2)
     return np.exp(-off / 2)
+
+
+#: about how many pixels of a face's middle :func:`skin_light` fits its plane to (a grid over the middle; at most
+#: four times as many): plenty for three coefficients a channel, where the middle of a face at 720p has a hundred
+#: thousand
+SKIN_SAMPLES = 4000
+
+
+def skin_light(image: np.ndarray, middle: np.ndarray, *, tint: float = 0.1, shade: float = 0.5) -> np.ndarray:
+    """(3, 3): a face's skin in its own light, from ``image`` (h, w, 3) under the face's ``middle`` (h, w) bool:
+    its log colour per channel (columns) as a plane ``[1, x, y] @ coef`` over the image's pixels, fitted by
+    :func:`_robust_plane` to a grid of the middle's pixels (:data:`SKIN_SAMPLES`), each weighted first by how
+    like the middle's median colour it is (twice as loose in tint as the skin tests): the eyes, brows, nostrils
+    and mouth count little. :func:`_skin_at` reads it.
+
+    One colour for the whole face is the skin of an evenly lit face. Lit by a window on one side and by lamps
+    on the other, the skin's tint changes by 0.1-0.2 across the face, and the skin tests (σ 0.1) took the lit
+    side for hair: the phone man's forehead stayed in front of B's face (docs/composite.md)."""
+    step = max(1, int(np.sqrt(np.count_nonzero(middle) / SKIN_SAMPLES)))
+    rows, cols = (index * step for index in np.nonzero(middle[::step, ::step]))
+    values = np.log1p(np.asarray(image)[rows, cols].astype(np.float64))
+    prior = _skin_likeness(values, np.median(values, axis=0), 2 * tint, shade)
+    return _robust_plane(np.column_stack([cols, rows]).astype(np.float64), values, prior)
+
+
+def _skin_at(coef: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """(m, 3): the skin's log colour at the pixels (``rows``, ``cols``) by :func:`skin_light`'s plane ``coef``."""
+    return np.column_stack([np.ones(len(rows)), cols, rows]) @ coef
 
 
 def match_lighting(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, lighting: float = 1.0,
@@ -185,8 +214,9 @@ def match_lighting(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, li
     The gain is a plane in log colour per channel (a mean and a gradient of light across the face),
     fitted robustly to the ratio of A's frame to B's render on a band inside the edge, so it
     varies slowly and leaves B's detail and shading alone. Only where A's frame under B's edge looks
-    like A's skin (the frame under B's middle) does the band count, so that A's hair, collar or
-    background there cannot darken or tint B's edge: tint is the tolerance (σ) of its chromaticity
+    like A's skin there (the frame under B's middle, carried across the face in A's light: :func:`skin_light`),
+    and B's render like B's, does the band count, so that A's hair, collar or background there cannot darken
+    or tint B's edge: tint is the tolerance (σ) of its chromaticity
     (log colour minus its channels' mean), shade that of its brightness (the mean log colour), loose
     so that a shadowed cheek still counts.
 
@@ -225,15 +255,17 @@ def light_plane(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, band:
     ring = (depth > 0.5) & (depth <= 0.5 + width / q)
     if not ring.any():
         return nothing
-    a = np.log1p(shrink(np.asarray(frame)[box].astype(np.float32)))
-    b = np.log1p(shrink(np.asarray(face)[box].astype(np.float32)))
+    frame_a, face_b = (shrink(np.asarray(image)[box].astype(np.float32)) for image in (frame, face))
+    a, b = np.log1p(frame_a), np.log1p(face_b)
     middle = depth > 4  # A's and B's skin: the colours under B's middle, deeper than 12 % of the face's side
     centre = middle if middle.any() else ring
-    weight = (_skin_likeness(a[ring], np.median(a[centre], axis=0), tint, shade)
-              * _skin_likeness(b[ring], np.median(b[centre], axis=0), tint, shade))
+    rows, cols = np.nonzero(ring)
+    weight = np.ones(len(rows))
+    for image, logc in ((frame_a, a), (face_b, b)):  # A's frame like A's skin there, B's render like B's
+        skin = _skin_at(skin_light(image, centre, tint=tint, shade=shade), rows, cols)
+        weight *= _skin_likeness(logc[ring], skin, tint, shade)
     if weight.sum() < 1e-3:  # nothing like skin under B's edge: nothing to match
         return nothing
-    rows, cols = np.nonzero(ring)
     across = q * np.array([small[0], small[1]], np.float64)  # the shrunk box's width and height, in px
     xy = np.column_stack([cols, rows]) * q / across  # the band's points, the box's width and height 1
     coef = _robust_plane(xy, (a - b)[ring], weight)
@@ -346,10 +378,10 @@ def hair_in_front(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, rea
     the edge of B's mask: A's hair that falls over it (a fringe, strands at the temples) and, where A's
     head is turned or narrower than B's, the background beside A's cheek.
 
-    It counts where A's frame is far from A's skin (skin likeness, as :func:`match_lighting`'s, under
-    0.1: all; over 0.5: none), whatever B's render shows there: B's own hair, which B's texture keeps
-    where B's photos all had it (a fringe, strands at the temples, a face from one video), lies behind
-    A's hair as B's skin does. It counts only
+    It counts where A's frame is far from A's skin there (skin likeness, as :func:`match_lighting`'s, against
+    the skin of A's middle in A's light, :func:`skin_light`; under 0.1: all; over 0.5: none), whatever B's
+    render shows there: B's own hair, which B's texture keeps where B's photos all had it (a fringe, strands
+    at the temples, a face from one video), lies behind A's hair as B's skin does. It counts only
     - within ``reach`` (a fraction of the face's smaller side) of the mask's edge;
     - all round the face (B's cheek drawn over the wall beside a turned head showed as a soft band), but
       for the sector of the chin: the edge within ``chin`` degrees of straight down from the mask's
@@ -380,14 +412,7 @@ def hair_in_front(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, rea
     beside = np.clip((down - chin) / 20, 0, 1).astype(np.float32)  # 0 in the chin's sector
     box = np.s_[y0:y1, x0:x1]
     a = np.asarray(frame)[box]
-    step = max(1, side // 256)  # a skin's median colour from a grid of the middle's pixels: at HD 1 in 4
-    grid = np.zeros_like(centre)
-    grid[::step, ::step] = centre[::step, ::step]
-
-    def skin_of(image):
-        return np.log1p(np.median(image[grid].astype(np.float32), axis=0))
-
-    skin_a = skin_of(a)
+    skin_a = _skin_at(skin_light(a, centre, tint=tint, shade=shade), ys, xs)
     not_skin = np.clip((0.5 - _skin_likeness(np.log1p(a[ys, xs].astype(np.float32)), skin_a, tint, shade)) / 0.4, 0, 1)
     seen = np.zeros(centre.shape, bool)  # what is not A's skin in the whole band, chin's sector too
     seen[ys, xs] = not_skin > 0
@@ -399,7 +424,8 @@ def hair_in_front(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, rea
         over = brows[box] & (kept > 0)
         if over.any():  # B's skin is looked for only where something is kept within A's brows
             b = np.asarray(face)[box]
-            kept[over] *= _skin_likeness(np.log1p(b[over].astype(np.float32)), skin_of(b), tint, shade)
+            skin_b = _skin_at(skin_light(b, centre, tint=tint, shade=shade), *np.nonzero(over))
+            kept[over] *= _skin_likeness(np.log1p(b[over].astype(np.float32)), skin_b, tint, shade)
     if eyes is not None:
         out[eyes] = 0
     near = np.s_[max(y0 - 4, 0):y1 + 4, max(x0 - 4, 0):x1 + 4]  # softened over a pixel: nothing further

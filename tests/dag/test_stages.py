@@ -93,11 +93,11 @@ def test_the_composite_and_the_light_record_the_keys_they_had_without_backends()
     light = {f"light_{k}": v for k, v in wf.stage("light")[1].items()}
     before = {"lighting": 1.0, "tone": 1.0, "tone_reach": 0.5, "hair": 1.0, "light_sigma": 3.0}
     assert {**params, **light} == before
-    assert st.backend_key("composite", name) == ("-", "10") and st.backend_key("light", "steady") == ("-", "1")
-    made = st.provenance("composite", backend="-", backend_version="10", params={**params, **light},
+    assert st.backend_key("composite", name) == ("-", "11") and st.backend_key("light", "steady") == ("-", "1")
+    made = st.provenance("composite", backend="-", backend_version="11", params={**params, **light},
                          inputs={"render": "r", "light": "l"}, persona_version="x")
     from persona.stores.provenance import Provenance
 
-    old = Provenance.make(stage="composite", backend="-", backend_version="10", params=before,
+    old = Provenance.make(stage="composite", backend="-", backend_version="11", params=before,
                           inputs={"render": "r", "light": "l"}, persona_version="x")
     assert made.key == old.key

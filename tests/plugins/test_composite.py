@@ -350,7 +350,7 @@ def test_the_built_in_composite_and_light_backends_are_the_blend_and_the_steady_
     planes[4] = np.nan
     assert np.array_equal(SteadyLight({"sigma": 2}).light(planes), composite.steady_light(planes, 2), equal_nan=True)
     # their cache keys are those of the stages before they had backends: "-" and those stages' versions
-    assert (MultibandComposite.key_name, MultibandComposite.version) == ("-", "10")
+    assert (MultibandComposite.key_name, MultibandComposite.version) == ("-", "11")
     assert (SteadyLight.key_name, SteadyLight.version) == ("-", "1")
     try:
         SteadyLight().light(planes[0])
@@ -377,3 +377,36 @@ def test_a_light_is_read_over_the_face_not_only_its_rim():
     ring = composite.light_plane(face, frame, alpha, band=0.06)[1].mean()
     print(f"\ngradient across the face: A's {truth:.2f}, fitted on the fifth {fifth:.2f}, on a 6 % ring {ring:.2f}")
     assert abs(fifth - truth) < 0.08 and abs(ring - truth) > 2 * abs(fifth - truth)
+
+
+def two_lights(tilt=0.15):
+    """lit_scene's frame with A's skin in two lights: its tint changes across the frame (log red up and log blue
+    down by ``tilt`` from the middle to the right edge, the reverse to the left; a lamp on one side, a window on
+    the other), and a dark fringe over the top of B's face."""
+    face, frame, alpha = lit_scene()
+    across = (np.arange(frame.shape[1]) - frame.shape[1] / 2) / (frame.shape[1] / 2)  # -1 .. 1
+    tint = np.exp(tilt * across[None, :, None] * np.array([1.0, 0.0, -1.0]))
+    lit = np.clip(frame * tint, 0, 255).astype(np.uint8)
+    lit[:50] = (30, 22, 18)  # A's fringe, 10 px into the top of B's face (rows 40-160)
+    return face, lit, alpha
+
+
+def test_a_face_in_two_lights_is_skin_on_both_sides_and_its_fringe_still_hair():
+    """A's skin is judged against A's middle carried across the face in A's light (``skin_light``), not against
+    one colour: the cheeks of a face whose tint changes by 0.15 from its middle to either side are skin, so
+    neither is kept in front of B's face (with one colour for the skin both were, about 0.45); the fringe above
+    them is still hair, and the light's fit follows the tint across the face."""
+    face, frame, alpha = two_lights()
+    kept = composite.hair_in_front(face, frame, alpha)
+    cheeks = np.s_[90:110, 42:50], np.s_[90:110, 150:158]  # inside B's edge band, left and right
+    fringe = np.s_[44:48, 90:110]
+    print(f"\nkept in front: cheeks {kept[cheeks[0]].max():.2f} / {kept[cheeks[1]].max():.2f}, "
+          f"fringe {kept[fringe].min():.2f}")
+    assert max(kept[c].max() for c in cheeks) < 0.05 and kept[fringe].min() > 0.9
+    # the red gain rises and the blue falls across the face's box as A's tint does
+    plane = composite.light_plane(face, frame, alpha)
+    x0, x1 = np.flatnonzero(alpha.max(axis=0) > 0.5)[[0, -1]]
+    truth = 0.15 * 2 * (x1 - x0) / frame.shape[1]  # the tint's change in log colour across the box
+    print(f"tint across the face's box, red / blue: {plane[1, 0] - plane[1, 1]:.3f} / "
+          f"{plane[1, 2] - plane[1, 1]:.3f}, A's ±{truth:.3f}")
+    assert abs((plane[1, 0] - plane[1, 1]) - truth) < 0.05 and abs((plane[1, 2] - plane[1, 1]) + truth) < 0.05
