@@ -27,7 +27,7 @@ class MultibandComposite(CompositeBackend):
                    "multi-band blend into A's frame (Burt & Adelson 1983; docs/composite.md)")
     default = True
     key_name = "-"
-    version = "11"
+    version = "12"
 
     class Params(Params):
         lighting: float = Field(1.0, ge=0, le=1, description="how far B's face takes A's colour and light at its "

@@ -155,12 +155,10 @@ def _robust_plane(xy: np.ndarray, values: np.ndarray, weight: np.ndarray, *, del
     Huber's weights (``delta`` in the values' units): a few outliers (hair, a collar) do not tilt it."""
     design = np.column_stack([np.ones(len(xy)), xy])
     robust = np.ones_like(values)
-    coef = np.zeros((3, values.shape[1]))
     for _ in range(rounds):
-        for c in range(values.shape[1]):
-            w = weight * robust[:, c]
-            lhs = design.T @ (design * w[:, None]) + 1e-9 * np.eye(3)
-            coef[:, c] = np.linalg.solve(lhs, design.T @ (w * values[:, c]))
+        weighted = (weight[:, None] * robust).T[:, None, :] * design.T[None]  # (c, 3, m): rows by weight
+        lhs = weighted @ design + 1e-9 * np.eye(3)  # normal equations, all channels at once
+        coef = np.linalg.solve(lhs, weighted @ values.T[:, :, None])[..., 0].T  # (3, c)
         residual = np.abs(values - design @ coef)
         robust = np.minimum(1.0, delta / np.maximum(residual, 1e-12))
     return coef
@@ -180,7 +178,7 @@ def _skin_likeness(logc: np.ndarray, skin: np.ndarray, tint: float, shade: float
 #: about how many pixels of a face's middle :func:`skin_light` fits its plane to (a grid over the middle; at most
 #: four times as many): plenty for three coefficients a channel, where the middle of a face at 720p has a hundred
 #: thousand
-SKIN_SAMPLES = 4000
+SKIN_SAMPLES = 1000
 
 
 def skin_light(image: np.ndarray, middle: np.ndarray, *, tint: float = 0.1, shade: float = 0.5) -> np.ndarray:

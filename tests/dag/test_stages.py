@@ -84,8 +84,9 @@ def test_the_render_draws_the_drivers_own_mouth_interior_into_the_puppets_gap():
 def test_the_composite_and_the_light_record_the_keys_they_had_without_backends():
     """Made with the default composite and light backends, their provenance has the form it had when the two
     were backendless settings of stages.composite (backend "-" and the stage's version), so a store made
-    before them resumed with nothing recomputed. Version 10: what is kept in front of B's face reaches in
-    from beyond its edge, whatever B's render shows there, and B's brows not cut by A's."""
+    before them resumed with nothing recomputed. Version 12: what is kept in front of B's face reaches in
+    from beyond its edge, whatever B's render shows there, B's brows are not cut by A's, and skin is judged in
+    the face's own light."""
     from persona.dag.workflow import parse_workflow
 
     wf = parse_workflow({"name": "k", "store": "s.zarr", "output": "o", "puppet": {"photos": "p"}})
@@ -93,11 +94,11 @@ def test_the_composite_and_the_light_record_the_keys_they_had_without_backends()
     light = {f"light_{k}": v for k, v in wf.stage("light")[1].items()}
     before = {"lighting": 1.0, "tone": 1.0, "tone_reach": 0.5, "hair": 1.0, "light_sigma": 3.0}
     assert {**params, **light} == before
-    assert st.backend_key("composite", name) == ("-", "11") and st.backend_key("light", "steady") == ("-", "1")
-    made = st.provenance("composite", backend="-", backend_version="11", params={**params, **light},
+    assert st.backend_key("composite", name) == ("-", "12") and st.backend_key("light", "steady") == ("-", "1")
+    made = st.provenance("composite", backend="-", backend_version="12", params={**params, **light},
                          inputs={"render": "r", "light": "l"}, persona_version="x")
     from persona.stores.provenance import Provenance
 
-    old = Provenance.make(stage="composite", backend="-", backend_version="11", params=before,
+    old = Provenance.make(stage="composite", backend="-", backend_version="12", params=before,
                           inputs={"render": "r", "light": "l"}, persona_version="x")
     assert made.key == old.key

@@ -350,7 +350,7 @@ def test_the_built_in_composite_and_light_backends_are_the_blend_and_the_steady_
     planes[4] = np.nan
     assert np.array_equal(SteadyLight({"sigma": 2}).light(planes), composite.steady_light(planes, 2), equal_nan=True)
     # their cache keys are those of the stages before they had backends: "-" and those stages' versions
-    assert (MultibandComposite.key_name, MultibandComposite.version) == ("-", "11")
+    assert (MultibandComposite.key_name, MultibandComposite.version) == ("-", "12")
     assert (SteadyLight.key_name, SteadyLight.version) == ("-", "1")
     try:
         SteadyLight().light(planes[0])
