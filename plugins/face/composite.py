@@ -181,25 +181,22 @@ def _skin_likeness(logc: np.ndarray, skin: np.ndarray, tint: float, shade: float
 SKIN_SAMPLES = 1000
 
 
-def skin_light(image: np.ndarray, middle: np.ndarray, *, tint: float = 0.1, shade: float = 0.5) -> np.ndarray:
-    """(3, 3): a face's skin in its own light, from ``image`` (h, w, 3) under the face's ``middle`` (h, w) bool:
-    its log colour per channel (columns) as a plane ``[1, x, y] @ coef`` over the image's pixels, fitted by
+def skin_light(image: np.ndarray, middle: np.ndarray, rows: np.ndarray, cols: np.ndarray, *, tint: float = 0.1,
+               shade: float = 0.5) -> np.ndarray:
+    """(m, 3): a face's skin in its own light at the pixels (``rows``, ``cols``), from ``image`` (h, w, 3) under the
+    face's ``middle`` (h, w) bool: its log colour per channel as a plane over the image's pixels, fitted by
     :func:`_robust_plane` to a grid of the middle's pixels (:data:`SKIN_SAMPLES`), each weighted first by how
     like the middle's median colour it is (twice as loose in tint as the skin tests): the eyes, brows, nostrils
-    and mouth count little. :func:`_skin_at` reads it.
+    and mouth count little.
 
     One colour for the whole face is the skin of an evenly lit face. Lit by a window on one side and by lamps
     on the other, the skin's tint changes by 0.1-0.2 across the face, and the skin tests (σ 0.1) took the lit
     side for hair: the phone man's forehead stayed in front of B's face (docs/composite.md)."""
     step = max(1, int(np.sqrt(np.count_nonzero(middle) / SKIN_SAMPLES)))
-    rows, cols = (index * step for index in np.nonzero(middle[::step, ::step]))
-    values = np.log1p(np.asarray(image)[rows, cols].astype(np.float64))
+    ys, xs = (index * step for index in np.nonzero(middle[::step, ::step]))
+    values = np.log1p(np.asarray(image)[ys, xs].astype(np.float64))
     prior = _skin_likeness(values, np.median(values, axis=0), 2 * tint, shade)
-    return _robust_plane(np.column_stack([cols, rows]).astype(np.float64), values, prior)
-
-
-def _skin_at(coef: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
-    """(m, 3): the skin's log colour at the pixels (``rows``, ``cols``) by :func:`skin_light`'s plane ``coef``."""
+    coef = _robust_plane(np.column_stack([xs, ys]).astype(np.float64), values, prior)
     return np.column_stack([np.ones(len(rows)), cols, rows]) @ coef
 
 
@@ -260,7 +257,7 @@ def light_plane(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, band:
     rows, cols = np.nonzero(ring)
     weight = np.ones(len(rows))
     for image, logc in ((frame_a, a), (face_b, b)):  # A's frame like A's skin there, B's render like B's
-        skin = _skin_at(skin_light(image, centre, tint=tint, shade=shade), rows, cols)
+        skin = skin_light(image, centre, rows, cols, tint=tint, shade=shade)
         weight *= _skin_likeness(logc[ring], skin, tint, shade)
     if weight.sum() < 1e-3:  # nothing like skin under B's edge: nothing to match
         return nothing
@@ -410,7 +407,7 @@ def hair_in_front(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, rea
     beside = np.clip((down - chin) / 20, 0, 1).astype(np.float32)  # 0 in the chin's sector
     box = np.s_[y0:y1, x0:x1]
     a = np.asarray(frame)[box]
-    skin_a = _skin_at(skin_light(a, centre, tint=tint, shade=shade), ys, xs)
+    skin_a = skin_light(a, centre, ys, xs, tint=tint, shade=shade)
     not_skin = np.clip((0.5 - _skin_likeness(np.log1p(a[ys, xs].astype(np.float32)), skin_a, tint, shade)) / 0.4, 0, 1)
     seen = np.zeros(centre.shape, bool)  # what is not A's skin in the whole band, chin's sector too
     seen[ys, xs] = not_skin > 0
@@ -422,7 +419,7 @@ def hair_in_front(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, rea
         over = brows[box] & (kept > 0)
         if over.any():  # B's skin is looked for only where something is kept within A's brows
             b = np.asarray(face)[box]
-            skin_b = _skin_at(skin_light(b, centre, tint=tint, shade=shade), *np.nonzero(over))
+            skin_b = skin_light(b, centre, *np.nonzero(over), tint=tint, shade=shade)
             kept[over] *= _skin_likeness(np.log1p(b[over].astype(np.float32)), skin_b, tint, shade)
     if eyes is not None:
         out[eyes] = 0
