@@ -366,29 +366,21 @@ def features_of(points: np.ndarray | None, shape: tuple[int, int], features=EYES
     return out
 
 
-def hair_in_front(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, reach: float = 0.12,
-                  chin: float = 35.0, tint: float = 0.1, shade: float = 0.5,
-                  eyes: np.ndarray | None = None, brows: np.ndarray | None = None) -> np.ndarray:
-    """How much of A's frame stays in front of B's face (h, w) in [0, 1]: what is not A's skin inside
-    the edge of B's mask: A's hair that falls over it (a fringe, strands at the temples) and, where A's
-    head is turned or narrower than B's, the background beside A's cheek.
+def edge_not_skin(image: np.ndarray, alpha: np.ndarray, *, reach: float = 0.12, chin: float = 35.0,
+                  tint: float = 0.1, shade: float = 0.5, spared: np.ndarray | None = None) -> np.ndarray:
+    """(h, w) in [0, 1]: how far ``image`` (h, w, 3) is from the skin of the face it shows, near the edge of the
+    face's mask ``alpha`` (h, w) in [0, 1], where what is not skin comes in from beyond that edge: hair, a
+    fringe, the background beside a turned cheek.
 
-    It counts where A's frame is far from A's skin there (skin likeness, as :func:`match_lighting`'s, against
-    the skin of A's middle in A's light, :func:`skin_light`; under 0.1: all; over 0.5: none), whatever B's
-    render shows there: B's own hair, which B's texture keeps where B's photos all had it (a fringe, strands
-    at the temples, a face from one video), lies behind A's hair as B's skin does. It counts only
+    The skin is the face's middle in its own light (:func:`skin_light`; deeper than ``reach`` of the face's
+    smaller side) and a pixel's likeness to it that of :func:`match_lighting` (under 0.1: all; over 0.5: none).
+    It counts only
     - within ``reach`` (a fraction of the face's smaller side) of the mask's edge;
-    - all round the face (B's cheek drawn over the wall beside a turned head showed as a soft band), but
-      for the sector of the chin: the edge within ``chin`` degrees of straight down from the mask's
-      centre (its jaw, chin and the collar below are left to B), fading in over the next 20 degrees;
-    - never within A's ``eyes`` ((h, w) bool, :func:`features_of`): their lashes and corners are dark and
-      not skin, but not in front of B's face either (they showed as a smudge beside B's eye where A's
-      face is narrower than B's);
-    - within A's ``brows`` ((h, w) bool), only where B's render is B's skin (as :func:`match_lighting`
-      judges it): B's own brow is drawn where A's is, and a brow's end that A's hair or glasses join to
-      the edge cut B's brow short (dlib then took the composite for A more often);
-    - only where what is not A's skin there reaches in from beyond B's edge (:func:`_reaching_in`).
-    It is softened over a pixel."""
+    - all round the face but the sector of the chin: the edge within ``chin`` degrees of straight down from
+      the mask's centre (a jaw, a chin, a beard and the collar below), fading in over the next 20 degrees;
+    - where what is not skin reaches in from beyond the edge (:func:`_reaching_in`): a mole, stubble or the
+      shadow of a dimple in the band is the face's own;
+    - never within ``spared`` ((h, w) bool)."""
     alpha = np.asarray(alpha, np.float32)
     inside = (alpha > 0.5).astype(np.uint8)
     out = np.zeros(alpha.shape, np.float32)
@@ -405,24 +397,52 @@ def hair_in_front(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, rea
     m = cv2.moments(inside[y0:y1, x0:x1], binaryImage=True)
     down = np.degrees(np.arctan2(np.abs(xs - m["m10"] / m["m00"]), ys - m["m01"] / m["m00"]))  # 0: straight down
     beside = np.clip((down - chin) / 20, 0, 1).astype(np.float32)  # 0 in the chin's sector
-    box = np.s_[y0:y1, x0:x1]
-    a = np.asarray(frame)[box]
-    skin_a = skin_light(a, centre, ys, xs, tint=tint, shade=shade)
-    not_skin = np.clip((0.5 - _skin_likeness(np.log1p(a[ys, xs].astype(np.float32)), skin_a, tint, shade)) / 0.4, 0, 1)
-    seen = np.zeros(centre.shape, bool)  # what is not A's skin in the whole band, chin's sector too
+    a = np.asarray(image)[y0:y1, x0:x1]
+    skin = skin_light(a, centre, ys, xs, tint=tint, shade=shade)
+    not_skin = np.clip((0.5 - _skin_likeness(np.log1p(a[ys, xs].astype(np.float32)), skin, tint, shade)) / 0.4, 0, 1)
+    seen = np.zeros(centre.shape, bool)  # what is not skin in the whole band, chin's sector too
     seen[ys, xs] = not_skin > 0
-    reaching = _reaching_in(seen, inside[box] == 0)[ys, xs]
+    reaching = _reaching_in(seen, inside[y0:y1, x0:x1] == 0)[ys, xs]
     keep = (beside > 0) & reaching
     out[y0 + ys[keep], x0 + xs[keep]] = not_skin[keep] * beside[keep]  # 0 off the band
+    if spared is not None:
+        out[spared] = 0
+    return out
+
+
+def hair_in_front(face: np.ndarray, frame: np.ndarray, alpha: np.ndarray, *, reach: float = 0.12,
+                  chin: float = 35.0, tint: float = 0.1, shade: float = 0.5,
+                  eyes: np.ndarray | None = None, brows: np.ndarray | None = None) -> np.ndarray:
+    """How much of A's frame stays in front of B's face (h, w) in [0, 1]: what is not A's skin inside
+    the edge of B's mask (:func:`edge_not_skin` of A's frame within B's ``alpha``): A's hair that falls over
+    it (a fringe, strands at the temples) and, where A's head is turned or narrower than B's, the background
+    beside A's cheek.
+
+    It counts whatever B's render shows there: B's own hair, which B's texture keeps where B's photos all had
+    it (a fringe, strands at the temples, a face from one video), lies behind A's hair as B's skin does.
+    - All round the face but the chin's sector: B's cheek drawn over the wall beside a turned head showed as
+      a soft band; A's collar or the shadow under A's chin is left to B's jaw and chin.
+    - Never within A's ``eyes`` ((h, w) bool, :func:`features_of`): their lashes and corners are dark and not
+      skin, but not in front of B's face either (they showed as a smudge beside B's eye where A's face is
+      narrower than B's).
+    - Within A's ``brows`` ((h, w) bool), only where B's render is B's skin (as :func:`match_lighting` judges
+      it): B's own brow is drawn where A's is, and a brow's end that A's hair or glasses join to the edge cut
+      B's brow short (dlib then took the composite for A more often).
+    It is softened over a pixel."""
+    out = edge_not_skin(frame, alpha, reach=reach, chin=chin, tint=tint, shade=shade, spared=eyes)
+    bounds = _bounds(np.asarray(alpha) > 0.5)
+    if bounds is None:
+        return out
+    y0, y1, x0, x1 = bounds
+    box = np.s_[y0:y1, x0:x1]
     if brows is not None:
         kept = out[box]  # a view: what is kept within the box
         over = brows[box] & (kept > 0)
         if over.any():  # B's skin is looked for only where something is kept within A's brows
+            depth = cv2.distanceTransform((np.asarray(alpha)[box] > 0.5).astype(np.uint8), cv2.DIST_L2, 5)
             b = np.asarray(face)[box]
-            skin_b = skin_light(b, centre, *np.nonzero(over), tint=tint, shade=shade)
+            skin_b = skin_light(b, depth > reach * min(y1 - y0, x1 - x0), *np.nonzero(over), tint=tint, shade=shade)
             kept[over] *= _skin_likeness(np.log1p(b[over].astype(np.float32)), skin_b, tint, shade)
-    if eyes is not None:
-        out[eyes] = 0
     near = np.s_[max(y0 - 4, 0):y1 + 4, max(x0 - 4, 0):x1 + 4]  # softened over a pixel: nothing further
     out[near] = cv2.GaussianBlur(out[near], (0, 0), 1.0)
     return out
