@@ -225,7 +225,7 @@ def _puppet(root, path) -> dict:
     """The context of the render stages: the drive's puppet's average face, fiducials and mouth (each
     interior of B's mouth as its image and its photos' gap, or None), the neutral insets of B's and
     A's inner-lip corners that each frame's are drawn from (mouth.frame_insets; None without B's lips or
-    A's landmarks), and B's jaw line (the median of B's aligned photos' iBUG 0-16)."""
+    A's landmarks), B's jaw line (the median of B's aligned photos' iBUG 0-16) and B's neutral texture."""
     cast = Cast.of(root, path)
     puppet, driver = Collection(root, cast.puppet), Collection(root, cast.driver)
     group = puppet.group["aligned"]
@@ -245,9 +245,10 @@ def _puppet(root, path) -> dict:
     jaw = group["landmarks"][:, :17][puppet.state("align") == OK].astype(np.float64)
     seen = np.isfinite(jaw).all(axis=2).sum(axis=0)  # a point a photo does not see (the far jaw) is NaN there
     jaw = np.nanmedian(jaw, axis=0) if (seen > 0).all() else None
+    neutral = puppet.array("texture/neutral")[...] if puppet.has("texture/neutral") else None
     return {"coverage": group["coverage"][...], "fiducials": fiducials, "lips": lips, "insets": insets,
             "mouth": interior("texture/mouth"), "mouth_cavity": interior("texture/mouth_cavity"),
-            "jaw": jaw}
+            "jaw": jaw, "neutral": neutral}
 
 
 def _render(backend, params, inputs, context):
@@ -271,7 +272,7 @@ def _render(backend, params, inputs, context):
     puppet = Puppet(appearance=inputs["texture/rgb"].astype(np.float32), coverage=context["coverage"],
                     fiducials=context["fiducials"], mesh=inputs.get("mesh"), mouth=interior,
                     lips=context["lips"], mouth_gap=gap, mouth_own=drivers is not None, lip_insets=insets,
-                    jaw=context["jaw"])
+                    jaw=context["jaw"], neutral=context["neutral"])
     out = backend.render(puppet, inputs["target"].astype(np.float64), pose, frame)
     mask = np.round(out.mask * 255).astype(np.uint8)
     own = np.zeros_like(mask) if out.own is None else np.round(out.own * 255).astype(np.uint8)

@@ -133,6 +133,8 @@ class Puppet:
         from the driver's); None: where the mesh puts them
     jaw : ndarray, shape (17, 2), or None — B's jaw line (iBUG 0-16, canonical x, y), the median of B's
         aligned photos'; None when not known
+    neutral : ndarray, shape (H, W, 3), or None — B's neutral texture, 0-255, on which the renderer judges
+        where B's skin ends at the face's rim, the same in every frame; None: on ``appearance``
     """
 
     appearance: np.ndarray
@@ -145,6 +147,7 @@ class Puppet:
     mouth_own: bool = False
     lip_insets: np.ndarray | None = None
     jaw: np.ndarray | None = None
+    neutral: np.ndarray | None = None
 
 
 @dataclass(frozen=True)

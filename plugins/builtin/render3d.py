@@ -31,8 +31,9 @@ from pydantic import Field
 from ..base import Params
 from ..face import mouth
 from ..face.blend import gaussian_pyramid
-from ..face.composite import GREY
+from ..face.composite import BROWS, EYES, GREY, edge_not_skin, features_of
 from ..face.mesh import above_jaw, enclosed, grid_triangles
+from ..face.template import IDX49
 from ..face.warp import compose
 from ..hookspecs import hookimpl
 from ..kinds import Pose, Puppet, RenderBackend, Rendered
@@ -195,7 +196,7 @@ class RaycastRender(RenderBackend):
     uses_mesh = True
     #: raised whenever the same inputs are drawn differently, so a stored render is drawn again (the history
     #: is in docs/CHANGELOG.md)
-    version = "19"
+    version = "21"
 
     class Params(Params):
         min_coverage: float = Field(0.3, ge=0, le=1, description="canonical pixels seen in fewer "
@@ -224,6 +225,14 @@ class RaycastRender(RenderBackend):
                                          "outwards: below and beside B's jaw the canonical frame holds B's neck, "
                                          "ears and background, which were drawn as face. Not in the paper; None: "
                                          "the whole face mask, as the paper draws it (docs/composite.md)")
+        rim: Literal["skin", "texture"] = Field(
+            "skin", description="what of B's texture is drawn at the face's edge. `skin` (the default; not in "
+            "the paper): what looks like B's skin there, judged on B's neutral texture so that it is the same in "
+            "every frame, leaving out what does not and reaches in from beyond the edge (composite.edge_not_skin, "
+            "B's eyes and brows spared, the chin's sector kept): the hair that hung over B's cheeks and temples in "
+            "B's photos, which their blend keeps as a dark band at the rim and which, drawn, showed as a dark "
+            "stripe down the cheek of the head B's face is put on. `texture`: all of it, as the paper draws it "
+            "(docs/composite.md)")
         mouth: bool = Field(True, description="draw the inside of B's mouth (from B's open-mouth "
                             "photos) between B's inner lips where the mesh parts them, instead of the "
                             "stretched skin of a surface that cannot open (not in the paper; "
@@ -294,6 +303,9 @@ class RaycastRender(RenderBackend):
         if self.params.jaw_margin is not None and puppet.jaw is not None:
             seen *= above_jaw(puppet.jaw, seen.shape, self.params.jaw_margin)
         texture = np.where(finite[..., None], texture, 0).astype(np.float32)
+        if self.params.rim == "skin":  # judged on B's neutral texture: the same rim in every frame
+            judged = texture if puppet.neutral is None else np.asarray(puppet.neutral, np.float32)
+            seen *= 1 - edge_not_skin(judged, seen, spared=_eyes_and_brows(puppet.fiducials, seen.shape))
         u, v = hit_uv[..., 0], hit_uv[..., 1]
         on = np.isfinite(depth)
         sampling = self.params.sampling
@@ -322,6 +334,15 @@ class RaycastRender(RenderBackend):
                 if puppet.mouth_own:
                     return Rendered(rgb=out, mask=mask, own=drawn)
         return Rendered(rgb=out, mask=mask)
+
+
+def _eyes_and_brows(fiducials: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """(H, W) bool: the eyes and brows of a face with 49 ``fiducials`` (49, 2) on a grid of ``shape``, each the
+    hull of its points grown as composite.features_of grows A's."""
+    points = np.full((68, 2), np.nan)
+    points[list(IDX49)] = fiducials
+    return features_of(points, shape, EYES) | features_of(points, shape, BROWS)
+
 
 @hookimpl
 def persona_register_backends(register):

@@ -57,7 +57,7 @@ def test_the_render_draws_the_drivers_own_mouth_interior_into_the_puppets_gap():
     blue = np.broadcast_to(np.float32([0, 0, 255]), (32, 64, 3)).copy()  # B's own interior
     context = {"coverage": np.ones(face.vert_mask.shape, np.float32), "fiducials": neutral.fiducials3d[:, :2],
                "lips": mouth.lip_curves(neutral.landmarks3d[:, :2]), "mouth": (blue, 10.0), "mouth_cavity": None,
-               "insets": None, "jaw": None}
+               "insets": None, "jaw": None, "neutral": None}
     inputs = {"@frames/photos/size": np.array(size), "@frames/photos/rgb": frame, "@frames/landmarks/points": driver,
               "texture/rgb": (face.vert_albedo * 255).astype(np.uint8), "target": neutral.fiducials3d[:, :2],
               "pose": Pose(rvec, tvec, camera, 0.0).as_vector(), "mouth/teeth": np.float32(1),

@@ -43,10 +43,11 @@ def truth(face, pose):
 
 def render(puppet, pose, **params):
     """The render with a hard edge, and the texture sampled at a point per pixel, bilinearly, as the ray
-    cast interpolates its vertex colours (``filter_texture`` off and ``sampling`` bilinear; both have their
-    own tests below)."""
+    cast interpolates its vertex colours, all of the texture drawn, its rim too (``filter_texture`` off,
+    ``sampling`` bilinear, ``rim`` texture: each has its own test below; the ground truth draws the synthetic
+    face's cap of hair as face)."""
     frame = np.zeros((*SIZE, 3), np.uint8)
-    params = {"feather": 0.0, "filter_texture": False, "sampling": "bilinear", **params}
+    params = {"feather": 0.0, "filter_texture": False, "sampling": "bilinear", "rim": "texture", **params}
     return RaycastRender(params).render(puppet, None, pose, frame)
 
 
@@ -180,6 +181,50 @@ def test_a_hole_the_face_encloses_is_drawn_though_few_photos_see_it():
     inside = gt.face_mask & (u > 87) & (u < 108) & (v > 142) & (v < 148)
     assert inside.sum() > 20 and np.all(out.mask[inside] == 1)
     assert np.all(out.mask[gt.face_mask & (u < 18)] == 0)
+
+
+def test_bs_hair_at_the_rim_of_the_texture_is_left_out_and_bs_brows_are_drawn():
+    """Hair that hung over B's temple and cheek in B's photos is in B's texture as a dark band reaching its edge.
+    With ``rim: skin`` (the default) it is not drawn, nor is the cap of hair at the top of the synthetic face's
+    texture: the frame shows there, as beside a face narrower than B's. The skin beside the strand is drawn, and so
+    is B's brow, though a strand joins its outer end to the edge. With ``rim: texture`` (the paper's) all of it is."""
+    face, pose = make_face(), posed(0)
+    gt = truth(face, pose)
+    puppet = puppet_of(face, face.vert_mask.astype(np.float32))  # no photo sees beyond the face
+    albedo, hair = puppet.appearance.copy(), np.float32([45, 32, 25])
+    rows, cols = np.nonzero(face.vert_mask)
+    edge = {r: cols[rows == r].min() for r in range(60, 180)}  # the face's left edge, by texel row
+    strand = np.zeros(face.vert_mask.shape, bool)
+    for r in range(115, 155):
+        strand[r, edge[r]:edge[r] + 10] = True  # down the cheek, 10 texels deep: below the eye, above the chin
+    bridge = np.zeros_like(strand)
+    for r in range(80, 88):
+        bridge[r, edge[r]:34] = True  # from the edge to the brow's outer end (fiducial 0 at x 34, y 84)
+    albedo[strand | bridge] = hair
+    puppet = Puppet(**{**puppet.__dict__, "appearance": albedo})
+    u, v = (np.clip(np.round(np.nan_to_num(gt.uv[..., k])), 0, n - 1).astype(int) for k, n in ((0, 194), (1, 244)))
+    seen = gt.face_mask & np.isfinite(gt.uv).all(axis=-1)
+    ring = np.ones((5, 5), np.uint8)  # two texels in: the mask's samples between texels are read bilinearly
+    deep = lambda texels: seen & (cv2.erode(texels.astype(np.uint8), ring)[v, u] > 0)  # noqa: E731
+    skin = np.zeros_like(strand)
+    for r in range(115, 155):
+        skin[r, edge[r] + 30:edge[r] + 40] = True
+    brow = np.zeros_like(strand)
+    for x, y in np.round(face.fiducials3d[:5, :2]).astype(int):  # the left brow's five points
+        brow[y - 3:y + 4, x - 3:x + 4] = True
+    cap = face.vert_mask & (np.arange(244)[:, None] < 20)  # the synthetic texture's hair, at its top
+    assert (albedo[cap].mean(axis=0) < 80).all()  # dark: hair, not skin
+
+    out = render(puppet, pose, rim="skin")
+    for texels in (strand, cap):
+        assert deep(texels).sum() > 50 and np.all(out.mask[deep(texels)] == 0)
+    for texels in (skin, brow):
+        assert deep(texels).sum() > 20 and np.all(out.mask[deep(texels)] == 1)
+    everything = render(puppet, pose)
+    assert np.all(everything.mask[deep(strand) | deep(cap)] == 1)
+    # judged on B's neutral texture when the puppet has one, whatever this frame's texture holds there
+    clean = Puppet(**{**puppet.__dict__, "appearance": puppet_of(face).appearance, "neutral": albedo})
+    assert np.all(render(clean, pose, rim="skin").mask[deep(strand)] == 0)
 
 
 def test_missing_mesh_is_a_clear_error():
