@@ -24,7 +24,7 @@ class DeformationTransferBackend(TransferBackend):
                    "moved onto their retargeted places and the skin below the mouth kept from folding")
     default = True
     key_name = "-"
-    version = "7"  # 6: the skin under the brows held up as the eyes shut (brow_hold); 7: in full from eyes.SHUT_AT 0.3
+    version = "8"  # 7: the brows held up in full from eyes.SHUT_AT 0.3; 8: the inner lips parted as a step (split_lips)
     Params = TransferParams
 
     def prepare(self, pair):
@@ -36,7 +36,7 @@ class DeformationTransferBackend(TransferBackend):
         follow = targets = None
         if p.fiducials:
             follow = FiducialFollow(pair.fiducials, pair.puppet_mask, lam=p.fiducial_lambda,
-                                    corner_reach=p.corner_reach, brow_hold=p.brow_hold)
+                                    corner_reach=p.corner_reach, brow_hold=p.brow_hold, split_lips=p.split_lips)
             targets = smooth_in_time(np.asarray(pair.targets, np.float64), p.fiducial_sigma)
 
         def mesh(t: int, driver_mesh: np.ndarray) -> np.ndarray:

@@ -65,10 +65,10 @@ from scipy.spatial import cKDTree
 from ..base import Params
 from ..kinds import DenoiseBackend, FlowBackend
 from .eyes import SHUT_AT, SHUT_FROM, opened
-from .mesh import rim_points
+from .mesh import lip_split, rim_points
 from .subspace import project
 from .template import IDX49
-from .warp import TpsWarp, compose, pin, tps_map, tps_weights
+from .warp import FACING, TpsWarp, compose, pin, tps_map, tps_weights
 
 #: the TV weight of the default denoiser (the paper's is 1; see DeformationTransfer)
 DEFAULT_TV_WEIGHT = 0.3
@@ -113,6 +113,11 @@ class TransferParams(Params):
         "alone) above which the skin goes no further down than the brow as the eye shuts: a lid that shuts does "
         "not drag the brow down onto it. 0.5 took the frontal man <- fringe woman's face-alone eye gain 0.25 -> 0.36 "
         "and left the self-reenactments within 0.01 dB (:class:`FiducialFollow`, docs/expression.md)")
+    split_lips: bool = Field(
+        True, description="the follower parts B's inner lips as a step at the line where they meet, each read on "
+        "its own side of it, and spreads the rest of the misses with its spline (not in the paper; false: the "
+        "spline alone, which cannot part points a texel apart: a puppet whose photos keep the mouth shut opened "
+        "its inner lips 0.34 as far as their targets; :class:`FiducialFollow`, docs/expression.md)")
     unfold: bool = Field(
         True, description="below the mouth's middle, a column of B's mesh that folds (the lower lip dropped over "
         "the skin under it, which the renderer drew as a ragged edge) is made to run down again: the lip's body "
@@ -372,6 +377,20 @@ def _under_brows(fiducials: np.ndarray, share: float) -> tuple[np.ndarray, np.nd
     return np.array(points), np.array(weights)
 
 
+def own_sides(fiducials: np.ndarray) -> np.ndarray:
+    """(49, 2) the ``fiducials`` with each of the inner lips' facing points (iBUG 61/67, 62/66, 63/65) moved
+    straight up or down, if it must, onto the nearest texel row wholly on its own side of the line where the lips
+    meet (the pair's middle; :func:`persona.plugins.face.mesh.lip_split` moves a texel with the lower lip by the
+    share of it below that line): the upper lip's onto the lowest row at least half a texel above it, the lower
+    lip's onto the highest row at least half a texel below it. Lips further apart than that are as they are."""
+    out = np.array(fiducials, np.float64, copy=True)
+    for upper, lower in FACING[4:]:
+        middle = (out[upper, 1] + out[lower, 1]) / 2
+        out[upper, 1] = min(out[upper, 1], np.floor(middle - 0.5))
+        out[lower, 1] = max(out[lower, 1], np.ceil(middle + 0.5))
+    return out
+
+
 class FiducialFollow:
     """B's transferred meshes moved so that their fiducials land on per-frame targets (not in the
     paper; ``TransferParams.fiducials``).
@@ -405,13 +424,22 @@ class FiducialFollow:
     move it, less the share of what it would go further down than the brow above it that the eye shuts:
     none while the target's lids are at least eyes.SHUT_FROM of their neutral distance apart (the mesh is
     the follower's alone), all of it at eyes.SHUT_AT and below.
+    split_lips : the lips' parting as a step (:func:`persona.plugins.face.mesh.lip_split`, as the driver's
+    meshes have it) and the spline through the rest of the misses. B's inner lips lie as far apart as B's photos
+    hold them: a texel or less for a puppet whose photos keep the mouth shut, and a smooth spline cannot move
+    two points so close tens of texels apart (on the woman with a fringe, B's meshes opened the inner lips 0.34
+    as far as their targets, with a notch in the lower lip). Each inner lip is read, and held by the spline, on
+    the first texel row wholly on its own side of the line where the lips meet (:func:`own_sides`), where the
+    step moves a texel with the lower lip in full or not at all.
     """
 
     def __init__(self, fiducials: np.ndarray, mask: np.ndarray, *, lam: float = 0.1, spacing: int = 12,
-                 step: int = 1, corner_reach: float = 0.0, brow_hold: float = 0.0):
+                 step: int = 1, corner_reach: float = 0.0, brow_hold: float = 0.0, split_lips: bool = False):
         self.fiducials = np.asarray(fiducials, np.float64)
-        rim = rim_points(mask, spacing)
-        self._still = np.zeros((len(rim), 2))
+        self.split_lips = split_lips
+        self._read = own_sides(self.fiducials) if split_lips else self.fiducials  # where each fiducial is read
+        self._rim = rim = rim_points(mask, spacing)
+        self._grid = np.stack(np.mgrid[0:mask.shape[0], 0:mask.shape[1]][::-1], axis=-1).reshape(-1, 2)
         # with corner_reach: points beyond each mouth corner, each with its corner and how much of
         # the corner's sideways motion it takes
         self._beyond, self._corner, self._fade = np.zeros((0, 2)), np.zeros(0, int), np.zeros(0)
@@ -422,13 +450,13 @@ class FiducialFollow:
                     c, 1 - d / corner_reach) for c in _MOUTH_CORNERS for d in steps]
             self._beyond, self._corner, self._fade = (np.array(v) for v in zip(*out))
             # the sideways move the follower gives those points without them (one-sided reach, below)
-            self._free = tps_weights(np.concatenate([self.fiducials, rim]), self._beyond, lam=lam)
+            self._free = tps_weights(np.concatenate([self._read, rim]), self._beyond, lam=lam)
         self._above, self._brows = (_under_brows(self.fiducials, brow_hold) if brow_hold > 0
                                     else (np.zeros((0, 2)), np.zeros((0, len(self.fiducials)))))
         # the move the follower gives those points without them
-        self._free_above = tps_weights(np.concatenate([self.fiducials, self._beyond, rim]), self._above, lam=lam) \
+        self._free_above = tps_weights(np.concatenate([self._read, self._beyond, rim]), self._above, lam=lam) \
             if len(self._above) else None
-        self.warp = TpsWarp(np.concatenate([self.fiducials, self._beyond, self._above, rim]), np.asarray(mask).shape,
+        self.warp = TpsWarp(np.concatenate([self._read, self._beyond, self._above, rim]), np.asarray(mask).shape,
                             lam=lam, step=step)
 
     def _shutting(self, target: np.ndarray) -> np.ndarray:
@@ -450,12 +478,18 @@ class FiducialFollow:
     def __call__(self, mesh: np.ndarray, target: np.ndarray, weight: float = 1.0) -> np.ndarray:
         """The mesh (H, W, 3) moved ``weight`` of the way to fiducials at ``target`` (49, 2); a
         target with a NaN moves nothing."""
-        now = self.landmarks(mesh)
-        miss = weight * (np.asarray(target, np.float64) - now)
+        now = self.moved(mesh, self._read)
+        miss = weight * (np.asarray(target, np.float64) + (self._read - self.fiducials) - now)
         miss[~np.isfinite(miss).all(axis=1)] = 0.0
+
+        def parting(points, misses=miss):  # the lips' parting as a step, at (k, 2) points
+            return lip_split(self.fiducials, misses, points) if self.split_lips else np.zeros((len(points), 2))
+
+        # the spline's share: what the parting leaves of each miss; the rim held where the parting would move it
+        miss, still = miss - parting(self._read), -parting(self._rim)
         beyond = np.zeros((0, 2))  # without corner_reach there are no points beyond the corners
         if len(self._beyond):  # what the follower alone would move them by; sideways, at least a share of the corner's
-            beyond = self._free @ np.concatenate([miss, self._still])
+            beyond = self._free @ np.concatenate([miss, still])
             corner = now[self._corner] + miss[self._corner] - self.fiducials[self._corner]
             shift = self.moved(mesh, self._beyond) - self._beyond
             held = self._fade * (corner[:, 0] - shift[:, 0])
@@ -463,11 +497,13 @@ class FiducialFollow:
             beyond[:, 0] = np.where((held - beyond[:, 0]) * corner[:, 0] > 0, held, beyond[:, 0])
         above = np.zeros((0, 2))  # without brow_hold there are no points above the lids
         if len(self._above):  # as the follower alone would move them, but held up to the brow as the eye shuts
-            above = self._free_above @ np.concatenate([miss, beyond, self._still])
+            above = self._free_above @ np.concatenate([miss, beyond, still])
             below = np.maximum(above[:, 1] - self._brows @ miss[:, 1], 0.0)  # how far further down than the brow
             above[:, 1] -= np.repeat(self._shutting(target), 2) * below
         out = np.array(mesh, np.float64, copy=True)
-        out[..., :2] += self.warp.map(np.concatenate([miss, beyond, above, self._still]))
+        out[..., :2] += self.warp.map(np.concatenate([miss, beyond, above, still]))
+        if self.split_lips:
+            out[..., :2] += parting(self._grid).reshape(*out.shape[:2], 2)
         return out
 
 
@@ -494,13 +530,18 @@ def fold_depths(mesh: np.ndarray, below: np.ndarray, step: float = 0.0) -> np.nd
 def lower_lip(below: np.ndarray, fiducials: np.ndarray) -> np.ndarray:
     """(2, W): the row (canonical px, fractional) of B's inner and of its outer lower lip in each column of
     ``below`` (:func:`below_mouth`), the lines through its mean ``fiducials`` iBUG 48, 67-65, 54 and 48, 59-55, 54;
-    NaN beside the mouth. The rows between them are the lower lip's body."""
+    NaN beside the mouth. The rows between them are the lower lip's body. The inner row is never above the
+    column's first row of ``below``: a puppet whose lips meet within a texel has its inner lower lip on the row
+    the upper lip's texels part from, which moves with neither lip in full (mesh.lip_split)."""
+    below = np.asarray(below, bool)
     cols = np.arange(below.shape[1], dtype=np.float64)
     out = np.full((2, below.shape[1]), np.nan)
     for k, line in enumerate(((48, 67, 66, 65, 54), (48, 59, 58, 57, 56, 55, 54))):
         points = np.asarray(fiducials, np.float64)[[IDX49.index(i) for i in line]]
         points = points[np.argsort(points[:, 0], kind="stable")]  # np.interp needs them left to right
         out[k] = np.interp(cols, points[:, 0], points[:, 1], left=np.nan, right=np.nan)
+    first = np.where(below.any(axis=0), below.argmax(axis=0), 0)
+    out[0] = np.where(np.isfinite(out[0]), np.maximum(out[0], first), np.nan)
     return out
 
 

@@ -308,6 +308,46 @@ def test_fiducial_follow_lands_the_fiducials_and_holds_the_rim():
     assert np.abs(follow.landmarks(follow(mesh, target))[20] - fiducials[20]).max() < 0.5
 
 
+def test_the_lips_of_a_shut_mouth_part_as_far_as_their_targets_with_split_lips():
+    """A puppet whose photos keep the mouth shut has its inner lips half a texel apart. Targets open them by 14 px
+    (the upper lip up 6, the lower down 8, the outer lower lip with it). With ``split_lips`` each inner lip, read on
+    the first texel row wholly on its own side of the line where they meet (own_sides), lands within a quarter of a
+    pixel of its target, and so does every other fiducial; the texel row on that line is the only one between
+    the lips, and the rows under the lower lip drop as it does. The spline alone, which cannot move points so
+    close so far apart, misses by 2 px and swings past: the rows under the lower lip drop 14 px for its 8. Lips
+    already further apart are read where they are."""
+    fiducials, mask, mesh = _flat_face()
+    inner = [IDX49.index(i) for i in (61, 62, 63, 65, 66, 67)]
+    shut = fiducials.copy()
+    for upper, lower in FACING[4:]:
+        middle = (shut[upper, 1] + shut[lower, 1]) / 2
+        shut[upper, 1], shut[lower, 1] = middle - 0.25, middle + 0.25
+    offsets = np.zeros((49, 2))
+    offsets[[IDX49.index(i) for i in (49, 50, 51, 52, 53, 61, 62, 63)], 1] = -6.0
+    offsets[[IDX49.index(i) for i in (55, 56, 57, 58, 59, 65, 66, 67)], 1] = 8.0
+    target = shut + offsets
+    read = transfer_module.own_sides(shut)
+    np.testing.assert_array_equal(np.delete(read, inner, axis=0), np.delete(shut, inner, axis=0))
+    for upper, lower in FACING[4:]:
+        assert read[lower, 1] - read[upper, 1] <= 2 and read[upper, 1] == np.floor(read[upper, 1])
+    np.testing.assert_array_equal(transfer_module.own_sides(fiducials), fiducials)  # the template's lips: apart
+
+    def gap(landmarks):
+        return np.mean([landmarks[lower, 1] - landmarks[upper, 1] for upper, lower in FACING[4:]])
+
+    split = FiducialFollow(shut, mask, split_lips=True)
+    moved = split(mesh, target)
+    landed = split.moved(moved, read) - (read - shut)  # each fiducial where its own side's texel went
+    assert np.abs(landed - target).max() < 0.25
+    assert gap(target) - gap(shut) == pytest.approx(14.0)
+    column = int(round(shut[IDX49.index(66), 0]))
+    under = np.arange(int(read[IDX49.index(66), 1]), int(shut[IDX49.index(57), 1]))  # the lower lip's rows
+    np.testing.assert_allclose(moved[under, column, 1] - under, 8.0, atol=0.25)
+    alone = FiducialFollow(shut, mask)(mesh, target)
+    assert np.abs(split.moved(alone, read) - (read - shut) - target).max() > 1.5
+    assert (alone[under, column, 1] - under).max() > 12.0
+
+
 def _narrowing_mouth(beyond: float):
     """The generic template's fiducials, a face mask, and a transferred mesh whose mouth narrows (the
     corners 4 px inwards) with a sideways motion ``beyond`` times the corners' 10 px beyond them (0.5: the
@@ -502,14 +542,14 @@ def test_a_lower_lip_hanging_below_its_own_edge_is_spread_between_its_edges():
 def test_the_built_in_transfer_backend_is_the_transfer_the_follower_and_the_unfolding():
     """The ``transfer`` kind's default (plugins/builtin/transfer.py) prepares, once, the deformation transfer,
     the fiducial follower on the targets smoothed in time and the unfolding below the mouth, with its params;
-    its cache key is the motion stage's before the kind existed: "-", and version 7."""
+    its cache key is the motion stage's before the kind existed: "-", and version 8."""
     from persona.plugins.builtin.transfer import DeformationTransferBackend
     from persona.plugins.face.dynamics import smooth_in_time
     from persona.plugins.kinds import MotionPair
     from persona.plugins.manager import default_registry
 
     assert default_registry().default("transfer") == "deformation"
-    assert (DeformationTransferBackend.key_name, DeformationTransferBackend.version) == ("-", "7")
+    assert (DeformationTransferBackend.key_name, DeformationTransferBackend.version) == ("-", "8")
     mask, fiducials, mesh, below = _template_at_rest()
     rng = np.random.default_rng(3)
     targets = fiducials + rng.normal(0, 0.5, (4, 49, 2))
@@ -521,7 +561,7 @@ def test_the_built_in_transfer_backend_is_the_transfer_the_follower_and_the_unfo
     p = TransferParams.model_validate(params)
     transfer = DeformationTransfer(mesh, mesh[..., :2], mesh, mask, mask, params=p, denoiser=NoDenoise())
     follow = FiducialFollow(fiducials, mask, lam=p.fiducial_lambda, corner_reach=p.corner_reach,
-                            brow_hold=p.brow_hold)
+                            brow_hold=p.brow_hold, split_lips=p.split_lips)
     steady = smooth_in_time(targets, p.fiducial_sigma)
     lip = transfer_module.lower_lip(below, fiducials)
     for t in (0, 3):
