@@ -67,7 +67,7 @@ from .stages import RENDER_3D, accepted, backend_key, provenance, render_alpha
 
 #: the figures' version: a run keeps its last evaluation only when this is the same (raise it whenever a
 #: figure is added or computed differently)
-VERSION = 13
+VERSION = 14
 
 #: a person's descriptor centroid (128,), kept in its collection: the mean descriptor of the sample of its
 #: accepted photos that every drive of the person is judged against (:func:`centroid_plan`)
@@ -365,9 +365,15 @@ def gaze_figures(signals: dict[str, dict[str, np.ndarray]]) -> dict[str, dict[st
     """Where the eyes look, output against driver: per signal of ev.gaze_signals (along and across the eye,
     apart, eye widths), the ev.amplitude (gain, interval, r, ranges) of the face alone and of composite.mp4's
     frames, from the gaze signals of the driver's, the face alone's and the composite's frames (``signals``
-    keyed "driver", "output", "composite")."""
-    return {where: {k: ev.amplitude(signals["driver"][k], signals[who][k]) for k in signals["driver"]}
-            for where, who in (("face_alone", "output"), ("composite", "composite"))}
+    keyed "driver", "output", "composite"); with "apart", how far the driver's eyes' turn against each other
+    stands out from the measure's noise (``driver_over_noise``, gaze.spread_over_noise: below gaze.APART_SNR
+    B's eyes turn together, and the gain has no target)."""
+    figures = {where: {k: ev.amplitude(signals["driver"][k], signals[who][k]) for k in signals["driver"]}
+               for where, who in (("face_alone", "output"), ("composite", "composite"))}
+    over = float(gaze.spread_over_noise(np.asarray(signals["driver"]["apart"], np.float64)[:, None])[0])
+    for signal in figures.values():
+        signal["apart"]["driver_over_noise"] = over
+    return figures
 
 
 def own_photos(puppet: Collection, sample: int = 100):

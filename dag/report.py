@@ -17,6 +17,7 @@ import numpy as np
 
 from persona.plugins.builtin.evaluate import BIAS_SCALE, ERROR_SCALE, GAIN_BLOCK, expression_peaks
 from persona.plugins.face import composite
+from persona.plugins.face.gaze import APART_SNR
 from persona.stores import media, storage
 from persona.stores.layout import Cast, Collection
 from persona.stores.paths import item
@@ -190,14 +191,22 @@ GAZE_SIGNALS = {"along": "along the eye", "across": "across the eye",
 
 
 def _gaze_rows(figures: dict) -> list[tuple]:
-    """Where the eyes look, output on driver: a row per place (face alone, composite.mp4) and signal."""
+    """Where the eyes look, output on driver: a row per place (face alone, composite.mp4) and signal. The eyes
+    apart have a target only where the driver's turn against each other stands out from the measure's noise as
+    the texture's gaze requires before it turns B's eyes apart (gaze.APART_SNR); below it B's eyes turn together."""
     rows = []
     for where, signals in figures.items():
         for k, a in signals.items():
-            counted = a.get("driver_range", 0.0) > GAZE_RANGE
-            guide = (f"1 = the driver's amplitude; r {a['r']:.2f}; target 0.7-1.4" if counted else
-                     f"1 = the driver's amplitude; no target: the driver's irises range over {a['driver_range']:.3f} "
-                     f"eye widths ({k}), under {GAZE_RANGE}")
+            over = a.get("driver_over_noise", np.inf)  # an evaluation made before it was recorded: counted
+            counted = a.get("driver_range", 0.0) > GAZE_RANGE and over >= APART_SNR
+            if counted:
+                guide = f"1 = the driver's amplitude; r {a['r']:.2f}; target 0.7-1.4"
+            elif over < APART_SNR:
+                guide = (f"1 = the driver's amplitude; no target: the driver's eyes turn apart no more than the "
+                         f"measure's noise (spread {over:.1f} times it, under {APART_SNR}: B's eyes turn together)")
+            else:
+                guide = (f"1 = the driver's amplitude; no target: the driver's irises range over "
+                         f"{a['driver_range']:.3f} eye widths ({k}), under {GAZE_RANGE}")
             rows.append((f"gaze gain ({where.replace('_', ' ')}): {GAZE_SIGNALS.get(k, k)}", a["gain"], guide,
                          (0.7, 1.4) if counted else None))
     return rows

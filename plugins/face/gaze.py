@@ -197,22 +197,31 @@ def gaze_shift(offsets: np.ndarray) -> np.ndarray:
     return np.clip(np.nan_to_num(moved), -np.asarray(MAX_SHIFT), MAX_SHIFT)
 
 
+def spread_over_noise(values: np.ndarray) -> np.ndarray:
+    """(k,) per column of a clip's measures ``values`` (T, k; a frame with a NaN left out): their spread (standard
+    deviation) over the measure's noise frame by frame, read from the changes between consecutive frames (their
+    median absolute deviation, over √2); inf where those changes do not spread at all, 0 with fewer than three
+    frames."""
+    values = np.asarray(values, np.float64)
+    values = values[np.isfinite(values).all(axis=1)]
+    if len(values) < 3:
+        return np.zeros(values.shape[1])
+    steps = np.diff(values, axis=0)
+    noise = 1.4826 * np.median(np.abs(steps - np.median(steps, axis=0)), axis=0) / np.sqrt(2)
+    spread = values.std(axis=0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(noise > 0, spread / noise, np.inf)
+
+
 def turns_apart(apart: np.ndarray) -> np.ndarray:
     """(2,) along and across: whether a clip's turn of one eye against the other, ``apart`` (T, 2; NaN where an
     eye was not measured), stands out from the measure's noise, its spread at least APART_SNR times the noise
-    frame by frame; where it does not, the eyes turn together. The noise is read from the changes between
-    consecutive frames (their median absolute deviation, over √2): eyes turn apart slowly or hold a cross,
-    where the measure of a small eye jumps from frame to frame. Along the eye the ratio is 5.1-6.5 on the HD
-    clips (the fringe woman, whose eyes converge; the expressions woman; the man with glasses) and at most 2.3
-    on the others (the MEAD actor's 256² clips, whose eyes are 25 px wide, the phone clip, the Obama address, the
-    frontal man's light irises, the smiling man)."""
-    apart = np.asarray(apart, np.float64)
-    apart = apart[np.isfinite(apart).all(axis=1)]
-    if len(apart) < 3:
-        return np.zeros(2, bool)
-    steps = np.diff(apart, axis=0)
-    noise = 1.4826 * np.median(np.abs(steps - np.median(steps, axis=0)), axis=0) / np.sqrt(2)
-    return apart.std(axis=0) >= APART_SNR * noise
+    frame by frame (:func:`spread_over_noise`); where it does not, the eyes turn together. Eyes turn apart slowly
+    or hold a cross, where the measure of a small eye jumps from frame to frame. Along the eye the ratio is 5.1-6.5
+    on the HD clips (the fringe woman, whose eyes converge; the expressions woman; the man with glasses) and at
+    most 2.3 on the others (the MEAD actor's 256² clips, whose eyes are 25 px wide, the phone clip, the Obama
+    address, the frontal man's light irises, the smiling man)."""
+    return spread_over_noise(apart) >= APART_SNR
 
 
 def together(shift: np.ndarray) -> np.ndarray:

@@ -64,7 +64,9 @@ def test_each_target_is_marked_met_or_not():
     """Known answers: a gain of 0.8 meets 0.7-1.4, the face alone's PSNR of 24 dB misses 25, the composite's
     27.5 meets 27 and its SSIM of 0.86 misses 0.88, a jaw registered at 3.5 % misses 3 and all points at 1.5
     meet 2, a seam's step of 20 grey levels misses 7.7, a gaze gain of 0.5 along the eye misses 0.7-1.4 where the
-    driver's irises range over 0.3 eye widths, and has no target across it, where they range over 0.04; the eye gain of 0.3 has no target where the driver's eyes range over 0.02 IOD (< 0.05),
+    driver's irises range over 0.3 eye widths, and has no target across it, where they range over 0.04, nor apart
+    where the driver's eyes turn apart no more than 1.3 times the measure's noise (it has where they stand at 4); the
+    eye gain of 0.3 has no target where the driver's eyes range over 0.02 IOD (< 0.05),
     nor has "B and not A" where dlib sees B and A as one person (0.3 and 0.4 from the output)."""
     assert met(0.8, (0.7, 1.4)) and not met(1.5, (0.7, 1.4)) and met(0, (None, 0)) and met(0.3, None) is None
     rows = {r[0]: r for r in figure_rows(evaluation(0.3, 0.4))}
@@ -75,6 +77,12 @@ def test_each_target_is_marked_met_or_not():
     assert met(*rows["self-reenactment psnr_db_composite"][1::2])
     assert met(*rows["self-reenactment landmark registration (composite.mp4): all"][1::2])
     assert rows["gaze gain (face alone): across the eye"][3] is None
+    noisy = {"gaze": {"face_alone": {"apart": {"gain": 0.1, "r": 0.1, "driver_range": 0.2, "driver_over_noise": 1.3}}}}
+    apart = "gaze gain (face alone): the eyes apart (the right one's offset along less the left one's)"
+    _, _, guide, target = {r[0]: r for r in figure_rows({**evaluation(0.3, 0.4), **noisy})}[apart]
+    assert target is None and "spread 1.3 times it, under 3.0" in guide  # their parting is the measure's noise
+    turning = {"gaze": {"face_alone": {"apart": {**noisy["gaze"]["face_alone"]["apart"], "driver_over_noise": 4.0}}}}
+    assert {r[0]: r for r in figure_rows({**evaluation(0.3, 0.4), **turning})}[apart][3] == (0.7, 1.4)
     summary = targets_summary(list(rows.values()))
     assert summary.startswith("9 of 14 targets met; not met: ")
     assert "gaze gain (face alone): along the eye 0.50" in summary

@@ -194,6 +194,21 @@ def test_eyes_turn_apart_where_the_clip_shows_it_above_the_measures_noise():
         assert np.abs(shift[:, :, 0].mean(axis=1) - wanted).max() < 1e-9
 
 
+def test_a_measure_of_noise_alone_spreads_as_far_as_its_noise_and_a_slow_turn_further():
+    """spread_over_noise, the figure the texture's gaze and the evaluation's target for the eyes apart both read:
+    2,000 frames of white noise (σ 0.02) stand at 1 (within 0.1); the same noise on a slow turn of 0.2 eye widths
+    (a period of 300 frames) over twice APART_SNR; a frame with a NaN is left out; fewer than three frames, 0."""
+    rng = np.random.default_rng(11)
+    noise = rng.normal(0, 0.02, 2000)
+    turn = 0.2 * np.sin(np.arange(2000) * 2 * np.pi / 300)
+    ratio = gaze.spread_over_noise(np.c_[noise, turn + noise])
+    assert ratio[0] == pytest.approx(1.0, abs=0.1) and ratio[1] > 2 * gaze.APART_SNR
+    holed = np.c_[noise, turn + noise]
+    holed[::7, 0] = np.nan
+    assert gaze.spread_over_noise(holed)[1] == pytest.approx(ratio[1], rel=0.1)
+    np.testing.assert_array_equal(gaze.spread_over_noise(np.zeros((2, 2))), [0, 0])
+
+
 def test_eyes_never_part_further_than_eyes_do():
     """A clip whose eyes converge (the image's right one 0.15 eye widths towards the nose) in some frames and
     whose measure, in three frames, has them part by 0.3 (a glare on one lens): the convergence is kept, the
