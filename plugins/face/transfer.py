@@ -66,6 +66,7 @@ from ..base import Params
 from ..kinds import DenoiseBackend, FlowBackend
 from .eyes import SHUT_AT, SHUT_FROM, opened
 from .mesh import lip_split, rim_points
+from .mouth import outer_corners
 from .subspace import project
 from .template import IDX49
 from .warp import FACING, TpsWarp, compose, pin, tps_map, tps_weights
@@ -439,7 +440,12 @@ class FiducialFollow:
         self.split_lips = split_lips
         self._read = own_sides(self.fiducials) if split_lips else self.fiducials  # where each fiducial is read
         self._rim = rim = rim_points(mask, spacing)
-        self._grid = np.stack(np.mgrid[0:mask.shape[0], 0:mask.shape[1]][::-1], axis=-1).reshape(-1, 2)
+        self._still = np.zeros((len(rim), 2))
+        # with split_lips: the texels between the mouth's outer corners, the only ones the parting moves
+        left, right = outer_corners(self.fiducials)[:, 0]
+        ys, xs = np.mgrid[0:mask.shape[0], 0:mask.shape[1]]
+        self._mouth = (xs > left) & (xs < right)
+        self._mouth_points = np.stack([xs[self._mouth], ys[self._mouth]], axis=1)
         # with corner_reach: points beyond each mouth corner, each with its corner and how much of
         # the corner's sideways motion it takes
         self._beyond, self._corner, self._fade = np.zeros((0, 2)), np.zeros(0, int), np.zeros(0)
@@ -481,12 +487,11 @@ class FiducialFollow:
         now = self.moved(mesh, self._read)
         miss = weight * (np.asarray(target, np.float64) + (self._read - self.fiducials) - now)
         miss[~np.isfinite(miss).all(axis=1)] = 0.0
-
-        def parting(points, misses=miss):  # the lips' parting as a step, at (k, 2) points
-            return lip_split(self.fiducials, misses, points) if self.split_lips else np.zeros((len(points), 2))
-
-        # the spline's share: what the parting leaves of each miss; the rim held where the parting would move it
-        miss, still = miss - parting(self._read), -parting(self._rim)
+        still, parted = self._still, None
+        if self.split_lips:  # the lips' parting as a step; the spline takes what it leaves, the rim held against it
+            parted, at_read, at_rim = (lip_split(self.fiducials, miss, points)
+                                       for points in (self._mouth_points, self._read, self._rim))
+            miss, still = miss - at_read, -at_rim
         beyond = np.zeros((0, 2))  # without corner_reach there are no points beyond the corners
         if len(self._beyond):  # what the follower alone would move them by; sideways, at least a share of the corner's
             beyond = self._free @ np.concatenate([miss, still])
@@ -502,8 +507,8 @@ class FiducialFollow:
             above[:, 1] -= np.repeat(self._shutting(target), 2) * below
         out = np.array(mesh, np.float64, copy=True)
         out[..., :2] += self.warp.map(np.concatenate([miss, beyond, above, still]))
-        if self.split_lips:
-            out[..., :2] += parting(self._grid).reshape(*out.shape[:2], 2)
+        if parted is not None:
+            out[self._mouth, :2] += parted
         return out
 
 
